@@ -1,0 +1,399 @@
+"""The only place that talks to SUMO (libsumo or TraCI).
+
+libsumo runs one simulation per process, and a second ``libsumo.start()`` silently replaces the
+first. ``SumoBackend`` therefore records which instance owns libsumo; a second one either falls
+back to a labelled TraCI connection or raises ``SumoError`` saying why. After a ``moveToXY``
+that no ``simulationStep`` followed, the next simulation's first step segfaults (libsumo 1.28),
+so ``load``/``close`` always flush a pending move with one step first.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import os
+import shutil
+import subprocess
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from mixed_traffic.backend.snapshot import Collision, TrafficSnapshot, sumo_angle_to_rad
+
+os.environ.setdefault("LIBSUMO_AS_TRACI", "quiet")  # silences libsumo's pyarrow check at import
+
+import libsumo
+import traci
+import traci.constants as tc
+
+#: speedMode 32: no safe-speed, acceleration, deceleration or right-of-way checks, so the
+#: policy (not SUMO) drives the AV; bit 5 set disregards right of way inside junctions too.
+AV_SPEED_MODE = 32
+#: laneChangeMode 0: no autonomous lane changes and TraCI changes ignore other drivers.
+AV_LANE_CHANGE_MODE = 0
+
+_TRACI_VARS = (
+    tc.VAR_POSITION3D,
+    tc.VAR_ANGLE,
+    tc.VAR_SPEED,
+    tc.VAR_ACCELERATION,
+    tc.VAR_LANE_ID,
+    tc.VAR_LANEPOSITION,
+    tc.VAR_LANEPOSITION_LAT,
+)
+_labels = itertools.count()
+_libsumo_owner: SumoBackend | None = None
+
+
+class SumoError(RuntimeError):
+    """SUMO could not be started or used; the message says what and why."""
+
+
+def sumo_version() -> str:
+    """Version of the SUMO binaries, e.g. ``1.28.0``."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("eclipse-sumo")
+    except PackageNotFoundError:
+        return _version_from_binary()
+
+
+def _version_from_binary() -> str:
+    out = subprocess.run([binary("sumo"), "--version"], capture_output=True, text=True).stdout
+    first = out.splitlines()[0] if out else ""
+    return first.split()[-1] if first else "unknown"
+
+
+def binary(name: str) -> str:
+    """Path of a SUMO executable (``sumo``, ``netconvert``, ``sumo-gui``) from the eclipse-sumo wheel."""
+    try:
+        import sumo
+
+        path = Path(sumo.SUMO_HOME) / "bin" / name
+        if path.exists():
+            return str(path)
+    except ImportError:
+        pass
+    found = shutil.which(name)
+    if found is None:
+        raise SumoError(f"SUMO executable {name!r} not found; install the eclipse-sumo package")
+    return found
+
+
+def libsumo_busy() -> bool:
+    """True when a simulation owned by some backend is running in this process's libsumo."""
+    return _libsumo_owner is not None
+
+
+class SumoBackend:
+    """One SUMO simulation: start/load/step/close, one-batch state reads, and vehicle commands.
+
+    Args:
+        kind: ``libsumo`` (default, fastest), ``traci``, or ``auto`` (libsumo unless busy).
+        second_instance: when libsumo is already owned by another backend in this process:
+            ``traci`` falls back to a TraCI connection, ``error`` raises ``SumoError``.
+    """
+
+    def __init__(self, kind: str = "libsumo", second_instance: str = "traci") -> None:
+        if kind not in ("libsumo", "traci", "auto"):
+            raise ValueError(f"backend kind {kind!r} is not one of ('libsumo', 'traci', 'auto')")
+        if kind in ("libsumo", "auto") and libsumo_busy():
+            if second_instance == "error":
+                raise SumoError(
+                    "libsumo already runs a simulation in this process and allows only one; "
+                    "a second libsumo.start() would silently replace it. Close the first env, "
+                    "use backend='traci', or run the second env in another process."
+                )
+            if kind == "libsumo":
+                warnings.warn(
+                    "libsumo is busy in this process; this simulation falls back to TraCI",
+                    RuntimeWarning,
+                    stacklevel=2,
+                )
+            kind = "traci"
+        self.kind = "libsumo" if kind == "auto" else kind
+        self._api = None
+        self._label: str | None = None
+        self._pending_move = False
+        self._lane_row: dict[str, int] = {}
+        self._lane_edge: dict[str, int] = {}
+        self._lane_idx: dict[str, int] = {}
+        self._edge_row: dict[str, int] = {}
+        self._static: dict[str, tuple[float, float, bool, dict[int, int], int]] = {}
+        self._route_pos: dict[str, int] = {}
+        self.time = 0.0
+
+    # ------------------------------------------------------------------ lifecycle
+    @property
+    def running(self) -> bool:
+        return self._api is not None
+
+    def set_lane_table(self, lane_ids: Sequence[str], lane_edges: Sequence[int]) -> None:
+        """Map SUMO lane ids to rows of the HD map's lane table (and their edge rows)."""
+        self._lane_row = {lid: i for i, lid in enumerate(lane_ids)}
+        self._lane_edge = {lid: int(e) for lid, e in zip(lane_ids, lane_edges)}
+        self._lane_idx = {lid: int(lid.rsplit("_", 1)[1]) for lid in lane_ids}
+        self._edge_row.clear()
+        for lid, e in zip(lane_ids, lane_edges):
+            if e >= 0:
+                self._edge_row[lid.rsplit("_", 1)[0]] = int(e)
+
+    def start(self, args: Sequence[str]) -> None:
+        """Start SUMO with command-line ``args`` (without the binary), or reload if running."""
+        global _libsumo_owner
+        if self.running:
+            self.load(args)
+            return
+        cmd = [binary("sumo"), *args]
+        try:
+            if self.kind == "libsumo":
+                if libsumo_busy():
+                    raise SumoError("libsumo is already running a simulation in this process")
+                libsumo.start(cmd)
+                self._api = libsumo
+                _libsumo_owner = self
+            else:
+                self._label = f"mixed_traffic_{os.getpid()}_{next(_labels)}"
+                traci.start(cmd, label=self._label)
+                self._api = traci.getConnection(self._label)
+        except (
+            libsumo.TraCIException,
+            traci.exceptions.TraCIException,
+            traci.FatalTraCIError,
+        ) as e:
+            self._api = None
+            raise SumoError(f"SUMO failed to start ({' '.join(args)}): {e}") from e
+        self._after_load()
+
+    def load(self, args: Sequence[str]) -> None:
+        """Replace the running simulation (a reset) with a new one made from ``args``."""
+        if not self.running:
+            self.start(args)
+            return
+        self._flush_pending_move()
+        try:
+            self._api.load(list(args))
+        except (libsumo.TraCIException, traci.exceptions.TraCIException) as e:
+            raise SumoError(f"SUMO failed to load ({' '.join(args)}): {e}") from e
+        self._after_load()
+
+    def _after_load(self) -> None:
+        self._static.clear()
+        self._route_pos.clear()
+        self._pending_move = False
+        self.time = self._api.simulation.getTime()
+
+    def close(self) -> None:
+        """End the simulation; safe to call twice."""
+        global _libsumo_owner
+        if not self.running:
+            return
+        with contextlib.suppress(Exception):
+            self._flush_pending_move()
+        with contextlib.suppress(Exception):
+            self._api.close()
+        if _libsumo_owner is self:
+            _libsumo_owner = None
+        self._api = None
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self.close()
+
+    def _flush_pending_move(self) -> None:
+        # libsumo 1.28 segfaults on the next simulation's first step if a moveToXY was not stepped.
+        if self._pending_move:
+            self._api.simulationStep()
+            self._pending_move = False
+
+    # ------------------------------------------------------------------ stepping
+    def step(self) -> TrafficSnapshot:
+        """Advance one step and read every vehicle's state in one batch."""
+        sim = self._api.simulation
+        self._api.simulationStep()
+        self._pending_move = False
+        self.time = sim.getTime()
+        departed = list(sim.getDepartedIDList())
+        for vid in departed:
+            self._register(vid)
+        arrived = list(sim.getArrivedIDList())
+        collisions = [Collision(c.collider, c.victim, c.type, c.lane) for c in sim.getCollisions()]
+        teleports = list(sim.getStartingTeleportIDList())
+        for vid in itertools.chain(
+            arrived, (c.collider for c in collisions), (c.victim for c in collisions)
+        ):
+            self._static.pop(vid, None)
+            self._route_pos.pop(vid, None)
+        snap = self.read()
+        snap.departed, snap.arrived = departed, arrived
+        snap.collisions, snap.teleports = collisions, teleports
+        return snap
+
+    def _register(self, vid: str) -> None:
+        v = self._api.vehicle
+        is_av = vid.startswith("av_")
+        route = v.getRoute(vid)
+        rows = {self._edge_row.get(e, -1): i for i, e in reversed(list(enumerate(route)))}
+        self._static[vid] = (v.getLength(vid), v.getWidth(vid), is_av, rows, len(route))
+        self._route_pos[vid] = 0
+        if is_av:
+            v.setSpeedMode(vid, AV_SPEED_MODE)
+            v.setLaneChangeMode(vid, AV_LANE_CHANGE_MODE)
+        if self.kind == "traci":
+            v.subscribe(vid, _TRACI_VARS)
+
+    def read(self) -> TrafficSnapshot:
+        """Current state of every vehicle (getters on libsumo, subscriptions on TraCI)."""
+        v = self._api.vehicle
+        ids = list(v.getIDList())
+        for vid in ids:  # vehicles present at load time never show up as departed
+            if vid not in self._static:
+                self._register(vid)
+        if self.kind == "libsumo":
+            pos = [v.getPosition3D(i) for i in ids]
+            angle = [v.getAngle(i) for i in ids]
+            speed = [v.getSpeed(i) for i in ids]
+            accel = [v.getAcceleration(i) for i in ids]
+            lane = [v.getLaneID(i) for i in ids]
+            lpos = [v.getLanePosition(i) for i in ids]
+            lat = [v.getLateralLanePosition(i) for i in ids]
+        else:
+            res = v.getAllSubscriptionResults()
+            rows = [res[i] for i in ids]
+            pos = [r[tc.VAR_POSITION3D] for r in rows]
+            angle = [r[tc.VAR_ANGLE] for r in rows]
+            speed = [r[tc.VAR_SPEED] for r in rows]
+            accel = [r[tc.VAR_ACCELERATION] for r in rows]
+            lane = [r[tc.VAR_LANE_ID] for r in rows]
+            lpos = [r[tc.VAR_LANEPOSITION] for r in rows]
+            lat = [r[tc.VAR_LANEPOSITION_LAT] for r in rows]
+        return self._assemble(ids, pos, angle, speed, accel, lane, lpos, lat)
+
+    def _assemble(self, ids, pos, angle, speed, accel, lane, lpos, lat) -> TrafficSnapshot:
+        n = len(ids)
+        xyz = np.array(pos, dtype=np.float64).reshape(n, 3)
+        static = [self._static[i] for i in ids]
+        lane_row = self._lane_row
+        edge_of = self._lane_edge
+        edge = np.fromiter((edge_of.get(lid, -1) for lid in lane), np.int32, n)
+        route_index = np.empty(n, np.int32)
+        for k, (vid, e) in enumerate(zip(ids, edge)):
+            ri = static[k][3].get(int(e), -1) if e >= 0 else -1
+            if ri >= 0:
+                self._route_pos[vid] = ri
+            route_index[k] = self._route_pos[vid]
+        return TrafficSnapshot(
+            time=self.time,
+            ids=ids,
+            is_av=np.fromiter((s[2] for s in static), bool, n),
+            x=xyz[:, 0].copy(),
+            y=xyz[:, 1].copy(),
+            z=xyz[:, 2].copy(),
+            heading=sumo_angle_to_rad(np.array(angle, dtype=np.float64)),
+            speed=np.array(speed, dtype=np.float64),
+            accel=np.array(accel, dtype=np.float64),
+            lane=np.fromiter((lane_row.get(lid, -1) for lid in lane), np.int32, n),
+            lane_index=np.fromiter((self._lane_idx.get(lid, 0) for lid in lane), np.int16, n),
+            lane_pos=np.array(lpos, dtype=np.float64),
+            lateral=np.array(lat, dtype=np.float64),
+            length=np.fromiter((s[0] for s in static), np.float64, n),
+            width=np.fromiter((s[1] for s in static), np.float64, n),
+            edge=edge,
+            route_index=route_index,
+            route_length=np.fromiter((s[4] for s in static), np.int32, n),
+        )
+
+    def raw_step(self) -> None:
+        """A bare ``simulationStep`` with no reads (for benchmarks)."""
+        self._api.simulationStep()
+        self._pending_move = False
+
+    # ------------------------------------------------------------------ commands
+    def set_speeds(self, ids: Sequence[str], speeds: np.ndarray) -> None:
+        """Speed for the next step [m/s] (AVs ignore SUMO's safety checks)."""
+        set_speed = self._api.vehicle.setSpeed
+        for vid, s in zip(ids, speeds.tolist()):
+            set_speed(vid, s)
+
+    def release_speed(self, vid: str) -> None:
+        """Hand a vehicle's speed back to its car-following model."""
+        with contextlib.suppress(Exception):
+            self._api.vehicle.setSpeed(vid, -1)
+
+    def change_sublane(self, ids: Sequence[str], lateral_moves: np.ndarray) -> None:
+        """Lateral displacement to apply in the next step [m], positive = left."""
+        change = self._api.vehicle.changeSublane
+        for vid, d in zip(ids, lateral_moves.tolist()):
+            change(vid, d)
+
+    def move_to_xy(
+        self,
+        vid: str,
+        edge: str,
+        lane: int,
+        x: float,
+        y: float,
+        angle_deg: float,
+        keep_route: int = 2,
+    ) -> None:
+        """Place a vehicle at a pose (SUMO angle convention); flushed before any reset."""
+        self._api.vehicle.moveToXY(vid, edge, lane, x, y, angle_deg, keep_route)
+        self._pending_move = True
+
+    def add_vehicle(
+        self,
+        vid: str,
+        route_id: str,
+        type_id: str,
+        depart_pos: float | str = "base",
+        depart_lane: int | str = "best",
+        depart_speed: float | str = "max",
+        destination: str = "",
+    ) -> None:
+        """Insert a vehicle now on an existing route (then routed to ``destination`` if given)."""
+        self._api.vehicle.add(
+            vid,
+            route_id,
+            typeID=type_id,
+            depart="now",
+            departLane=str(depart_lane),
+            departPos=str(depart_pos),
+            departSpeed=str(depart_speed),
+        )
+        if destination:
+            self._api.vehicle.changeTarget(vid, destination)
+
+    def add_route(self, route_id: str, edges: Sequence[str]) -> None:
+        self._api.route.add(route_id, list(edges))
+
+    def remove(self, vid: str) -> None:
+        """Take a vehicle out of the simulation (no-op if it is already gone)."""
+        with contextlib.suppress(Exception):
+            self._api.vehicle.remove(vid)
+        self._static.pop(vid, None)
+        self._route_pos.pop(vid, None)
+
+    def vehicle_route(self, vid: str) -> tuple[str, ...]:
+        return tuple(self._api.vehicle.getRoute(vid))
+
+    def pending_vehicles(self) -> list[str]:
+        """Vehicles whose departure time has passed but that could not be inserted yet."""
+        return list(self._api.simulation.getPendingVehicles())
+
+    # ------------------------------------------------------------------ traffic lights
+    def tls_ids(self) -> list[str]:
+        return list(self._api.trafficlight.getIDList())
+
+    def tls_states(self, tls_ids: Sequence[str]) -> list[str]:
+        """Signal strings (``rRgGyYoO...``), one character per controlled link."""
+        get = self._api.trafficlight.getRedYellowGreenState
+        return [get(t) for t in tls_ids]
+
+    def tls_links(self, tls_id: str) -> list[list[tuple[str, str, str]]]:
+        """For each link index: the (incoming lane, outgoing lane, via lane) triples it controls."""
+        return [
+            list(map(tuple, links)) for links in self._api.trafficlight.getControlledLinks(tls_id)
+        ]

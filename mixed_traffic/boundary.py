@@ -1,0 +1,135 @@
+"""Boundary conditions that keep the target density during an episode.
+
+An open road cannot hold a congested state: its downstream end discharges at capacity and the
+jam dissolves. The periodic boundary used here makes the road behave like a ring without
+bending it: each vehicle that leaves at the end is replaced by the next planned vehicle at the
+entry (same lane), and the conventional vehicle at the head of each exit lane follows, by IDM,
+a *virtual leader*: the rearmost vehicle of the same lane at the entry, one road length ahead.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mixed_traffic.backend import SumoBackend, TrafficSnapshot
+from mixed_traffic.config import VehicleConfig
+from mixed_traffic.hdmap import HDMap
+from mixed_traffic.scenario import Demand, QueuedVehicle, Scenario
+
+
+@dataclass
+class PeriodicBoundary:
+    """Re-inserts leaving vehicles upstream and (if ``virtual_leader``) closes the road into a ring.
+
+    Args:
+        hdmap: the network.
+        entry_edges: entry edge of each route (``route_ids[i]`` starts on ``entry_edges[i]``).
+        exit_edge: last edge of the main road (vehicles leave at its end), or "" for none.
+        queue: vehicles to insert, in order.
+        road_length: entry start to exit end along the main road [m].
+    """
+
+    hdmap: HDMap
+    route_ids: list[str]
+    destinations: list[str]
+    """Destination of trip routes (routed by SUMO), "" for explicit routes."""
+    entry_edges: list[str]
+    exit_edge: str
+    queue: list[QueuedVehicle]
+    road_length: float
+    vehicle: VehicleConfig
+    virtual_leader: bool = True
+    fixed_fleet: bool = False
+    dt: float = 0.1
+    _next: int = 0
+    _held: set[str] = field(default_factory=set)
+
+    def step(self, snap: TrafficSnapshot, backend: SumoBackend, finished_avs: list[str]) -> None:
+        """Apply the boundary after a step: refill and hold the exit heads."""
+        self._refill(snap, backend, finished_avs)
+        if self.virtual_leader and self.exit_edge:
+            self._hold_heads(snap, backend)
+
+    def _refill(self, snap: TrafficSnapshot, backend: SumoBackend, finished_avs: list[str]) -> None:
+        for vid in snap.arrived:
+            if vid.startswith("av_") and self.fixed_fleet:
+                backend.add_vehicle(vid, self.route_ids[0], "av", "base", "free", "last")
+                continue
+            if self._next >= len(self.queue):
+                continue
+            q = self.queue[self._next]
+            self._next += 1
+            backend.add_vehicle(q.vid, self.route_ids[q.route], "av" if q.is_av else "hv",
+                                "base", "free", "last", self.destinations[q.route])  # fmt: skip
+        if self.fixed_fleet:  # terminated AVs (collision, violation) re-enter as well
+            for vid in finished_avs:
+                backend.add_vehicle(vid, self.route_ids[0], "av", "base", "free", "last")
+
+    def _hold_heads(self, snap: TrafficSnapshot, backend: SumoBackend) -> None:
+        hd = self.hdmap
+        ex, en = hd.edge_of(self.exit_edge), hd.edge_of(self.entry_edges[0])
+        exit_len = float(hd.edge_length[ex])
+        held_now: set[str] = set()
+        for k in range(int(hd.edge_num_lanes[ex])):
+            on_exit = np.flatnonzero((snap.edge == ex) & (snap.lane_index == k))
+            if len(on_exit) == 0:
+                continue
+            head = on_exit[np.argmax(snap.lane_pos[on_exit])]
+            if snap.is_av[head]:
+                continue
+            k_en = min(k, int(hd.edge_num_lanes[en]) - 1)
+            on_entry = np.flatnonzero((snap.edge == en) & (snap.lane_index == k_en))
+            if len(on_entry) == 0:
+                continue
+            tail = on_entry[np.argmin(snap.lane_pos[on_entry])]
+            # a vehicle leaving at the exit end re-enters with its front at one length (base)
+            gap = exit_len - snap.lane_pos[head] + snap.lane_pos[tail] - snap.length[tail]
+            gap -= snap.length[head]
+            v = self._idm_speed(float(snap.speed[head]), float(snap.speed[tail]), float(gap),
+                                float(hd.lane_speed[hd.edge_lanes[ex, k]]))  # fmt: skip
+            vid = snap.ids[head]
+            backend.set_speeds([vid], np.array([v]))
+            held_now.add(vid)
+        for vid in self._held - held_now:
+            backend.release_speed(vid)
+        self._held = held_now
+
+    def _idm_speed(self, v: float, v_lead: float, gap: float, v0: float) -> float:
+        c = self.vehicle
+        s_star = c.idm_min_gap + max(
+            0.0, v * c.idm_headway + v * (v - v_lead) / (2 * np.sqrt(c.idm_accel * c.idm_decel))
+        )
+        acc = c.idm_accel * (1 - (v / v0) ** c.idm_delta - (s_star / max(gap, 0.1)) ** 2)
+        return float(max(0.0, v + max(acc, -9.0) * self.dt))
+
+    @classmethod
+    def for_demand(
+        cls,
+        scenario: Scenario,
+        demand: Demand,
+        vehicle: VehicleConfig,
+        dt: float,
+        fixed_fleet: bool,
+    ) -> PeriodicBoundary:
+        hd = scenario.hdmap
+        main = scenario.routes[0]
+        return cls(
+            hdmap=hd,
+            route_ids=[f"r{i}" for i in range(len(scenario.routes))],
+            destinations=[r.destination for r in scenario.routes],
+            entry_edges=[r.entry for r in scenario.routes],
+            exit_edge=main.edges[-1] if main.edges else "",
+            queue=list(demand.queue),
+            road_length=float(sum(hd.edge_length[hd.edge_of(e)] for e in main.edges)),
+            vehicle=vehicle,
+            virtual_leader=scenario.periodic,
+            fixed_fleet=fixed_fleet,
+            dt=dt,
+        )
+
+    @property
+    def inserted(self) -> int:
+        """Queued vehicles inserted so far."""
+        return self._next

@@ -1,0 +1,234 @@
+"""Frozen configuration dataclasses. Units live in each field's docstring; CLIs are built from them.
+
+Every value is checked in ``__post_init__`` so a bad value raises ``ValueError`` naming the field,
+the value and the allowed range before SUMO starts.
+"""
+
+from __future__ import annotations
+
+import ast
+import inspect
+import math
+from dataclasses import dataclass, field, fields
+from functools import cache
+from typing import Any
+
+WEATHERS = ("normal", "rain", "fog", "night")
+BACKENDS = ("libsumo", "traci", "auto")
+SECOND_INSTANCE = ("traci", "error")
+#: Highest density accepted, veh/km per lane: a 5 m car plus a 2 m standstill gap.
+JAM_DENSITY_PER_LANE = 1000.0 / 7.0
+
+
+def _check_range(obj: Any, name: str, lo: float, hi: float, *, lo_open: bool = False) -> None:
+    value = getattr(obj, name)
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    ok = ok and (value > lo if lo_open else value >= lo) and value <= hi
+    if not ok:
+        left = "(" if lo_open else "["
+        raise ValueError(
+            f"{type(obj).__name__}.{name}={value!r} is out of range; allowed {left}{lo}, {hi}]"
+        )
+
+
+def _check_choice(obj: Any, name: str, choices: tuple[str, ...]) -> None:
+    value = getattr(obj, name)
+    if value not in choices:
+        raise ValueError(f"{type(obj).__name__}.{name}={value!r} is not one of {choices}")
+
+
+@cache
+def field_docs(cls: type) -> dict[str, str]:
+    """Attribute docstrings of a dataclass (the string literal right after each field)."""
+    docs: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        try:
+            tree = ast.parse(inspect.getsource(klass))
+        except (OSError, TypeError):
+            continue
+        body = tree.body[0].body if tree.body and isinstance(tree.body[0], ast.ClassDef) else []
+        for node, nxt in zip(body, body[1:]):
+            if (
+                isinstance(node, ast.AnnAssign)
+                and isinstance(node.target, ast.Name)
+                and isinstance(nxt, ast.Expr)
+                and isinstance(nxt.value, ast.Constant)
+                and isinstance(nxt.value.value, str)
+            ):
+                docs[node.target.id] = " ".join(nxt.value.value.split())
+    return docs
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Perception ranges and history (paper §III-B, §V-J)."""
+
+    lidar_range: float = 90.0
+    """LiDAR vehicle detection range [m]; the paper sweeps 50-110 m."""
+    camera_range: float = 60.0
+    """Camera traffic-light detection range [m]."""
+    history: int = 5
+    """z: number of history steps in each observation [steps]."""
+    waypoints: int = 10
+    """m: lane waypoints per lane in each observation [count], spaced 1 m."""
+    noise: bool = True
+    """Apply the weather preset's sensor noise and misdetection (False = exact ground truth)."""
+
+    def __post_init__(self) -> None:
+        _check_range(self, "lidar_range", 0.0, 500.0, lo_open=True)
+        _check_range(self, "camera_range", 0.0, 500.0, lo_open=True)
+        _check_range(self, "history", 1, 50)
+        _check_range(self, "waypoints", 1, 200)
+
+
+@dataclass(frozen=True)
+class RewardConfig:
+    """Hybrid reward weights and thresholds (paper §IV-E, DESIGN §8)."""
+
+    w_safety: float = 0.9
+    """w1, weight of the safety term r1 [-]."""
+    w_efficiency: float = 0.8
+    """w2, weight of the efficiency term r2 [-]."""
+    w_comfort: float = 0.6
+    """w3, weight of the comfort term r3 [-]."""
+    w_impact: float = 0.2
+    """w4, weight of the impact term r4 [-]."""
+    ttc_threshold: float = 4.0
+    """G, TTC below which r1,1 penalises [s]."""
+    acc_threshold: float = 3.0
+    """acc_thr, acceleration threshold of the comfort and impact terms [m/s^2]."""
+    rear_speed_drop: float = 0.1
+    """v_thr, speed drop of the rear vehicle within one step that counts as impact [m/s]."""
+    terminal_penalty: float = -20.0
+    """r1,3 on a terminal event [-]."""
+    lane_change_gain: float = 20.0
+    """Scale of the tactical lane-change reward r2,2 [-]."""
+
+    def __post_init__(self) -> None:
+        for name in ("w_safety", "w_efficiency", "w_comfort", "w_impact"):
+            _check_range(self, name, 0.0, 10.0)
+        _check_range(self, "ttc_threshold", 0.0, 60.0, lo_open=True)
+        _check_range(self, "acc_threshold", 0.0, 20.0, lo_open=True)
+        _check_range(self, "rear_speed_drop", 0.0, 10.0)
+        _check_range(self, "terminal_penalty", -1000.0, 0.0)
+        _check_range(self, "lane_change_gain", 0.0, 1000.0)
+
+
+@dataclass(frozen=True)
+class VehicleConfig:
+    """Vehicle dynamics shared by AVs and the conventional (IDM) vehicles."""
+
+    length: float = 5.0
+    """Vehicle length [m]."""
+    width: float = 1.8
+    """Vehicle width [m]."""
+    wheelbase: float = 2.8
+    """AV wheelbase of the kinematic bicycle model [m]; the rear axle sits at half of it."""
+    max_accel: float = 3.0
+    """AV acceleration at accel_brake = +1 [m/s^2]."""
+    max_decel: float = 6.0
+    """AV deceleration at accel_brake = -1 [m/s^2]."""
+    max_steer_deg: float = 60.0
+    """Steering angle at steering = +-1 [deg] (paper: -60..60)."""
+    idm_accel: float = 1.5
+    """IDM maximum acceleration a [m/s^2]."""
+    idm_decel: float = 2.0
+    """IDM comfortable deceleration b [m/s^2]."""
+    idm_headway: float = 1.2
+    """IDM desired time headway T (SUMO tau) [s]."""
+    idm_min_gap: float = 2.0
+    """IDM standstill gap s0 (SUMO minGap) [m]."""
+    idm_delta: float = 4.0
+    """IDM acceleration exponent delta [-]."""
+    speed_factor_dev: float = 0.05
+    """Standard deviation of the desired-speed factor around the speed limit [-]."""
+
+    def __post_init__(self) -> None:
+        for name in ("length", "width", "wheelbase", "max_accel", "max_decel", "idm_accel"):
+            _check_range(self, name, 0.0, 30.0, lo_open=True)
+        _check_range(self, "idm_decel", 0.0, 30.0, lo_open=True)
+        _check_range(self, "idm_headway", 0.0, 10.0, lo_open=True)
+        _check_range(self, "idm_min_gap", 0.0, 20.0)
+        _check_range(self, "idm_delta", 0.5, 10.0)
+        _check_range(self, "max_steer_deg", 0.0, 89.0, lo_open=True)
+        _check_range(self, "speed_factor_dev", 0.0, 0.5)
+
+
+@dataclass(frozen=True)
+class EnvConfig:
+    """Everything that defines one environment. ``parallel_env(**kwargs)`` maps onto it."""
+
+    scenario: str = "straight"
+    """Scenario name from ``list_scenarios()``, or a path to a .net.xml or .sumocfg file."""
+    density: float = 120.0
+    """Traffic density k summed over all lanes of the road [veh/km] (paper: 60/120/180)."""
+    penetration: float = 0.2
+    """AV penetration rate p, the fraction of vehicles that are AVs [0-1]."""
+    weather: str = "normal"
+    """Weather preset: normal | rain | fog | night (sensor noise and misdetection)."""
+    seed: int = 0
+    """Root seed for SUMO, demand, sensor noise, numpy and torch."""
+    episode_length: float = 120.0
+    """Simulated time per episode [s]; reaching it truncates."""
+    step_length: float = 0.1
+    """Simulation and decision step dt [s] (paper: 0.1 s)."""
+    lateral_resolution: float = 0.8
+    """Sublane width of SUMO's sublane model [m]."""
+    backend: str = "libsumo"
+    """SUMO binding: libsumo (fast, one simulation per process) | traci | auto."""
+    second_instance: str = "traci"
+    """What a second libsumo simulation in one process does: traci (fall back) | error."""
+    fixed_fleet: bool = False
+    """All AVs exist from reset and re-enter upstream when they finish (for SuperSuit/SB3)."""
+    speed_tolerance: float = 0.1
+    """Speed above the limit, as a fraction of it, that counts as a violation [-]."""
+    sensors: SensorConfig = field(default_factory=SensorConfig)
+    """Sensor ranges, history length and noise switch."""
+    reward: RewardConfig = field(default_factory=RewardConfig)
+    """Hybrid reward weights and thresholds."""
+    vehicle: VehicleConfig = field(default_factory=VehicleConfig)
+    """Vehicle dimensions, AV limits and IDM parameters."""
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.scenario, str) or not self.scenario:
+            raise ValueError(f"EnvConfig.scenario={self.scenario!r} must be a non-empty string")
+        # the per-scenario jam density (lanes x JAM_DENSITY_PER_LANE) is checked by the demand builder
+        _check_range(self, "density", 0.0, 1000.0, lo_open=True)
+        _check_range(self, "penetration", 0.0, 1.0)
+        _check_choice(self, "weather", WEATHERS)
+        _check_choice(self, "backend", BACKENDS)
+        _check_choice(self, "second_instance", SECOND_INSTANCE)
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
+            raise ValueError(f"EnvConfig.seed={self.seed!r} must be an integer >= 0")
+        _check_range(self, "episode_length", 0.0, 86400.0, lo_open=True)
+        _check_range(self, "step_length", 0.01, 1.0)
+        _check_range(self, "lateral_resolution", 0.1, 3.2)
+        _check_range(self, "speed_tolerance", 0.0, 1.0)
+
+    @property
+    def steps_per_episode(self) -> int:
+        return int(round(self.episode_length / self.step_length))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain nested dict (JSON-safe) of every field."""
+        return _to_dict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> EnvConfig:
+        nested = {"sensors": SensorConfig, "reward": RewardConfig, "vehicle": VehicleConfig}
+        known = {f.name for f in fields(cls)}
+        unknown = set(data) - known
+        if unknown:
+            raise ValueError(f"unknown EnvConfig fields {sorted(unknown)}; known: {sorted(known)}")
+        kwargs = {
+            k: nested[k](**v) if k in nested and isinstance(v, dict) else v for k, v in data.items()
+        }
+        return cls(**kwargs)
+
+
+def _to_dict(obj: Any) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        out[f.name] = _to_dict(value) if hasattr(value, "__dataclass_fields__") else value
+    return out

@@ -1,0 +1,331 @@
+"""HD map: lane table and 1 m centreline waypoints of a SUMO network, built once and cached.
+
+Every lane (including junction-internal lanes) is a row of the lane table; every normal edge a
+row of the edge table. Waypoints of all lanes are concatenated into flat arrays, and a lane's
+waypoints are ``wp_offset[lane] : wp_offset[lane] + wp_count[lane]``. Waypoints continue beyond a
+lane's end along its *primary successor* (straight on, else the first connection), so
+"the next m waypoints ahead" is one gather from the ``ahead`` table.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+from mixed_traffic.paths import cache_dir
+
+SPACING = 1.0  # waypoint spacing along the centreline [m]
+_CACHE_VERSION = "hdmap-v1"
+
+
+@dataclass
+class HDMap:
+    """Lane geometry of one network (shapes in SUMO's x/y/z metres, headings ENU radians)."""
+
+    net_file: str
+    lane_ids: list[str]
+    """(L,) SUMO lane ids."""
+    lane_edge: np.ndarray
+    """(L,) int32 edge row, -1 for internal (junction) lanes."""
+    lane_index: np.ndarray
+    """(L,) int16 index within the edge, 0 = rightmost."""
+    lane_length: np.ndarray
+    """(L,) [m]."""
+    lane_width: np.ndarray
+    """(L,) [m]."""
+    lane_speed: np.ndarray
+    """(L,) speed limit [m/s]."""
+    lane_next: np.ndarray
+    """(L,) int32 primary successor lane row (via the junction lane if any), -1 at a dead end."""
+    edge_ids: list[str]
+    """(E,) ids of normal edges."""
+    edge_lanes: np.ndarray
+    """(E, Kmax) int32 lane rows of each edge by index (0 = rightmost), -1 padded."""
+    edge_length: np.ndarray
+    """(E,) [m]."""
+    conn_to: dict[tuple[int, int], int]
+    """(lane row, next edge row) -> first lane row to take (junction lane, or the next lane)."""
+    tls_links: dict[tuple[int, int], tuple[str, int]]
+    """(lane row, next edge row) -> (traffic light id, link index) for signalised connections."""
+    wp_offset: np.ndarray
+    """(L,) int64 first waypoint row of each lane."""
+    wp_count: np.ndarray
+    """(L,) int64 waypoints of each lane."""
+    wp_xyz: np.ndarray
+    """(W, 3) waypoint positions [m]."""
+    wp_heading: np.ndarray
+    """(W,) heading of the centreline at the waypoint [rad]."""
+    wp_lane: np.ndarray
+    """(W,) int32 lane row of the waypoint."""
+
+    # ----------------------------------------------------------------- derived tables
+    @property
+    def n_lanes(self) -> int:
+        return len(self.lane_ids)
+
+    @cached_property
+    def edge_num_lanes(self) -> np.ndarray:
+        """(E,) lanes per edge."""
+        return (self.edge_lanes >= 0).sum(axis=1)
+
+    @cached_property
+    def lane_row(self) -> dict[str, int]:
+        return {lid: i for i, lid in enumerate(self.lane_ids)}
+
+    @cached_property
+    def edge_row(self) -> dict[str, int]:
+        return {eid: i for i, eid in enumerate(self.edge_ids)}
+
+    @cached_property
+    def wp_speed(self) -> np.ndarray:
+        """(W,) speed limit at each waypoint [m/s]."""
+        return self.lane_speed[self.wp_lane]
+
+    @cached_property
+    def wp_lane_index(self) -> np.ndarray:
+        """(W,) lane index within the edge of each waypoint."""
+        return self.lane_index[self.wp_lane]
+
+    def ahead_table(self, m: int) -> np.ndarray:
+        """(W, m) rows of the m waypoints from each waypoint on (itself first), following
+        primary successors; a dead end repeats the last waypoint."""
+        cached = self.__dict__.setdefault("_ahead", {})
+        if m not in cached:
+            last = self.wp_offset + self.wp_count - 1
+            nxt = np.arange(len(self.wp_lane), dtype=np.int64) + 1
+            nxt[last] = last  # dead end: stay
+            succ = self.lane_next
+            has = succ >= 0
+            nxt[last[has]] = self.wp_offset[succ[has]]
+            table = np.empty((len(nxt), m), dtype=np.int64)
+            table[:, 0] = np.arange(len(nxt))
+            for j in range(1, m):
+                table[:, j] = nxt[table[:, j - 1]]
+            cached[m] = table
+        return cached[m]
+
+    def waypoint_at(self, lane: np.ndarray, pos: np.ndarray) -> np.ndarray:
+        """(N,) waypoint row nearest below lane position ``pos`` [m] on ``lane``."""
+        lane = np.asarray(lane, dtype=np.int64)
+        k = np.clip(
+            np.floor(np.asarray(pos) / SPACING).astype(np.int64), 0, self.wp_count[lane] - 1
+        )
+        return self.wp_offset[lane] + k
+
+    def waypoints_ahead(self, lane: np.ndarray, pos: np.ndarray, m: int) -> np.ndarray:
+        """(N, m) waypoint rows of the next m waypoints from each lane position."""
+        return self.ahead_table(m)[self.waypoint_at(lane, pos)]
+
+    def neighbour_lane(self, lane: np.ndarray, offset: int) -> np.ndarray:
+        """(N,) lane row ``offset`` lanes to the left (+) or right (-) on the same edge, -1 if none."""
+        lane = np.asarray(lane, dtype=np.int64)
+        edge = self.lane_edge[lane]
+        idx = self.lane_index[lane].astype(np.int64) + offset
+        ok = (edge >= 0) & (idx >= 0) & (idx < self.edge_lanes.shape[1])
+        out = np.full(lane.shape, -1, dtype=np.int64)
+        out[ok] = self.edge_lanes[edge[ok], idx[ok]]
+        return out
+
+    def edge_of(self, edge_id: str) -> int:
+        if edge_id not in self.edge_row:
+            raise KeyError(f"edge {edge_id!r} is not in network {self.net_file}")
+        return self.edge_row[edge_id]
+
+
+# --------------------------------------------------------------------------- building
+def load_hdmap(net_file: str | Path) -> HDMap:
+    """HD map of ``net_file``, from the cache when the file is unchanged."""
+    net_file = Path(net_file)
+    if not net_file.is_file():
+        raise FileNotFoundError(f"network file {net_file} does not exist")
+    digest = hashlib.sha256(net_file.read_bytes() + _CACHE_VERSION.encode()).hexdigest()[:20]
+    cache = cache_dir("hdmap") / f"{digest}.npz"
+    if cache.exists():
+        try:
+            return _from_npz(cache, str(net_file))
+        except (OSError, KeyError, ValueError):
+            cache.unlink(missing_ok=True)  # corrupt cache: rebuild
+    hdmap = build_hdmap(net_file)
+    _to_npz(hdmap, cache)
+    return hdmap
+
+
+def build_hdmap(net_file: str | Path) -> HDMap:
+    """Parse a .net.xml and sample every lane centreline at 1 m."""
+    try:
+        root = ET.parse(net_file).getroot()
+    except ET.ParseError as e:
+        raise ValueError(f"network file {net_file} is not valid XML: {e}") from e
+    if root.tag != "net":
+        raise ValueError(
+            f"{net_file} is not a SUMO network (root element <{root.tag}>, expected <net>)"
+        )
+    lane_ids: list[str] = []
+    lane_edge, lane_index, lane_length, lane_width, lane_speed, shapes = [], [], [], [], [], []
+    edge_ids: list[str] = []
+    edge_lane_rows: list[list[int]] = []
+    edge_length: list[float] = []
+    for edge in root.iter("edge"):
+        internal = edge.get("function") == "internal"
+        if edge.get("function") in ("walkingarea", "crossing"):
+            continue
+        erow = -1 if internal else len(edge_ids)
+        rows = []
+        for lane in edge.iter("lane"):
+            rows.append(len(lane_ids))
+            lane_ids.append(lane.get("id"))
+            lane_edge.append(erow)
+            lane_index.append(int(lane.get("index")))
+            lane_length.append(float(lane.get("length")))
+            lane_width.append(float(lane.get("width", 3.2)))
+            lane_speed.append(float(lane.get("speed")))
+            shapes.append(_parse_shape(lane.get("shape")))
+        if not internal:
+            edge_ids.append(edge.get("id"))
+            order = sorted(rows, key=lambda r: lane_index[r])
+            edge_lane_rows.append(order)
+            edge_length.append(lane_length[order[0]] if order else 0.0)
+    if not edge_ids:
+        raise ValueError(f"network file {net_file} contains no edges")
+    lane_row = {lid: i for i, lid in enumerate(lane_ids)}
+    edge_row = {eid: i for i, eid in enumerate(edge_ids)}
+    kmax = max(len(r) for r in edge_lane_rows)
+    edge_lanes = np.full((len(edge_ids), kmax), -1, dtype=np.int32)
+    for e, rows in enumerate(edge_lane_rows):
+        edge_lanes[e, : len(rows)] = rows
+
+    lane_next = np.full(len(lane_ids), -1, dtype=np.int32)
+    conn_to: dict[tuple[int, int], int] = {}
+    tls_links: dict[tuple[int, int], tuple[str, int]] = {}
+    straight: set[int] = set()
+    for c in root.iter("connection"):
+        frm, to = c.get("from"), c.get("to")
+        src = lane_row.get(f"{frm}_{c.get('fromLane')}")
+        dst = lane_row.get(f"{to}_{c.get('toLane')}")
+        if src is None or dst is None:
+            continue
+        via = c.get("via")
+        first = lane_row.get(via, dst) if via else dst
+        if frm in edge_row and to in edge_row:
+            conn_to.setdefault((src, edge_row[to]), first)
+            if c.get("tl"):
+                tls_links[(src, edge_row[to])] = (c.get("tl"), int(c.get("linkIndex", -1)))
+        if c.get("dir") == "s" and src not in straight:  # straight on is the primary successor
+            lane_next[src] = first
+            straight.add(src)
+        elif lane_next[src] < 0:
+            lane_next[src] = first
+
+    offsets, counts, xyz, heading, wlane = [], [], [], [], []
+    total = 0
+    for row, shape in enumerate(shapes):
+        pts, hdg = _sample(shape, lane_length[row])
+        offsets.append(total)
+        counts.append(len(pts))
+        total += len(pts)
+        xyz.append(pts)
+        heading.append(hdg)
+        wlane.append(np.full(len(pts), row, dtype=np.int32))
+    return HDMap(
+        net_file=str(net_file),
+        lane_ids=lane_ids,
+        lane_edge=np.array(lane_edge, dtype=np.int32),
+        lane_index=np.array(lane_index, dtype=np.int16),
+        lane_length=np.array(lane_length),
+        lane_width=np.array(lane_width),
+        lane_speed=np.array(lane_speed),
+        lane_next=lane_next,
+        edge_ids=edge_ids,
+        edge_lanes=edge_lanes,
+        edge_length=np.array(edge_length),
+        conn_to=conn_to,
+        tls_links=tls_links,
+        wp_offset=np.array(offsets, dtype=np.int64),
+        wp_count=np.array(counts, dtype=np.int64),
+        wp_xyz=np.concatenate(xyz),
+        wp_heading=np.concatenate(heading),
+        wp_lane=np.concatenate(wlane),
+    )
+
+
+def _parse_shape(text: str | None) -> np.ndarray:
+    pts = [tuple(float(v) for v in p.split(",")) for p in (text or "").split()]
+    arr = np.zeros((len(pts), 3))
+    for i, p in enumerate(pts):
+        arr[i, : len(p)] = p
+    return arr
+
+
+def _sample(shape: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
+    """Points every SPACING metres of lane position (SUMO scales positions to the drawn shape)."""
+    if len(shape) < 2:
+        shape = np.vstack([shape, shape + [0.1, 0, 0]]) if len(shape) else np.zeros((2, 3))
+    seg = np.diff(shape[:, :2], axis=0)
+    seg_len = np.hypot(seg[:, 0], seg[:, 1])
+    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+    geo = max(cum[-1], 1e-9)
+    s = np.arange(0.0, max(length, SPACING * 0.5), SPACING)
+    g = np.clip(s * geo / max(length, 1e-9), 0, geo)
+    k = np.clip(np.searchsorted(cum, g, side="right") - 1, 0, len(seg) - 1)
+    t = ((g - cum[k]) / np.maximum(seg_len[k], 1e-9))[:, None]
+    pts = shape[k] + t * (shape[k + 1] - shape[k])
+    hdg = np.arctan2(seg[k, 1], seg[k, 0])
+    return pts, hdg
+
+
+_ARRAYS = [
+    "lane_edge",
+    "lane_index",
+    "lane_length",
+    "lane_width",
+    "lane_speed",
+    "lane_next",
+    "edge_lanes",
+    "edge_length",
+    "wp_offset",
+    "wp_count",
+    "wp_xyz",
+    "wp_heading",
+    "wp_lane",
+]
+
+
+def _to_npz(hdmap: HDMap, path: Path) -> None:
+    conn = np.array([(a, b, c) for (a, b), c in hdmap.conn_to.items()], dtype=np.int64).reshape(
+        -1, 3
+    )
+    tls = [(a, b, t, i) for (a, b), (t, i) in hdmap.tls_links.items()]
+    tmp = path.with_suffix(f".tmp{np.random.randint(1 << 30)}.npz")
+    np.savez(
+        tmp,
+        lane_ids=np.array(hdmap.lane_ids),
+        edge_ids=np.array(hdmap.edge_ids),
+        conn=conn,
+        tls_src=np.array([t[:2] for t in tls], dtype=np.int64).reshape(-1, 2),
+        tls_id=np.array([t[2] for t in tls], dtype=str),
+        tls_idx=np.array([t[3] for t in tls], dtype=np.int64),
+        **{k: getattr(hdmap, k) for k in _ARRAYS},
+    )
+    tmp.replace(path)
+
+
+def _from_npz(path: Path, net_file: str) -> HDMap:
+    with np.load(path, allow_pickle=False) as z:
+        conn = {(int(a), int(b)): int(c) for a, b, c in z["conn"]}
+        tls = {
+            (int(a), int(b)): (str(t), int(i))
+            for (a, b), t, i in zip(z["tls_src"], z["tls_id"], z["tls_idx"])
+        }
+        return HDMap(
+            net_file=net_file,
+            lane_ids=[str(s) for s in z["lane_ids"]],
+            edge_ids=[str(s) for s in z["edge_ids"]],
+            conn_to=conn,
+            tls_links=tls,
+            **{k: z[k] for k in _ARRAYS},
+        )

@@ -1,0 +1,468 @@
+"""Scenario registry, network building and demand generation (DESIGN §4).
+
+A scenario is a folder ``scenarios/<family>/<variant>/`` with plain SUMO XML sources
+(``*.nod.xml``, ``*.edg.xml``, optionally ``*.con.xml``/``*.tll.xml``) and a ``spec.toml``. The
+network is built with netconvert from the eclipse-sumo wheel into the user cache, keyed by a
+hash of the sources, so editing a source rebuilds it. A user's own ``.net.xml`` (routes are
+generated) or ``.sumocfg`` (its vehicles are used, a fraction of them become AVs) loads too.
+
+Demand: density k [veh/km summed over lanes] fixes the initial placement on every road edge
+and, through the IDM equilibrium speed at that density, the inflow q = k·v_eq at the entries.
+Penetration p makes exactly round(p·N) of the N planned vehicles AVs (``av_0…``), chosen by
+the seed; conventional vehicles are ``hv_0…``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import math
+import subprocess
+import sys
+import tomllib
+import xml.etree.ElementTree as ET
+from dataclasses import dataclass, field
+from functools import cache
+from pathlib import Path
+
+import numpy as np
+
+from mixed_traffic.backend import binary
+from mixed_traffic.config import JAM_DENSITY_PER_LANE, EnvConfig, VehicleConfig
+from mixed_traffic.hdmap import HDMap, load_hdmap
+from mixed_traffic.paths import SCENARIOS_DIR, cache_dir
+
+SPLITS = ("train", "eval")
+
+
+@dataclass(frozen=True)
+class Route:
+    """A path through the network: explicit ``edges``, or ``from``/``to`` routed by SUMO."""
+
+    edges: tuple[str, ...] = ()
+    origin: str = ""
+    destination: str = ""
+    weight: float = 1.0
+    """Share of the inflow entering on this route (relative)."""
+
+    @property
+    def entry(self) -> str:
+        return self.edges[0] if self.edges else self.origin
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A loadable scenario: network, routes, measurement segment."""
+
+    name: str
+    family: str
+    split: str
+    description: str
+    net_file: Path
+    routes: tuple[Route, ...]
+    measurement: tuple[str, ...]
+    """Consecutive edges of the measurement segment (DT-TF, measured density)."""
+    lanes: int
+    """Lanes of the main road: the reference for density (veh/km summed over lanes)."""
+    sumocfg: Path | None = None
+    extra_args: tuple[str, ...] = ()
+    placement_edges: tuple[str, ...] = field(default=())
+    """Edges on which vehicles are placed at reset (default: all edges of the routes)."""
+    periodic: bool = False
+    """Close the main road into a ring with a virtual leader (see ``boundary``)."""
+
+    @property
+    def hdmap(self) -> HDMap:
+        return load_hdmap(self.net_file)
+
+    @property
+    def measurement_length(self) -> float:
+        """Length of the measurement segment [m]."""
+        hd = self.hdmap
+        return float(sum(hd.edge_length[hd.edge_of(e)] for e in self.measurement))
+
+    @property
+    def max_density(self) -> float:
+        """Jam density of the main road [veh/km summed over lanes]."""
+        return self.lanes * JAM_DENSITY_PER_LANE
+
+
+# --------------------------------------------------------------------------- registry
+def _spec_files() -> list[Path]:
+    return sorted(SCENARIOS_DIR.glob("*/*/spec.toml"))
+
+
+@cache
+def _registry() -> dict[str, Path]:
+    reg: dict[str, Path] = {}
+    for spec in _spec_files():
+        family, variant = spec.parent.parent.name, spec.parent.name
+        reg[f"{family}-{variant}"] = spec.parent
+        data = tomllib.loads(spec.read_text())
+        if data.get("default"):
+            reg[family] = spec.parent
+    return reg
+
+
+def list_scenarios() -> list[str]:
+    """Names of all bundled scenarios (``family-variant``; a bare family name is its default)."""
+    return sorted(_registry())
+
+
+def load_scenario(name: str) -> Scenario:
+    """A bundled scenario by name, or a user's ``.net.xml`` / ``.sumocfg`` by path."""
+    if name.endswith(".net.xml") or name.endswith(".sumocfg"):
+        from mixed_traffic.user_scenario import load_user_scenario
+
+        return load_user_scenario(Path(name))
+    reg = _registry()
+    if name not in reg:
+        raise ValueError(
+            f"unknown scenario {name!r}; known: {', '.join(sorted(reg))} "
+            "(or a path to a .net.xml or .sumocfg file)"
+        )
+    return _load_folder(name, reg[name])
+
+
+def _load_folder(name: str, folder: Path) -> Scenario:
+    spec_path = folder / "spec.toml"
+    try:
+        spec = tomllib.loads(spec_path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ValueError(f"scenario spec {spec_path} is malformed: {e}") from e
+    for key in ("family", "split", "lanes", "routes", "measurement"):
+        if key not in spec:
+            raise ValueError(f"scenario spec {spec_path} lacks the required key {key!r}")
+    if spec["split"] not in SPLITS:
+        raise ValueError(f"{spec_path}: split={spec['split']!r} is not one of {SPLITS}")
+    routes = tuple(
+        Route(
+            edges=tuple(r.get("edges", ())),
+            origin=r.get("from", ""),
+            destination=r.get("to", ""),
+            weight=float(r.get("weight", 1.0)),
+        )
+        for r in spec["routes"]
+    )
+    scenario = Scenario(
+        name=name,
+        family=spec["family"],
+        split=spec["split"],
+        description=spec.get("description", ""),
+        net_file=build_network(folder),
+        routes=routes,
+        measurement=tuple(spec["measurement"]),
+        lanes=int(spec["lanes"]),
+        extra_args=tuple(spec.get("sumo_args", ())),
+        placement_edges=tuple(spec.get("placement_edges", ())),
+        periodic=bool(spec.get("periodic", False)),
+    )
+    _validate(scenario, spec_path)
+    return scenario
+
+
+def _validate(scenario: Scenario, source: Path) -> None:
+    hd = scenario.hdmap
+    for e in scenario.measurement:
+        if e not in hd.edge_row:
+            raise ValueError(f"{source}: measurement edge {e!r} is not in the network")
+    for r in scenario.routes:
+        for e in (*r.edges, r.origin, r.destination):
+            if e and e not in hd.edge_row:
+                raise ValueError(f"{source}: route edge {e!r} is not in the network")
+
+
+def build_network(folder: Path) -> Path:
+    """Build (or reuse the cached) .net.xml from the plain XML sources in ``folder``."""
+    sources = {
+        kind: sorted(folder.glob(f"*.{kind}.xml")) for kind in ("nod", "edg", "con", "tll", "typ")
+    }
+    if not sources["nod"] or not sources["edg"]:
+        raise ValueError(f"scenario folder {folder} needs at least one .nod.xml and one .edg.xml")
+    h = hashlib.sha256()
+    for path in (p for paths in sources.values() for p in paths):
+        h.update(path.name.encode() + path.read_bytes())
+    h.update(
+        (folder / "netconvert.args").read_bytes() if (folder / "netconvert.args").exists() else b""
+    )
+    out = cache_dir("nets") / f"{folder.parent.name}-{folder.name}-{h.hexdigest()[:16]}.net.xml"
+    if out.exists():
+        return out
+    flags = {"nod": "--node-files", "edg": "--edge-files", "con": "--connection-files",
+             "tll": "--tllogic-files", "typ": "--type-files"}  # fmt: skip
+    cmd = [binary("netconvert")]
+    for kind, paths in sources.items():
+        if paths:
+            cmd += [flags[kind], ",".join(str(p) for p in paths)]
+    extra = (
+        (folder / "netconvert.args").read_text().split()
+        if (folder / "netconvert.args").exists()
+        else []
+    )
+    tmp = out.with_suffix(f".tmp{np.random.randint(1 << 30)}.xml")
+    cmd += ["--output-file", str(tmp), "--no-warnings", *extra]
+    proc = subprocess.run(cmd, capture_output=True, text=True)
+    if proc.returncode != 0 or not tmp.exists():
+        tmp.unlink(missing_ok=True)
+        raise ValueError(
+            f"netconvert failed on {folder}: {proc.stderr.strip() or proc.stdout.strip()}"
+        )
+    tmp.replace(out)
+    return out
+
+
+# --------------------------------------------------------------------------- demand
+@dataclass(frozen=True)
+class PlannedVehicle:
+    vid: str
+    depart: float
+    """Departure time [s]."""
+    route: int
+    """Index into ``Demand.routes``."""
+    is_av: bool
+    depart_pos: float | None = None
+    """Position on the route's first edge [m]; None = at the entry."""
+    depart_lane: int | None = None
+    depart_speed: float | None = None
+
+
+@dataclass(frozen=True)
+class QueuedVehicle:
+    """A vehicle that enters when one leaves (see ``boundary.PeriodicBoundary``)."""
+
+    vid: str
+    route: int
+    is_av: bool
+
+
+@dataclass(frozen=True)
+class Demand:
+    """All vehicles of one episode, in departure order."""
+
+    routes: tuple[Route, ...]
+    vehicles: tuple[PlannedVehicle, ...]
+    """Vehicles placed at reset, downstream first."""
+    queue: tuple[QueuedVehicle, ...]
+    """Vehicles that enter later, each replacing one that left (see ``boundary``)."""
+    equilibrium_speed: float
+    """IDM equilibrium speed at the target density [m/s]."""
+    inflow: float
+    """Total inflow [veh/s]."""
+
+    @property
+    def av_ids(self) -> list[str]:
+        """All AV ids of the episode (placed and queued), ``av_0 … av_{N-1}``."""
+        return [v.vid for v in (*self.vehicles, *self.queue) if v.is_av]
+
+
+def idm_equilibrium_speed(spacing: float, v0: float, vehicle: VehicleConfig) -> float:
+    """Speed [m/s] at which IDM keeps a constant ``spacing`` [m] (front to front)."""
+    gap = spacing - vehicle.length
+    if gap <= vehicle.idm_min_gap:
+        return 0.0
+    lo, hi = 0.0, v0
+    for _ in range(60):
+        v = 0.5 * (lo + hi)
+        s_star = vehicle.idm_min_gap + v * vehicle.idm_headway
+        needed = s_star / math.sqrt(max(1e-12, 1.0 - (v / v0) ** vehicle.idm_delta))
+        lo, hi = (v, hi) if needed < gap else (lo, v)
+    return lo
+
+
+def check_density(scenario: Scenario, density: float) -> None:
+    if not 0 < density <= scenario.max_density:
+        raise ValueError(
+            f"density={density} veh/km is outside (0, {scenario.max_density:.0f}] for scenario "
+            f"{scenario.name!r} ({scenario.lanes} lanes; jam density {JAM_DENSITY_PER_LANE:.0f} "
+            "veh/km per lane)"
+        )
+
+
+def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator) -> Demand:
+    """Initial placement plus entry inflow for one episode of ``config``."""
+    check_density(scenario, config.density)
+    hd = scenario.hdmap
+    per_lane = config.density / scenario.lanes / 1000.0  # veh/m per lane
+    speed_limit = float(hd.lane_speed[hd.edge_lanes[hd.edge_of(scenario.routes[0].entry), 0]])
+    v_eq = idm_equilibrium_speed(1.0 / per_lane, speed_limit, config.vehicle)
+    routes = list(scenario.routes)
+    weights = np.array([r.weight for r in routes], dtype=float)
+    weights /= weights.sum()
+    planned: list[tuple[float, int, float, int, float]] = []
+
+    # initial placement: evenly spaced per lane with a random phase, on every road edge
+    placement = scenario.placement_edges or tuple(dict.fromkeys(e for r in routes for e in r.edges))
+    for edge in placement:
+        e = hd.edge_of(edge)
+        base = scenario.routes
+        candidates = [i for i, r in enumerate(base) if edge in r.edges or r.origin == edge]
+        if not candidates:
+            candidates = list(range(len(base)))
+        cw = weights[candidates] / weights[candidates].sum()
+        length = float(hd.edge_length[e])
+        for lane in range(int(hd.edge_num_lanes[e])):
+            n = int(math.floor(length * per_lane + rng.random()))
+            if n == 0:
+                continue
+            spacing = length / n
+            start = rng.random() * spacing
+            for k in range(n):
+                pos = start + k * spacing
+                if pos > length - 1.0:
+                    continue
+                r = int(rng.choice(candidates, p=cw))
+                route_idx = _suffix_route(routes, r, edge)
+                planned.append((0.0, route_idx, pos, lane, v_eq))
+
+    # the inflow queue: vehicles that replace leaving ones at the entries (PeriodicBoundary)
+    inflow = per_lane * scenario.lanes * v_eq if v_eq > 0 else 0.0
+    n_queue = int(math.ceil(1.5 * inflow * config.episode_length)) + 4 * scenario.lanes
+    queue_routes = rng.choice(len(weights), size=n_queue, p=weights)
+
+    n_init = len(planned)
+    n_total = n_init + n_queue
+    n_av = int(round(config.penetration * n_total))
+    is_av = np.zeros(n_total, dtype=bool)
+    if config.fixed_fleet:  # all AVs exist from reset
+        is_av[rng.choice(n_init, size=min(n_av, n_init), replace=False)] = True
+    else:
+        is_av[rng.choice(n_total, size=n_av, replace=False)] = True
+    order = sorted(range(n_init), key=lambda i: -(planned[i][2] or 0.0))  # downstream first
+    ids = _vehicle_ids(is_av[[*order, *range(n_init, n_total)]])
+    vehicles = tuple(
+        PlannedVehicle(ids[j], 0.0, planned[i][1], bool(is_av[i]), *planned[i][2:])
+        for j, i in enumerate(order)
+    )
+    queue = tuple(
+        QueuedVehicle(ids[n_init + j], int(r), bool(is_av[n_init + j]))
+        for j, r in enumerate(queue_routes)
+    )
+    return Demand(tuple(routes), vehicles, queue, v_eq, inflow)
+
+
+def _vehicle_ids(is_av: np.ndarray) -> list[str]:
+    """``av_i`` / ``hv_j`` ids numbered in order."""
+    n_av = np.cumsum(is_av) - 1
+    n_hv = np.cumsum(~is_av) - 1
+    return [f"av_{a}" if av else f"hv_{h}" for av, a, h in zip(is_av, n_av, n_hv)]
+
+
+def _suffix_route(routes: list[Route], r: int, edge: str) -> int:
+    """Index of a route that starts at ``edge`` and follows route r from there (appended once)."""
+    route = routes[r]
+    if not route.edges:
+        suffix = Route(origin=edge, destination=route.destination, weight=0.0)
+    else:
+        suffix = Route(edges=route.edges[route.edges.index(edge) :], weight=0.0)
+    if route.edges and suffix.edges == route.edges:
+        return r
+    if suffix not in routes:
+        routes.append(suffix)
+    return routes.index(suffix)
+
+
+def write_demand(demand: Demand, config: EnvConfig, path: Path) -> None:
+    """Write vehicle types and the planned vehicles as a SUMO route file."""
+    veh = config.vehicle
+    root = ET.Element("routes")
+    ET.SubElement(
+        root, "vType", id="hv", vClass="passenger", carFollowModel="IDM", accel=f"{veh.idm_accel}",
+        decel=f"{veh.idm_decel}", emergencyDecel="9.0", tau=f"{veh.idm_headway}",
+        minGap=f"{veh.idm_min_gap}", delta=f"{veh.idm_delta}", length=f"{veh.length}",
+        width=f"{veh.width}", speedFactor=f"normc(1,{veh.speed_factor_dev},0.8,1.2)",
+        laneChangeModel="SL2015", latAlignment="center", color="0.6,0.6,0.6",
+    )  # fmt: skip
+    ET.SubElement(
+        root, "vType", id="av", vClass="passenger", carFollowModel="IDM", accel=f"{veh.max_accel}",
+        decel=f"{veh.max_decel}", emergencyDecel="9.0", tau=f"{veh.idm_headway}",
+        minGap=f"{veh.idm_min_gap}", length=f"{veh.length}", width=f"{veh.width}",
+        speedFactor="1", laneChangeModel="SL2015", latAlignment="arbitrary", maxSpeedLat="30",
+        lcSublane="0", color="0.85,0.1,0.1",
+    )  # fmt: skip
+    for i, r in enumerate(demand.routes):
+        ET.SubElement(root, "route", id=f"r{i}", edges=" ".join(r.edges or (r.origin,)))
+    for v in demand.vehicles:
+        r = demand.routes[v.route]
+        attrs = {"id": v.vid, "type": "av" if v.is_av else "hv", "depart": f"{v.depart:.2f}"}
+        attrs["departPos"] = f"{v.depart_pos:.2f}" if v.depart_pos is not None else "base"
+        attrs["departLane"] = str(v.depart_lane) if v.depart_lane is not None else "free"
+        attrs["departSpeed"] = f"{v.depart_speed:.2f}" if v.depart_speed is not None else "last"
+        if r.edges:
+            ET.SubElement(root, "vehicle", route=f"r{v.route}", **attrs)
+        else:
+            ET.SubElement(root, "trip", attrs, **{"from": r.origin, "to": r.destination})
+    ET.indent(root)
+    tmp = path.with_suffix(".tmp")
+    ET.ElementTree(root).write(tmp, encoding="utf-8", xml_declaration=True)
+    tmp.replace(path)
+
+
+def sumo_args(scenario: Scenario, config: EnvConfig, route_file: Path, seed: int) -> list[str]:
+    """SUMO command line (without the binary) for one episode."""
+    return [
+        "--net-file", str(scenario.net_file),
+        "--route-files", str(route_file),
+        "--step-length", f"{config.step_length}",
+        "--lateral-resolution", f"{config.lateral_resolution}",
+        "--time-to-teleport", "-1",
+        "--collision.action", "remove",
+        "--collision.check-junctions", "true",
+        "--collision.mingap-factor", "0",
+        "--seed", str(seed),
+        "--no-step-log", "true",
+        "--no-warnings", "true",
+        "--duration-log.disable", "true",
+        "--eager-insert", "true",
+        "--default.speeddev", "0",
+        *scenario.extra_args,
+    ]  # fmt: skip
+
+
+# --------------------------------------------------------------------------- CLI
+def scenario_table() -> list[dict[str, object]]:
+    """One row per bundled scenario: name, family, split, lanes, lengths."""
+    rows = []
+    for name in list_scenarios():
+        s = load_scenario(name)
+        hd = s.hdmap
+        rows.append(
+            {
+                "name": name,
+                "family": s.family,
+                "split": s.split,
+                "lanes": s.lanes,
+                "network_km": round(float(hd.edge_length.sum()) / 1000, 2),
+                "measurement_m": round(s.measurement_length),
+                "description": s.description,
+            }
+        )
+    return rows
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="python -m mixed_traffic.scenario", description="Bundled SUMO scenarios."
+    )
+    parser.add_argument("--list", action="store_true", help="list scenarios with lengths and lanes")
+    parser.add_argument(
+        "--build", metavar="NAME", help="build one scenario's network and print its path"
+    )
+    args = parser.parse_args(argv)
+    if args.build:
+        print(load_scenario(args.build).net_file)
+        return 0
+    rows = scenario_table()
+    header = (
+        f"{'name':<22}{'family':<12}{'split':<7}{'lanes':>6}{'net km':>8}{'meas m':>8}  description"
+    )
+    print(header)
+    for r in rows:
+        print(
+            f"{r['name']:<22}{r['family']:<12}{r['split']:<7}{r['lanes']:>6}"
+            f"{r['network_km']:>8}{r['measurement_m']:>8}  {r['description']}"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
