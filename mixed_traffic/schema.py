@@ -1,0 +1,81 @@
+"""Names, units and meanings of every reported metric, and the layout of a result record.
+
+Pure data (no SUMO, no torch) so ``analysis`` can label tables and figures from result files.
+
+A result record (one per episode, one JSON object per line in ``records.jsonl``)::
+
+    {"cell": {"policy", "scenario", "density", "penetration", "weather", "seed"},
+     "status": "ok" | "failed", "error": str | None,
+     "config": EnvConfig.to_dict(), "seed": int, "sumo_version": str, "git_revision": str,
+     "created": ISO-8601 time, "wall_time": s,
+     "metrics": {key: value for key in METRICS}}
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Metric:
+    key: str
+    label: str
+    """Short name as in the paper (DESIGN §9)."""
+    unit: str
+    description: str
+    better: str = ""
+    """'lower', 'higher' or '' (no preference)."""
+
+
+METRICS: dict[str, Metric] = {
+    m.key: m
+    for m in (
+        Metric("dt_tf", "DT-TF", "s", "mean time of all vehicles to cross the 1 km measurement segment", "lower"),
+        Metric("avg_dt_a", "AvgDT-A", "s/km", "AV driving time per km", "lower"),
+        Metric("avg_at_c", "AvgAT-C", "s", "time the rear vehicle C slowed by > 0.1 m/s within a step, per AV trip", "lower"),
+        Metric("avg_di_c", "AvgDI-C", "-", "delay index of rear vehicles: actual / free-flow travel time", "lower"),
+        Metric("min_ttc_a", "MinTTC-A", "s", "minimum TTC of each AV over its trip, averaged over AVs", "higher"),
+        Metric("avg_off_a", "AvgOFF-A", "m", "mean |lateral offset| from the centreline while following a lane", "lower"),
+        Metric("avg_vel_a", "AvgVEL-A", "m/s", "mean AV speed", "higher"),
+        Metric("avg_jerk_a", "AvgJERK-A", "m/s³", "mean |a_t - a_(t-1)| / dt of AVs", "lower"),
+        Metric("avg_dec_c", "AvgDEC-C", "m/s", "mean speed drop of C within 1 s after an AV brakes or changes lane", "lower"),
+        Metric("pt_rt", "PT-RT", "%", "share of AV time with TTC < 4 s", "lower"),
+        Metric("avg_r", "AvgR", "-", "mean reward per AV action", "higher"),
+        Metric("avg_it", "AvgIT", "ms", "mean policy inference time per decision", "lower"),
+        Metric("measured_density", "density", "veh/km", "measured density in the measurement segment after warm-up"),
+        Metric("mean_speed", "speed", "m/s", "mean speed of all vehicles in the measurement segment", "higher"),
+        Metric("vehicles_crossed", "crossed", "veh", "vehicles that crossed the whole measurement segment"),
+        Metric("av_trips", "AV trips", "trips", "AV trips that ended (arrived or terminated)"),
+        Metric("route_completion", "completion", "%", "share of ended AV trips that reached their destination", "higher"),
+        Metric("collisions", "collisions", "count", "collisions (any vehicles)", "lower"),
+        Metric("teleports", "teleports", "count", "SUMO teleports (should be 0)", "lower"),
+        Metric("terminal_collision", "T-collision", "count", "AVs terminated by a collision", "lower"),
+        Metric("terminal_off_road", "T-off-road", "count", "AVs terminated for leaving the road", "lower"),
+        Metric("terminal_route_deviation", "T-route", "count", "AVs terminated for deviating from the route", "lower"),
+        Metric("terminal_red_light", "T-red-light", "count", "AVs terminated for running a red light", "lower"),
+        Metric("terminal_speed_limit", "T-speeding", "count", "AVs terminated for breaking the speed limit", "lower"),
+    )
+}  # fmt: skip
+
+#: The paper's macroscopic and microscopic tables (Tables "Macroscopic/Microscopic Evaluation").
+MACRO = ("avg_dt_a", "avg_at_c", "avg_di_c")
+MICRO = ("min_ttc_a", "avg_off_a", "avg_vel_a", "avg_jerk_a", "avg_dec_c")
+SAFETY = (
+    "collisions",
+    "teleports",
+    "terminal_collision",
+    "terminal_off_road",
+    "terminal_route_deviation",
+    "terminal_red_light",
+    "terminal_speed_limit",
+    "route_completion",
+)
+TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
+CELL_KEYS = ("policy", "scenario", "density", "penetration", "weather", "seed")
+POLICIES = ("auto", "acc-lc", "idm", "random")
+
+
+def label(key: str) -> str:
+    """'DT-TF (s)' style axis label of a metric."""
+    m = METRICS[key]
+    return f"{m.label} ({m.unit})" if m.unit not in ("-", "") else m.label
