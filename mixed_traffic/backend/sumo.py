@@ -18,15 +18,12 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
-from mixed_traffic.backend.snapshot import Collision, TrafficSnapshot, sumo_angle_to_rad
-
-os.environ.setdefault("LIBSUMO_AS_TRACI", "quiet")  # silences libsumo's pyarrow check at import
-
 import libsumo
+import numpy as np
 import traci
 import traci.constants as tc
+
+from mixed_traffic.backend.snapshot import Collision, TrafficSnapshot, sumo_angle_to_rad
 
 #: speedMode 32: no safe-speed, acceleration, deceleration or right-of-way checks, so the
 #: policy (not SUMO) drives the AV; bit 5 set disregards right of way inside junctions too.
@@ -162,7 +159,7 @@ class SumoBackend:
         except (
             libsumo.TraCIException,
             traci.exceptions.TraCIException,
-            traci.FatalTraCIError,
+            traci.exceptions.FatalTraCIError,
         ) as e:
             self._api = None
             raise SumoError(f"SUMO failed to start ({' '.join(args)}): {e}") from e
