@@ -301,7 +301,8 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
         cw = weights[candidates] / weights[candidates].sum()
         length = float(hd.edge_length[e])
         for lane in range(int(hd.edge_num_lanes[e])):
-            n = int(math.floor(length * per_lane + rng.random()))
+            # a count independent of the seed keeps possible_agents fixed for a config
+            n = round(length * per_lane)
             if n == 0:
                 continue
             spacing = length / n
