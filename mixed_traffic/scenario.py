@@ -306,6 +306,9 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
             if n == 0:
                 continue
             spacing = length / n
+            # rounding n up makes the spacing tighter than the target: SUMO refuses to insert
+            # at a speed above the IDM equilibrium of the actual spacing
+            v_lane = min(v_eq, idm_equilibrium_speed(spacing, speed_limit, config.vehicle))
             start = rng.random() * spacing
             for k in range(n):
                 pos = start + k * spacing
@@ -313,7 +316,7 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
                     continue
                 r = int(rng.choice(candidates, p=cw))
                 route_idx = _suffix_route(routes, r, edge)
-                planned.append((0.0, route_idx, pos, lane, v_eq))
+                planned.append((0.0, route_idx, pos, lane, v_lane))
 
     # the inflow queue: vehicles that replace leaving ones at the entries (PeriodicBoundary)
     inflow = per_lane * scenario.lanes * v_eq if v_eq > 0 else 0.0
