@@ -1,0 +1,311 @@
+"""Per-agent multi-modal observation with history (DESIGN §6, paper §III-B), vectorised.
+
+Public API::
+
+    observation_space(config: EnvConfig) -> gymnasium.spaces.Dict
+    builder = ObservationBuilder(config, hdmap)
+    builder.reset()                                   # at every env reset
+    obs = builder.build(snap, agent_ids, rows, sensed, routes)   # once per step
+    builder.drop(agent_ids)                           # forget agents (e.g. re-entry in fixed_fleet)
+
+``sensed`` is the ``PerceptionFrame`` from ``Perception.sense``; ``routes[i]`` are the edge rows
+of agent i's route (its current index is ``snap.route_index[rows[i]]``).
+
+Observation of one agent (z = ``sensors.history``, m = ``sensors.waypoints``; lanes in the order
+left, current, right; history oldest first, newest last):
+
+========== =========== ====== ========================================================
+key        shape       dtype  features / normalisation (value / constant, then clip to [-1, 1])
+========== =========== ====== ========================================================
+ego        (z, 5)      f32    speed / 40 m/s, heading rel. lane / pi, length / 10 m,
+                              width / 5 m, lateral offset (+ left) / 2 m
+lanes      (3, z, 4m)  f32    per waypoint (interleaved wp0 f0..f3, wp1 f0..f3, ...):
+                              altitude rel. ego / 10 m, lane index rel. ego / 4,
+                              orientation rel. ego heading / pi, speed limit / 40 m/s
+vehicles   (3, z, 12)  f32    front then rear vehicle, each: along-lane distance (+ ahead) /
+                              lidar_range, relative velocity / 40 m/s, relative heading / pi,
+                              length / 10 m, width / 5 m, lateral offset / 2 m
+lights     (3, z, 4)   f32    one-hot red, yellow, green; distance to stop line / camera_range
+node_mask  (3, 3)      int8   per lane: lane exists, vehicle(s) detected, light detected
+action_mask (3,)       int8   allowed decisions: left change, follow, right change
+========== =========== ====== ========================================================
+
+Boxes are ``[-1, 1]`` float32 and every value is clipped into them; the masks are
+``MultiBinary`` (int8 0/1, current step only).
+
+Validity convention for the history: a frame that was not observed (episode start, or an
+agent that appeared later) is all zeros. ``ego[t, 2]`` (length) > 0 marks an observed frame,
+``vehicles`` width (columns 4 and 10) > 0 a present front/rear vehicle, and the light one-hot
+sum = 1 a detected light. A missing lane is all zeros in ``lanes`` / ``vehicles`` / ``lights``.
+
+Action mask: a lane change is allowed iff the adjacent lane exists and some lane on that side
+(the adjacent one or beyond) continues the route (``hdmap.conn_to[(lane, next_route_edge)]``;
+on the route's last edge every lane continues). Within ``MANDATORY_DISTANCE`` of the end of a
+lane from which the route cannot continue, ``follow`` is masked (mandatory lane change) and a
+virtual stopped vehicle (zero length, width of the lane) sits at the lane's end line as the
+front vehicle of the current lane, unless a real vehicle is closer. The mask always allows at
+least one decision: with no continuing lane on either side, follow stays allowed.
+Waypoints follow each lane's primary successor beyond its end; waypoint features come from
+the HD map and are not perturbed by weather.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import gymnasium as gym
+import numpy as np
+
+from mixed_traffic.backend.snapshot import TrafficSnapshot
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.hdmap import HDMap
+from mixed_traffic.perception import (
+    CURRENT,
+    NO_LIGHT,
+    PerceptionFrame,
+    lane_graph,
+    next_route_edge,
+    wrap_angle,
+)
+
+#: Speed scale for velocities, relative velocities and speed limits [m/s].
+SPEED_SCALE = 40.0
+#: Ego feature scales: speed [m/s], heading rel. lane [rad], length [m], width [m], lateral [m].
+EGO_SCALE = np.array([SPEED_SCALE, np.pi, 10.0, 5.0, 2.0])
+#: Waypoint feature scales: altitude [m], lane index [-], orientation [rad], speed limit [m/s].
+WAYPOINT_SCALE = np.array([10.0, 4.0, np.pi, SPEED_SCALE])
+#: Vehicle feature scales after the distance (divided by lidar_range): rel. velocity [m/s],
+#: rel. heading [rad], length [m], width [m], lateral [m].
+VEHICLE_SCALE_TAIL = np.array([SPEED_SCALE, np.pi, 10.0, 5.0, 2.0])
+#: Distance to the end of a non-continuing lane below which a lane change is mandatory [m].
+MANDATORY_DISTANCE = 100.0
+#: Decisions in ``action_mask`` order.
+LEFT_CHANGE, FOLLOW, RIGHT_CHANGE = 0, 1, 2
+
+
+def observation_space(config: EnvConfig) -> gym.spaces.Dict:
+    """The per-agent observation space of DESIGN §6 for ``config``."""
+    z, m = config.sensors.history, config.sensors.waypoints
+
+    def box(*shape: int) -> gym.spaces.Box:
+        return gym.spaces.Box(-1.0, 1.0, shape=shape, dtype=np.float32)
+
+    return gym.spaces.Dict(
+        {
+            "ego": box(z, 5),
+            "lanes": box(3, z, 4 * m),
+            "vehicles": box(3, z, 12),
+            "lights": box(3, z, 4),
+            "node_mask": gym.spaces.MultiBinary([3, 3]),
+            "action_mask": gym.spaces.MultiBinary(3),
+        }
+    )
+
+
+class ObservationBuilder:
+    """Builds the observations of all agents in one vectorised pass and keeps their history.
+
+    Args:
+        config: the env config (sensor ranges, z, m).
+        hdmap: the network.
+    """
+
+    def __init__(self, config: EnvConfig, hdmap: HDMap) -> None:
+        self.config = config
+        self.hdmap = hdmap
+        self.graph = lane_graph(hdmap)
+        self.z = config.sensors.history
+        self.m = config.sensors.waypoints
+        s = config.sensors
+        self._veh_scale = np.concatenate([[s.lidar_range], VEHICLE_SCALE_TAIL])
+        self._wp_scale = np.tile(WAYPOINT_SCALE, self.m)
+        self.reset()
+
+    # ------------------------------------------------------------------ history slots
+    def reset(self) -> None:
+        """Forget every agent's history (call at env reset)."""
+        self._slot: dict[str, int] = {}
+        self._ego = np.zeros((0, self.z, 5), np.float32)
+        self._lanes = np.zeros((0, 3, self.z, 4 * self.m), np.float32)
+        self._veh = np.zeros((0, 3, self.z, 12), np.float32)
+        self._lights = np.zeros((0, 3, self.z, 4), np.float32)
+        self._free: list[int] = []
+        self._grow(64)
+
+    def drop(self, agent_ids: Sequence[str]) -> None:
+        """Forget the history of ``agent_ids``; they start with zeros if built again."""
+        for a in agent_ids:
+            slot = self._slot.pop(a, None)
+            if slot is not None:
+                self._free.append(slot)
+
+    def _grow(self, capacity: int) -> None:
+        """Enlarge the history buffers to ``capacity`` slots, keeping existing histories."""
+        n = len(self._ego)
+        for name in ("_ego", "_lanes", "_veh", "_lights"):
+            old = getattr(self, name)
+            new = np.zeros((capacity, *old.shape[1:]), np.float32)
+            new[:n] = old
+            setattr(self, name, new)
+        self._free.extend(range(capacity - 1, n - 1, -1))  # pop() takes the lowest first
+
+    def _slots(self, agent_ids: Sequence[str]) -> np.ndarray:
+        out = np.empty(len(agent_ids), dtype=np.int64)
+        for i, a in enumerate(agent_ids):
+            s = self._slot.get(a)
+            if s is None:
+                if not self._free:
+                    self._grow(2 * len(self._ego))
+                s = self._free.pop()
+                self._slot[a] = s
+                self._ego[s] = 0.0
+                self._lanes[s] = 0.0
+                self._veh[s] = 0.0
+                self._lights[s] = 0.0
+            out[i] = s
+        return out
+
+    # ------------------------------------------------------------------ build
+    def build(
+        self,
+        snap: TrafficSnapshot,
+        agent_ids: Sequence[str],
+        rows: np.ndarray,
+        sensed: PerceptionFrame,
+        routes: Sequence[Sequence[int]],
+    ) -> dict[str, dict[str, np.ndarray]]:
+        """Observations of all agents; shifts each built agent's history by one frame.
+
+        Args:
+            snap: the current snapshot.
+            agent_ids: (A,) agent ids, aligned with ``rows`` and ``sensed``.
+            rows: (A,) snapshot rows of the agents.
+            sensed: the sensed ``PerceptionFrame`` for the same rows.
+            routes: per agent, the edge rows of its route.
+        Returns:
+            ``{agent_id: {key: array}}`` per the module table; arrays are fresh copies.
+        """
+        rows = np.asarray(rows, dtype=np.int64)
+        A = len(rows)
+        if A == 0:
+            return {}
+        nxt = next_route_edge(routes, snap.route_index[rows])
+        lanes = sensed.neighbours.lane  # (A, 3)
+        exists = lanes >= 0
+        act, mandatory, end_dist = self.action_mask(snap, rows, lanes, nxt)
+
+        ego = np.clip(sensed.ego / EGO_SCALE, -1.0, 1.0)  # (A, 5)
+        wp = self._waypoints(snap, rows, lanes)  # (A, 3, 4m)
+        veh, present = self._vehicles(sensed, lanes, mandatory, end_dist, snap.speed[rows])
+        light_on = sensed.light_state != NO_LIGHT
+        lights = np.zeros((A, 3, 4))
+        lights[..., :3] = (sensed.light_state[..., None] == np.arange(3)) & light_on[..., None]
+        lights[..., 3] = np.where(
+            light_on, sensed.light_dist / self.config.sensors.camera_range, 0.0
+        )
+        lights = np.clip(lights, -1.0, 1.0)
+        node = np.stack([exists, present, light_on & exists], axis=-1).astype(np.int8)
+
+        slots = self._slots(agent_ids)
+        h_ego = _push(self._ego, slots, ego, axis=1)
+        h_lanes = _push(self._lanes, slots, wp, axis=2)
+        h_veh = _push(self._veh, slots, veh, axis=2)
+        h_lights = _push(self._lights, slots, lights, axis=2)
+        act = act.astype(np.int8)
+        return {
+            a: {
+                "ego": h_ego[i],
+                "lanes": h_lanes[i],
+                "vehicles": h_veh[i],
+                "lights": h_lights[i],
+                "node_mask": node[i],
+                "action_mask": act[i],
+            }
+            for i, a in enumerate(agent_ids)
+        }
+
+    # ------------------------------------------------------------------ features
+    def _waypoints(self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray) -> np.ndarray:
+        """(A, 3, 4m) normalised waypoint features of the m waypoints ahead on each lane."""
+        hd, m = self.hdmap, self.m
+        A = len(rows)
+        cur = lanes[:, CURRENT]
+        lsafe = np.maximum(lanes, 0)
+        ratio = (
+            hd.lane_length[lsafe] / np.maximum(hd.lane_length[np.maximum(cur, 0)], 1e-9)[:, None]
+        )
+        pos = snap.lane_pos[rows][:, None] * ratio
+        wp = hd.waypoints_ahead(lsafe.ravel(), pos.ravel(), m).reshape(A, 3, m)
+        ego_lane_idx = hd.lane_index[np.maximum(cur, 0)].astype(np.float64)
+        feats = np.empty((A, 3, m, 4))
+        feats[..., 0] = hd.wp_xyz[wp, 2] - snap.z[rows][:, None, None]
+        feats[..., 1] = hd.wp_lane_index[wp] - ego_lane_idx[:, None, None]
+        feats[..., 2] = wrap_angle(hd.wp_heading[wp] - snap.heading[rows][:, None, None])
+        feats[..., 3] = hd.wp_speed[wp]
+        out = np.clip(feats.reshape(A, 3, 4 * m) / self._wp_scale, -1.0, 1.0)
+        return np.where((lanes >= 0)[..., None], out, 0.0)
+
+    def _vehicles(
+        self,
+        sensed: PerceptionFrame,
+        lanes: np.ndarray,
+        mandatory: np.ndarray,
+        end_dist: np.ndarray,
+        ego_speed: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(A, 3, 12) normalised front/rear features, with the virtual end-of-lane vehicle;
+        and (A, 3) bool "vehicle(s) detected"."""
+        veh = sensed.vehicles.copy()  # (A, 3, 2, 6)
+        found = sensed.neighbours.vehicle >= 0  # (A, 3, 2)
+        cur_front = veh[:, CURRENT, 0]
+        virt = mandatory & (~found[:, CURRENT, 0] | (end_dist < cur_front[:, 0]))
+        width = self.hdmap.lane_width[np.maximum(lanes[:, CURRENT], 0)]
+        virtual = np.stack(
+            [end_dist, -ego_speed, np.zeros_like(end_dist), np.zeros_like(end_dist), width,
+             np.zeros_like(end_dist)], axis=1
+        )  # fmt: skip
+        veh[:, CURRENT, 0] = np.where(virt[:, None], virtual, cur_front)
+        found[:, CURRENT, 0] |= virt
+        out = np.clip(veh / self._veh_scale, -1.0, 1.0)
+        out = np.where(found[..., None], out, 0.0).reshape(len(veh), 3, 12)
+        return out, found.any(axis=2)
+
+    def action_mask(
+        self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray, next_edge: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(A, 3) bool allowed (left, follow, right); (A,) bool mandatory-change zone; (A,)
+        distance from the front bumper to the current lane's end [m]."""
+        hd, g = self.hdmap, self.graph
+        cur = lanes[:, CURRENT]
+        csafe = np.maximum(cur, 0)
+        edge = np.where(cur >= 0, hd.lane_edge[csafe], -1)
+        esafe = np.maximum(edge, 0)
+        edge_lanes = hd.edge_lanes[esafe].astype(np.int64)  # (A, K)
+        k = np.arange(edge_lanes.shape[1])
+        valid = (edge_lanes >= 0) & (edge >= 0)[:, None]
+        cont = g.connection(edge_lanes, np.broadcast_to(next_edge[:, None], edge_lanes.shape)) >= 0
+        cont = valid & (cont | (next_edge < 0)[:, None])
+        idx = hd.lane_index[csafe].astype(np.int64)[:, None]
+        left_ok = lanes[:, 0] >= 0
+        right_ok = lanes[:, 2] >= 0
+        left_ok &= (cont & (k > idx)).any(axis=1)
+        right_ok &= (cont & (k < idx)).any(axis=1)
+        cur_cont = (cont & (k == idx)).any(axis=1) | (edge < 0)
+        end_dist = hd.lane_length[csafe] - snap.lane_pos[rows]
+        mandatory = ~cur_cont & (end_dist <= MANDATORY_DISTANCE) & (edge >= 0)
+        follow = ~mandatory | ~(left_ok | right_ok)
+        return np.stack([left_ok, follow, right_ok], axis=1), mandatory, end_dist
+
+
+def _push(buf: np.ndarray, slots: np.ndarray, frame: np.ndarray, axis: int) -> np.ndarray:
+    """Shift the history of ``slots`` one frame back along ``axis`` (of the per-slot array,
+    +1 for the slot axis), append ``frame``, store, and return the (copied) histories."""
+    hist = buf[slots]  # (A, ...) copy
+    if axis == 1:
+        hist[:, :-1] = hist[:, 1:]
+        hist[:, -1] = frame
+    else:
+        hist[:, :, :-1] = hist[:, :, 1:]
+        hist[:, :, -1] = frame
+    buf[slots] = hist
+    return hist

@@ -1,0 +1,554 @@
+"""Perception: ground-truth neighbour search and the AV's sensors with weather noise (paper §III-B).
+
+Public API (all arrays numpy; A = number of queried agents, N = vehicles in the snapshot):
+
+``find_neighbours(snap, hdmap, rows, max_range, next_edge=None) -> Neighbours``
+    Ground truth. For each agent row and each of its lanes (left, current, right) = columns
+    0, 1, 2: the lane row and the front / rear vehicle within ``max_range`` metres along the lane.
+``bumper_gap(distance, len_ego, len_other) -> gap``   and   ``ttc(gap, closing_speed) -> s``
+``WEATHER_PRESETS[name] -> WeatherPreset``              noise, misdetection, range factors
+``tls_ids(hdmap) -> list[str]``                         order of the traffic-light state strings
+``next_route_edge(routes, route_index) -> (A,) int``    next edge row of each agent's route
+``Perception(sensors, hdmap, weather)``
+    ``.sense(snap, rows, next_edge, tls_states, rng) -> (truth, sensed)``, two ``PerceptionFrame``.
+
+The env calls, once per step::
+
+    nxt = next_route_edge(routes, snap.route_index[rows])
+    truth, sensed = perception.sense(snap, rows, nxt, backend.tls_states(perception.tls_ids), rng)
+
+and uses ``truth`` for rewards/metrics and ``sensed`` for observations. With
+``SensorConfig.noise=False``, ``sensed is truth``.
+
+Conventions
+-----------
+* Along-lane distance is front bumper to front bumper (SUMO ``lanePosition``), + = ahead.
+  A missing vehicle has row -1 and distance +inf (front) / -inf (rear), so gaps and TTCs of
+  missing vehicles are +inf without special cases.
+* The search follows each lane across its end into its successor (through junction lanes),
+  up to ``SEARCH_DEPTH`` lanes deep, and behind into one predecessor per lane (the lane whose
+  primary successor it is). For the first hop ahead the route is used when ``next_edge`` is
+  given (``hdmap.conn_to[(lane, next_edge)]``), else the primary successor ``hdmap.lane_next``.
+* Sublane model: a vehicle straddling two lanes is seen only in the lane SUMO reports for it,
+  which is the lane holding its centre; its ``lateral`` offset (feature) shows the overlap.
+* On a neighbour lane the agent's position is projected by the lane-length ratio
+  (lanes of one edge have near-equal lengths; curves make them differ slightly).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from mixed_traffic.backend.snapshot import TrafficSnapshot
+from mixed_traffic.config import SensorConfig
+from mixed_traffic.hdmap import HDMap
+
+#: Lanes followed ahead (and behind) of a lane when looking for a leader (follower).
+SEARCH_DEPTH = 4
+#: Column of each lane in the (A, 3) lane arrays.
+LEFT, CURRENT, RIGHT = 0, 1, 2
+#: Traffic-light state codes.
+NO_LIGHT, RED, YELLOW, GREEN = -1, 0, 1, 2
+#: Vehicle feature columns (physical units): distance [m], relative velocity v_other - v_ego
+#: [m/s], relative heading [rad], length [m], width [m], lateral offset of the other vehicle from
+#: its lane centre, + = left [m].
+VEHICLE_FEATURES = ("distance", "rel_velocity", "rel_heading", "length", "width", "lateral")
+#: Ego feature columns: speed [m/s], heading relative to the lane [rad], length [m], width [m],
+#: lateral offset from the centreline, + = left [m].
+EGO_FEATURES = ("velocity", "heading_rel_lane", "length", "width", "lateral")
+#: Additive noise floors per vehicle / ego feature (same units): noise std is
+#: ``rel_noise * (|x| + floor)`` so features that are zero (relative speed, offset) still jitter.
+VEHICLE_NOISE_FLOOR = np.array([1.0, 0.5, 0.02, 0.2, 0.1, 0.1])
+EGO_NOISE_FLOOR = np.array([0.5, 0.02, 0.0, 0.0, 0.1])
+#: Ego length and width are known exactly (own vehicle): noise multiplier per ego feature.
+EGO_NOISY = np.array([1.0, 1.0, 0.0, 0.0, 1.0])
+
+
+# --------------------------------------------------------------------------- weather
+@dataclass(frozen=True)
+class WeatherPreset:
+    """Sensor degradation of one weather condition (paper §V-I: 3-18 % perturbation).
+
+    A sensed continuous feature is ``x + rel_noise * (|x| + floor) * eps`` with eps ~ N(0, 1),
+    i.e. its relative RMS error is ``rel_noise`` (floors: ``VEHICLE_NOISE_FLOOR``,
+    ``EGO_NOISE_FLOOR``). A detected light shows one of the two wrong states (uniformly) with
+    probability ``light_misdetect``. Detection ranges are multiplied by the range factors.
+    """
+
+    name: str
+    rel_noise: float
+    """Relative standard deviation of every perturbed feature [-]."""
+    light_misdetect: float
+    """Probability that a detected traffic light reports a wrong state [-]."""
+    lidar_range_factor: float
+    """Multiplier of ``SensorConfig.lidar_range`` [-]."""
+    camera_range_factor: float
+    """Multiplier of ``SensorConfig.camera_range`` [-]."""
+
+
+WEATHER_PRESETS: dict[str, WeatherPreset] = {
+    # clear day: residual sensor error only
+    "normal": WeatherPreset("normal", 0.03, 0.02, 1.0, 1.0),
+    # rain: wet-road LiDAR returns and lens droplets; paper's 13 % light error rate
+    "rain": WeatherPreset("rain", 0.08, 0.13, 0.9, 0.85),
+    # fog: strongest perturbation and shortest ranges
+    "fog": WeatherPreset("fog", 0.15, 0.18, 0.6, 0.5),
+    # night: LiDAR is active (small loss), the camera loses contrast
+    "night": WeatherPreset("night", 0.06, 0.08, 0.95, 0.7),
+}
+
+
+# --------------------------------------------------------------------------- lane graph
+@dataclass
+class LaneGraph:
+    """Vectorised lookups over an HDMap, built once per map (``lane_graph(hdmap)``)."""
+
+    n_edges: int
+    conn_keys: np.ndarray
+    """(C,) sorted keys lane * E + next_edge of ``hdmap.conn_to``."""
+    conn_vals: np.ndarray
+    """(C,) first lane row to take."""
+    tls_keys: np.ndarray
+    """(T,) sorted keys lane * E + next_edge of ``hdmap.tls_links``."""
+    tls_tl: np.ndarray
+    """(T,) index into ``tls_ids``."""
+    tls_link: np.ndarray
+    """(T,) link index within that light's state string."""
+    tls_ids: list[str]
+    pred: np.ndarray
+    """(L,) one predecessor lane row (-1 if none)."""
+    next_edge: np.ndarray
+    """(L,) first normal edge reached by following primary successors (-1 if none)."""
+    lane_offset_key: float
+    """Multiplier of the lane row in the (lane, position) sort key [m]."""
+
+    def connection(self, lane: np.ndarray, edge: np.ndarray) -> np.ndarray:
+        """(...) first lane row of the connection lane -> edge, -1 if there is none."""
+        found, i = self._find(self.conn_keys, lane, edge)
+        return np.where(found, self.conn_vals[np.minimum(i, len(self.conn_vals) - 1)], -1)
+
+    def signal(self, lane: np.ndarray, edge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(...) light index into ``tls_ids`` and link index of lane -> edge (-1, -1 if none)."""
+        found, i = self._find(self.tls_keys, lane, edge)
+        i = np.minimum(i, max(len(self.tls_keys) - 1, 0))
+        if len(self.tls_keys) == 0:
+            return np.full(found.shape, -1), np.full(found.shape, -1)
+        return np.where(found, self.tls_tl[i], -1), np.where(found, self.tls_link[i], -1)
+
+    def _find(self, keys: np.ndarray, lane: np.ndarray, edge: np.ndarray):
+        lane = np.asarray(lane, dtype=np.int64)
+        edge = np.asarray(edge, dtype=np.int64)
+        key = lane * self.n_edges + edge
+        i = np.searchsorted(keys, key)
+        ok = (lane >= 0) & (edge >= 0) & (i < len(keys))
+        found = (
+            ok & (keys[np.minimum(i, max(len(keys) - 1, 0))] == key) if len(keys) else ok & False
+        )
+        return found, i
+
+
+def lane_graph(hdmap: HDMap) -> LaneGraph:
+    """The (cached) ``LaneGraph`` of ``hdmap``."""
+    cached = hdmap.__dict__.get("_lane_graph")
+    if cached is None:
+        cached = _build_lane_graph(hdmap)
+        hdmap.__dict__["_lane_graph"] = cached
+    return cached
+
+
+def _build_lane_graph(hd: HDMap) -> LaneGraph:
+    E, L = len(hd.edge_ids), hd.n_lanes
+    conn = sorted((a * E + b, c) for (a, b), c in hd.conn_to.items())
+    names = sorted({t for t, _ in hd.tls_links.values()})
+    tl_row = {t: i for i, t in enumerate(names)}
+    tls = sorted((a * E + b, tl_row[t], k) for (a, b), (t, k) in hd.tls_links.items())
+    # predecessor: prefer a straight-on (primary) link from a lane with the same index
+    pred = np.full(L, -1, dtype=np.int64)
+    for src in np.argsort(
+        hd.lane_index != hd.lane_index[np.maximum(hd.lane_next, 0)], kind="stable"
+    ):
+        dst = hd.lane_next[src]
+        if dst >= 0 and pred[dst] < 0:
+            pred[dst] = src
+    nxt_edge = np.full(L, -1, dtype=np.int64)
+    lane = hd.lane_next.astype(np.int64)
+    for _ in range(SEARCH_DEPTH):
+        edge = np.where(lane >= 0, hd.lane_edge[np.maximum(lane, 0)], -1)
+        nxt_edge = np.where((nxt_edge < 0) & (edge >= 0), edge, nxt_edge)
+        lane = np.where(lane >= 0, hd.lane_next[np.maximum(lane, 0)], -1)
+    return LaneGraph(
+        n_edges=E,
+        conn_keys=np.array([k for k, _ in conn], dtype=np.int64),
+        conn_vals=np.array([v for _, v in conn], dtype=np.int64),
+        tls_keys=np.array([k for k, _, _ in tls], dtype=np.int64),
+        tls_tl=np.array([t for _, t, _ in tls], dtype=np.int64),
+        tls_link=np.array([i for _, _, i in tls], dtype=np.int64),
+        tls_ids=names,
+        pred=pred,
+        next_edge=nxt_edge,
+        lane_offset_key=float(np.ceil(hd.lane_length.max()) + 10.0),
+    )
+
+
+def tls_ids(hdmap: HDMap) -> list[str]:
+    """Traffic-light ids whose state strings ``Perception.sense`` expects, in this order."""
+    return lane_graph(hdmap).tls_ids
+
+
+def next_route_edge(routes: Sequence[Sequence[int]], route_index: np.ndarray) -> np.ndarray:
+    """(A,) int64 edge row after the current one on each agent's route, -1 on the last edge.
+
+    Args:
+        routes: per agent, the edge rows of its route (``HDMap.edge_row`` of each edge id).
+        route_index: (A,) index of the current (or last normal) edge within the route.
+    """
+    out = np.full(len(routes), -1, dtype=np.int64)
+    for i, (r, k) in enumerate(zip(routes, np.asarray(route_index).tolist())):
+        if 0 <= k + 1 < len(r):
+            out[i] = r[k + 1]
+    return out
+
+
+# --------------------------------------------------------------------------- neighbours
+@dataclass
+class Neighbours:
+    """Front and rear vehicle of each agent in its (left, current, right) lanes.
+
+    Shapes: A agents, 3 lanes (columns LEFT, CURRENT, RIGHT), 2 slots (0 = front, 1 = rear).
+    """
+
+    lane: np.ndarray
+    """(A, 3) int64 lane row, -1 if the lane does not exist."""
+    vehicle: np.ndarray
+    """(A, 3, 2) int64 snapshot row of the front / rear vehicle, -1 if none within range."""
+    distance: np.ndarray
+    """(A, 3, 2) along-lane front-bumper distance [m], + ahead; +inf / -inf when missing."""
+
+    @property
+    def front(self) -> np.ndarray:
+        """(A, 3) front vehicle rows."""
+        return self.vehicle[:, :, 0]
+
+    @property
+    def rear(self) -> np.ndarray:
+        """(A, 3) rear vehicle rows."""
+        return self.vehicle[:, :, 1]
+
+    @property
+    def front_dist(self) -> np.ndarray:
+        """(A, 3) [m] >= 0, +inf when missing."""
+        return self.distance[:, :, 0]
+
+    @property
+    def rear_dist(self) -> np.ndarray:
+        """(A, 3) [m] <= 0, -inf when missing."""
+        return self.distance[:, :, 1]
+
+
+def find_neighbours(
+    snap: TrafficSnapshot,
+    hdmap: HDMap,
+    rows: np.ndarray,
+    max_range: float,
+    next_edge: np.ndarray | None = None,
+) -> Neighbours:
+    """Ground-truth front/rear vehicles in the left, current and right lane of each agent.
+
+    Vehicles are sorted once by (lane, lane_pos); each query is a ``searchsorted``, and the
+    search continues into successor / predecessor lanes for at most ``SEARCH_DEPTH`` lanes.
+
+    Args:
+        snap: the current snapshot (N vehicles).
+        hdmap: the network's map.
+        rows: (A,) snapshot rows of the querying agents.
+        max_range: vehicles farther than this along the lane are not reported [m].
+        next_edge: optional (A,) next route edge row per agent (-1 = none); used for the first
+            hop ahead (route-aware successor); else the primary successor is followed.
+    Returns:
+        ``Neighbours`` with (A, 3) lanes and (A, 3, 2) vehicles and distances.
+    """
+    g = lane_graph(hdmap)
+    rows = np.asarray(rows, dtype=np.int64)
+    A = len(rows)
+    L = hdmap.n_lanes
+    lane_len = hdmap.lane_length
+    # ---- sort all vehicles on a lane by (lane, position) once
+    vlane = snap.lane.astype(np.int64)
+    on = np.flatnonzero(vlane >= 0)
+    key_all = vlane * g.lane_offset_key + snap.lane_pos
+    order = on[np.argsort(key_all[on], kind="stable")]
+    s_key = key_all[order]
+    s_pos = snap.lane_pos[order]
+    start = np.searchsorted(s_key, np.arange(L + 1) * g.lane_offset_key - 1e-3)  # (L+1,)
+    rank = np.full(snap.n, -1, dtype=np.int64)
+    rank[order] = np.arange(len(order))
+
+    # ---- query lanes (A, 3) and the agent's position projected onto them
+    ego_lane = vlane[rows]
+    ego_pos = snap.lane_pos[rows]
+    cur = np.where(ego_lane >= 0, ego_lane, -1)
+    lanes = np.stack([hdmap.neighbour_lane(cur, +1), cur, hdmap.neighbour_lane(cur, -1)], axis=1)
+    lanes[cur < 0] = -1
+    has = lanes >= 0
+    lsafe = np.maximum(lanes, 0)
+    ratio = lane_len[lsafe] / np.maximum(lane_len[np.maximum(cur, 0)], 1e-9)[:, None]
+    pos = np.where(has, ego_pos[:, None] * ratio, 0.0)
+
+    # ---- same lane: first vehicle at >= pos (neighbour lanes) or right after self (current)
+    q_key = lsafe * g.lane_offset_key + pos
+    i = np.searchsorted(s_key, q_key, side="left")
+    i[:, CURRENT] = np.where(cur >= 0, rank[rows], 0)
+    fi = i + np.where(np.arange(3) == CURRENT, 1, 0)[None, :]
+    ri = i - 1
+    f_ok = has & (fi < start[lsafe + 1])
+    r_ok = has & (ri >= start[lsafe])
+    n_sorted = max(len(order), 1)
+    front = np.where(f_ok, order[np.minimum(fi, n_sorted - 1)] if len(order) else -1, -1)
+    rear = np.where(r_ok, order[np.clip(ri, 0, n_sorted - 1)] if len(order) else -1, -1)
+    fdist = np.where(f_ok, s_pos[np.minimum(fi, n_sorted - 1)] - pos if len(order) else 0, np.inf)
+    rdist = np.where(r_ok, s_pos[np.clip(ri, 0, n_sorted - 1)] - pos if len(order) else 0, -np.inf)
+
+    if len(order):
+        count = np.diff(start)  # (L,) vehicles per lane
+        # ---- ahead: successor lanes (first hop on the route if known)
+        lane_k = lsafe
+        offset = np.where(has, lane_len[lsafe] - pos, np.inf)  # distance to the lane end
+        succ = hdmap.lane_next[lane_k].astype(np.int64)
+        if next_edge is not None:
+            via = g.connection(lane_k, np.broadcast_to(np.asarray(next_edge)[:, None], (A, 3)))
+            succ = np.where(via >= 0, via, succ)
+        for _ in range(SEARCH_DEPTH):
+            todo = (front < 0) & (succ >= 0) & (offset <= max_range)
+            if not todo.any():
+                break
+            ss = np.maximum(succ, 0)
+            hit = todo & (count[ss] > 0)
+            first = start[ss]
+            cand = order[np.minimum(first, len(order) - 1)]
+            hit &= cand != rows[:, None]
+            front = np.where(hit, cand, front)
+            fdist = np.where(hit, offset + s_pos[np.minimum(first, len(order) - 1)], fdist)
+            offset = np.where(todo, offset + lane_len[ss], np.inf)
+            succ = np.where(todo, hdmap.lane_next[ss], -1)
+        # ---- behind: predecessor lanes
+        back = np.where(has, pos, np.inf)  # distance from the lane start
+        prev = np.where(has, g.pred[lsafe], -1)
+        for _ in range(SEARCH_DEPTH):
+            todo = (rear < 0) & (prev >= 0) & (back <= max_range)
+            if not todo.any():
+                break
+            pp = np.maximum(prev, 0)
+            hit = todo & (count[pp] > 0)
+            last = np.maximum(start[pp + 1] - 1, 0)
+            cand = order[last]
+            hit &= cand != rows[:, None]
+            rear = np.where(hit, cand, rear)
+            rdist = np.where(hit, -(back + lane_len[pp] - s_pos[last]), rdist)
+            back = np.where(todo, back + lane_len[pp], np.inf)
+            prev = np.where(todo, g.pred[pp], -1)
+
+    # ---- range
+    f_in = (front >= 0) & (fdist <= max_range)
+    r_in = (rear >= 0) & (-rdist <= max_range)
+    vehicle = np.stack([np.where(f_in, front, -1), np.where(r_in, rear, -1)], axis=2)
+    distance = np.stack([np.where(f_in, fdist, np.inf), np.where(r_in, rdist, -np.inf)], axis=2)
+    return Neighbours(lane=lanes, vehicle=vehicle.astype(np.int64), distance=distance)
+
+
+def bumper_gap(distance: np.ndarray, len_ego: np.ndarray, len_other: np.ndarray) -> np.ndarray:
+    """Bumper gap as in the paper's TTC: |front-bumper distance| - (len_ego + len_other) / 2 [m].
+
+    Shapes broadcast; an infinite distance gives an infinite gap.
+    """
+    return np.abs(distance) - 0.5 * (np.asarray(len_ego) + np.asarray(len_other))
+
+
+def ttc(gap: np.ndarray, closing_speed: np.ndarray) -> np.ndarray:
+    """Time to collision [s] = gap / closing speed where closing (> 0), else +inf.
+
+    Args:
+        gap: bumper gap [m] (``bumper_gap``); a gap <= 0 with closing speed > 0 gives 0.
+        closing_speed: v_follower - v_leader [m/s].
+    """
+    gap = np.asarray(gap, dtype=np.float64)
+    v = np.asarray(closing_speed, dtype=np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(v > 0, np.maximum(gap, 0.0) / np.where(v > 0, v, 1.0), np.inf)
+    return np.where(np.isnan(t), np.inf, t)
+
+
+def wrap_angle(a: np.ndarray) -> np.ndarray:
+    """Angle wrapped to (-pi, pi] [rad]."""
+    return np.pi - np.mod(np.pi - np.asarray(a), 2 * np.pi)
+
+
+# --------------------------------------------------------------------------- sensors
+@dataclass
+class PerceptionFrame:
+    """What the agents perceive at one step (physical units). A agents, 3 lanes, 2 slots."""
+
+    neighbours: Neighbours
+    """Detected neighbours (rows -1 where not detected); distances possibly noisy."""
+    vehicles: np.ndarray
+    """(A, 3, 2, 6) features ``VEHICLE_FEATURES`` of front/rear vehicles; 0 where missing."""
+    ego: np.ndarray
+    """(A, 5) features ``EGO_FEATURES`` (GNSS/IMU)."""
+    light_state: np.ndarray
+    """(A, 3) int8 RED / YELLOW / GREEN of the next signal on each lane, NO_LIGHT if none."""
+    light_dist: np.ndarray
+    """(A, 3) distance from the front bumper to the stop line [m], +inf where no light."""
+
+
+class Perception:
+    """LiDAR (vehicles), camera (traffic lights) and GNSS/IMU (ego) over ground truth.
+
+    Args:
+        sensors: ranges and the noise switch.
+        hdmap: the network.
+        weather: preset name or ``WeatherPreset``.
+    """
+
+    def __init__(self, sensors: SensorConfig, hdmap: HDMap, weather: str | WeatherPreset) -> None:
+        if isinstance(weather, str):
+            if weather not in WEATHER_PRESETS:
+                raise ValueError(f"weather={weather!r} is not one of {tuple(WEATHER_PRESETS)}")
+            weather = WEATHER_PRESETS[weather]
+        self.sensors = sensors
+        self.hdmap = hdmap
+        self.weather = weather
+        self.graph = lane_graph(hdmap)
+
+    @property
+    def tls_ids(self) -> list[str]:
+        """Light ids whose ``backend.tls_states`` strings ``sense`` expects, in this order."""
+        return self.graph.tls_ids
+
+    def sense(
+        self,
+        snap: TrafficSnapshot,
+        rows: np.ndarray,
+        next_edge: np.ndarray,
+        tls_states: Sequence[str],
+        rng: np.random.Generator,
+    ) -> tuple[PerceptionFrame, PerceptionFrame]:
+        """Ground truth and sensed frames for the agents at snapshot ``rows`` (A,).
+
+        Args:
+            next_edge: (A,) next route edge row of each agent, -1 on its last edge.
+            tls_states: state strings of ``self.tls_ids`` (``backend.tls_states``).
+            rng: the env's generator; the only source of randomness.
+        Returns:
+            ``(truth, sensed)``; truth uses the nominal ranges and no noise. ``sensed is truth``
+            when ``sensors.noise`` is False.
+        """
+        rows = np.asarray(rows, dtype=np.int64)
+        next_edge = np.asarray(next_edge, dtype=np.int64)
+        nb = find_neighbours(snap, self.hdmap, rows, self.sensors.lidar_range, next_edge)
+        state, dist = self._lights(snap, rows, nb.lane, next_edge, tls_states)
+        cam = self.sensors.camera_range
+        state = np.where(dist <= cam, state, NO_LIGHT).astype(np.int8)
+        dist = np.where(state != NO_LIGHT, dist, np.inf)
+        truth = PerceptionFrame(nb, vehicle_features(snap, rows, nb), ego_features(snap, self.hdmap, rows),
+                                state, dist)  # fmt: skip
+        if not self.sensors.noise:
+            return truth, truth
+        return truth, self._degrade(truth, rng)
+
+    def _lights(self, snap, rows, lanes, next_edge, tls_states) -> tuple[np.ndarray, np.ndarray]:
+        """(A, 3) ground-truth state code and stop-line distance of each lane's next signal."""
+        g, hd = self.graph, self.hdmap
+        A = len(rows)
+        if not g.tls_ids or A == 0:
+            return np.full((A, 3), NO_LIGHT, dtype=np.int8), np.full((A, 3), np.inf)
+        if len(tls_states) != len(g.tls_ids):
+            raise ValueError(
+                f"tls_states has {len(tls_states)} strings, expected {len(g.tls_ids)} "
+                f"(one per Perception.tls_ids)"
+            )
+        lsafe = np.maximum(lanes, 0)
+        tl, link = g.signal(lanes, np.broadcast_to(next_edge[:, None], lanes.shape))
+        tl2, link2 = g.signal(lanes, g.next_edge[lsafe])  # lane's own way on
+        miss = tl < 0
+        tl, link = np.where(miss, tl2, tl), np.where(miss, link2, link)
+        codes = _state_codes("".join(tls_states))
+        offsets = np.concatenate([[0], np.cumsum([len(s) for s in tls_states])])
+        flat = offsets[np.maximum(tl, 0)] + link
+        ok = (tl >= 0) & (link >= 0) & (flat < len(codes))
+        state = np.where(ok, codes[np.minimum(flat, max(len(codes) - 1, 0))], NO_LIGHT)
+        ratio = hd.lane_length[lsafe] / np.maximum(hd.lane_length[lsafe[:, CURRENT]], 1e-9)[:, None]
+        pos = snap.lane_pos[rows][:, None] * ratio
+        dist = np.where(ok, np.maximum(hd.lane_length[lsafe] - pos, 0.0), np.inf)
+        return state.astype(np.int8), dist
+
+    def _degrade(self, truth: PerceptionFrame, rng: np.random.Generator) -> PerceptionFrame:
+        w, s = self.weather, self.sensors
+        nb = truth.neighbours
+        # ranges
+        lidar = s.lidar_range * w.lidar_range_factor
+        seen = (nb.vehicle >= 0) & (np.abs(nb.distance) <= lidar)
+        # continuous noise
+        veh = truth.vehicles
+        veh = veh + w.rel_noise * (np.abs(veh) + VEHICLE_NOISE_FLOOR) * rng.standard_normal(
+            veh.shape
+        )
+        veh = np.where(seen[..., None], veh, 0.0)
+        dist = np.where(seen, veh[..., 0], np.where(np.arange(2) == 0, np.inf, -np.inf))
+        ego = truth.ego
+        ego = ego + EGO_NOISY * w.rel_noise * (np.abs(ego) + EGO_NOISE_FLOOR) * rng.standard_normal(
+            ego.shape
+        )
+        # traffic lights: shorter range, wrong states
+        cam = s.camera_range * w.camera_range_factor
+        state = np.where(truth.light_dist <= cam, truth.light_state, NO_LIGHT)
+        wrong = (state != NO_LIGHT) & (rng.random(state.shape) < w.light_misdetect)
+        shift = rng.integers(1, 3, size=state.shape)
+        state = np.where(wrong, (state + shift) % 3, state).astype(np.int8)
+        ldist = truth.light_dist * (1.0 + w.rel_noise * rng.standard_normal(state.shape))
+        ldist = np.where(state != NO_LIGHT, np.maximum(ldist, 0.0), np.inf)
+        sensed_nb = Neighbours(nb.lane, np.where(seen, nb.vehicle, -1), dist)
+        return PerceptionFrame(sensed_nb, veh, ego, state, ldist)
+
+
+_CODE = np.full(256, GREEN, dtype=np.int8)  # o/O (off) and unknown: no restriction
+for _c in "rRs":
+    _CODE[ord(_c)] = RED
+for _c in "yYu":
+    _CODE[ord(_c)] = YELLOW
+
+
+def _state_codes(state: str) -> np.ndarray:
+    """SUMO signal characters -> codes: r/R/s red, y/Y/u yellow, g/G/o/O green."""
+    return _CODE[np.frombuffer(state.encode("ascii"), dtype=np.uint8)]
+
+
+def vehicle_features(snap: TrafficSnapshot, rows: np.ndarray, nb: Neighbours) -> np.ndarray:
+    """(A, 3, 2, 6) ground-truth ``VEHICLE_FEATURES`` of the neighbours, 0 where missing."""
+    v = nb.vehicle
+    ok = v >= 0
+    o = np.maximum(v, 0)
+    ego = rows[:, None, None]
+    feats = np.stack(
+        [
+            np.where(ok, nb.distance, 0.0),
+            snap.speed[o] - snap.speed[ego],
+            wrap_angle(snap.heading[o] - snap.heading[ego]),
+            snap.length[o],
+            snap.width[o],
+            snap.lateral[o],
+        ],
+        axis=-1,
+    )
+    return np.where(ok[..., None], feats, 0.0)
+
+
+def ego_features(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray) -> np.ndarray:
+    """(A, 5) ground-truth ``EGO_FEATURES``; heading is relative to the lane at the front bumper."""
+    lane = snap.lane[rows]
+    wp = hdmap.waypoint_at(np.maximum(lane, 0), snap.lane_pos[rows])
+    rel = np.where(lane >= 0, wrap_angle(snap.heading[rows] - hdmap.wp_heading[wp]), 0.0)
+    return np.stack(
+        [snap.speed[rows], rel, snap.length[rows], snap.width[rows], snap.lateral[rows]], axis=1
+    )
