@@ -209,9 +209,17 @@ class SumoBackend:
     # ------------------------------------------------------------------ stepping
     def step(self) -> TrafficSnapshot:
         """Advance one step and read every vehicle's state in one batch."""
-        sim = self._api.simulation
         self._api.simulationStep()
         self._pending_move = False
+        return self.collect()
+
+    def collect(self) -> TrafficSnapshot:
+        """Snapshot of the step just made: vehicle states plus the step's events.
+
+        ``step()`` is ``raw_step()`` followed by this; call it once after each ``raw_step()``
+        (benchmarks time the two parts separately).
+        """
+        sim = self._api.simulation
         self.time = sim.getTime()
         departed = list(sim.getDepartedIDList())
         for vid in departed:
@@ -314,6 +322,15 @@ class SumoBackend:
         set_speed = self._api.vehicle.setSpeed
         for vid, s in zip(ids, speeds.tolist()):
             set_speed(vid, s)
+
+    def release_control(self, ids: Sequence[str]) -> None:
+        """Give AVs back to SUMO: default speed mode (31) and lane-change mode (1621), so they
+        drive by their vType's car-following (IDM) and lane-change models like conventional cars
+        (the all-IDM reference)."""
+        v = self._api.vehicle
+        for vid in ids:
+            v.setSpeedMode(vid, 31)
+            v.setLaneChangeMode(vid, 1621)
 
     def release_speed(self, vid: str) -> None:
         """Hand a vehicle's speed back to its car-following model."""

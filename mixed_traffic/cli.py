@@ -1,0 +1,114 @@
+"""argparse options built from the config dataclasses and their field docstrings.
+
+``add_config_args(parser, EnvConfig, only=["scenario", "density", "sensors.lidar_range"])`` adds
+``--scenario``, ``--density``, ``--sensors.lidar-range`` with the field docstring (units
+included) as help and the dataclass default shown. ``config_from_args(args, EnvConfig)`` builds
+the config from the options that were given, keeping the dataclass defaults for the others; a
+``ValueError`` from the config's checks is for the caller to turn into ``parser.error``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+from collections.abc import Sequence
+from typing import Any
+
+from mixed_traffic.config import field_docs
+
+_PREFIX = "cfg__"
+_TYPES: dict[str, type] = {"float": float, "int": int, "str": str}
+
+
+def _fields(cls: type, prefix: str = "") -> list[tuple[str, dataclasses.Field, type]]:
+    """(dotted name, field, owning class) of every scalar field, nested dataclasses flattened."""
+    out = []
+    for f in dataclasses.fields(cls):
+        default = f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+        if dataclasses.is_dataclass(default):
+            out += _fields(type(default), f"{prefix}{f.name}.")
+        else:
+            out.append((f"{prefix}{f.name}", f, cls))
+    return out
+
+
+def _default(f: dataclasses.Field) -> Any:
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+
+
+def add_config_args(
+    parser: argparse.ArgumentParser,
+    cls: type,
+    only: Sequence[str] | None = None,
+    defaults: dict[str, Any] | None = None,
+    group_title: str | None = None,
+) -> None:
+    """Add one ``--option`` per (selected) field of dataclass ``cls``.
+
+    Args:
+        parser: parser to extend.
+        cls: a config dataclass (e.g. ``EnvConfig``); nested dataclass fields are addressed
+            with dots (``sensors.lidar_range`` -> ``--sensors.lidar-range``).
+        only: dotted field names to expose, in this order (default: every scalar field).
+        defaults: CLI defaults that differ from the dataclass's, by dotted name.
+        group_title: put the options in an argument group with this title.
+    """
+    table = {name: (f, owner) for name, f, owner in _fields(cls)}
+    names = list(only) if only is not None else list(table)
+    unknown = [n for n in names if n not in table]
+    if unknown:
+        raise KeyError(f"{cls.__name__} has no field(s) {unknown}; known: {sorted(table)}")
+    defaults = defaults or {}
+    target = parser.add_argument_group(group_title) if group_title else parser
+    for name in names:
+        f, owner = table[name]
+        doc = field_docs(owner).get(f.name, "")
+        shown = defaults.get(name, _default(f))
+        kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "str")
+        option = "--" + name.replace("_", "-")
+        dest = _PREFIX + name.replace(".", "__")
+        help_text = f"{doc} (default: {shown})".replace("%", "%%")
+        if kind == "bool":
+            target.add_argument(
+                option, dest=dest, action=argparse.BooleanOptionalAction, default=None,
+                help=help_text,
+            )  # fmt: skip
+        else:
+            target.add_argument(
+                option, dest=dest, type=_TYPES.get(kind, str), default=None,
+                metavar=name.rsplit(".", 1)[-1].upper(), help=help_text,
+            )  # fmt: skip
+        if name in defaults:
+            parser.set_defaults(**{dest: defaults[name]})
+
+
+def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
+    """Nested dict of the config options given on the command line (or defaulted by the CLI)."""
+    out: dict[str, Any] = {}
+    for key, value in vars(args).items():
+        if not key.startswith(_PREFIX) or value is None:
+            continue
+        parts = key[len(_PREFIX) :].split("__")
+        node = out
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = value
+    return out
+
+
+def config_from_args(args: argparse.Namespace, cls: type, **extra: Any) -> Any:
+    """Instance of ``cls`` from the parsed options plus ``extra`` field values.
+
+    Raises:
+        ValueError: a value is out of range (message names the field); call ``parser.error``.
+    """
+    data = config_overrides(args)
+    data.update(extra)
+    base = cls()
+    kwargs: dict[str, Any] = {}
+    for key, value in data.items():
+        current = getattr(base, key)
+        if isinstance(value, dict) and dataclasses.is_dataclass(current):
+            value = dataclasses.replace(current, **value)
+        kwargs[key] = value
+    return dataclasses.replace(base, **kwargs)

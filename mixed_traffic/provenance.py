@@ -1,0 +1,184 @@
+"""Where a result came from (config, seed, SUMO version, git revision) and safe record files.
+
+Records are JSON lines (one episode per line, layout in ``schema``). ``write_record_atomic``
+never leaves a partial line and never loses an existing record: under an exclusive lock it
+writes the old content plus the new line to a temporary file in the same folder, fsyncs it and
+``os.replace``\\ s it over the original, so a crash at any point leaves either the old or the new
+file. ``read_records`` skips (and reports) lines that are not complete JSON objects, e.g. a
+truncated last line left by some other writer.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import fcntl
+import json
+import math
+import os
+import subprocess
+import tempfile
+import warnings
+from collections.abc import Iterator
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from mixed_traffic.backend import sumo_version as _backend_sumo_version
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.paths import REPO_ROOT
+
+
+def git_revision(repo: Path = REPO_ROOT) -> str:
+    """Short commit hash of ``repo``, with ``-dirty`` if tracked files changed; ``unknown`` outside git."""
+    try:
+        rev = subprocess.run(
+            ["git", "-C", str(repo), "rev-parse", "--short", "HEAD"],
+            capture_output=True, text=True, timeout=10, check=True,
+        ).stdout.strip()  # fmt: skip
+        status = subprocess.run(
+            ["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
+            capture_output=True, text=True, timeout=10, check=True,
+        ).stdout.strip()  # fmt: skip
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    if not rev:
+        return "unknown"
+    return f"{rev}-dirty" if status else rev
+
+
+def sumo_version() -> str:
+    """Version of the SUMO binaries in use (the backend's answer)."""
+    return _backend_sumo_version()
+
+
+def now_iso() -> str:
+    """Current UTC time, ISO 8601 with seconds."""
+    return datetime.now(UTC).isoformat(timespec="seconds")
+
+
+def record_meta(config: EnvConfig) -> dict[str, Any]:
+    """Provenance fields of a record: config (nested dict), seed, SUMO version, git revision, created."""
+    return {
+        "config": config.to_dict(),
+        "seed": config.seed,
+        "sumo_version": sumo_version(),
+        "git_revision": git_revision(),
+        "created": now_iso(),
+    }
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with NaN/inf floats turned into None and numpy scalars/arrays into plain Python."""
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if hasattr(value, "tolist") and not isinstance(value, (str, bytes)):
+        return json_safe(value.tolist())
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    return value
+
+
+def record_line(record: dict[str, Any]) -> str:
+    """One record as a single JSON line (no trailing newline); raises before any file is touched."""
+    line = json.dumps(json_safe(record), allow_nan=False, ensure_ascii=False)
+    if "\n" in line:  # json.dumps escapes newlines in strings; this is a guard only
+        raise ValueError("record serialises to more than one line")
+    return line
+
+
+@contextlib.contextmanager
+def _locked(path: Path) -> Iterator[None]:
+    """Exclusive advisory lock on ``<path>.lock`` (the data file itself is replaced, so not it)."""
+    lock = path.with_name(path.name + ".lock")
+    with open(lock, "a") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def write_record_atomic(path: str | Path, record: dict[str, Any]) -> None:
+    """Append ``record`` as one JSON line to ``path`` atomically (see module docstring).
+
+    The folder is created if needed. Concurrent writers (processes) are serialised by a lock
+    file next to ``path``. A truncated last line already in the file is kept as it is (and
+    terminated by a newline) so that ``read_records`` can flag it; it never swallows the new
+    record.
+    """
+    path = Path(path)
+    line = record_line(record).encode("utf-8") + b"\n"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with _locked(path):
+        old = path.read_bytes() if path.exists() else b""
+        if old and not old.endswith(b"\n"):
+            old += b"\n"
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(old)
+                fh.write(line)
+                fh.flush()
+                os.fsync(fh.fileno())
+            mode = path.stat().st_mode & 0o777 if path.exists() else 0o666 & ~_umask()
+            os.chmod(tmp, mode)
+            os.replace(tmp, path)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise
+        _fsync_dir(path.parent)
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def _fsync_dir(folder: Path) -> None:
+    with contextlib.suppress(OSError):
+        fd = os.open(folder, os.O_RDONLY)
+        try:
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+
+
+def scan_records(path: str | Path) -> tuple[list[dict[str, Any]], list[int]]:
+    """All complete records of a JSON-lines file, and the 1-based numbers of unreadable lines."""
+    path = Path(path)
+    if not path.exists():
+        return [], []
+    records: list[dict[str, Any]] = []
+    bad: list[int] = []
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for no, raw in enumerate(fh, start=1):
+            text = raw.strip()
+            if not text:
+                continue
+            try:
+                obj = json.loads(text)
+            except json.JSONDecodeError:
+                bad.append(no)
+                continue
+            if isinstance(obj, dict):
+                records.append(obj)
+            else:
+                bad.append(no)
+    return records, bad
+
+
+def read_records(path: str | Path) -> list[dict[str, Any]]:
+    """Complete records of ``path`` (empty if it does not exist); warns about skipped lines."""
+    records, bad = scan_records(path)
+    if bad:
+        warnings.warn(
+            f"{path}: skipped {len(bad)} unreadable line(s) {bad[:10]} (truncated or corrupt); "
+            f"{len(records)} complete record(s) kept",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+    return records
