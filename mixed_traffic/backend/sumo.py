@@ -343,6 +343,17 @@ class SumoBackend:
         for vid, d in zip(ids, lateral_moves.tolist()):
             change(vid, d)
 
+    def set_lateral_accel(self, ids: Sequence[str], accel_lat: float = 1000.0) -> None:
+        """Lateral acceleration limit of the sublane model [m/s^2] (``lcAccelLat``).
+
+        SUMO's default (1 m/s^2) smooths a ``changeSublane`` request over many steps; an
+        externally controlled AV sets it high so each request is executed within one step (up to
+        the vType's ``maxSpeedLat``·dt).
+        """
+        set_param = self._api.vehicle.setParameter
+        for vid in ids:
+            set_param(vid, "laneChangeModel.lcAccelLat", f"{accel_lat}")
+
     def move_to_xy(
         self,
         vid: str,

@@ -1,0 +1,181 @@
+"""The paper's parameterized action (§IV-D): a lane decision plus (steering, accel_brake) per decision.
+
+Per agent::
+
+    Dict(decision=Discrete(3), params=Box(-1, 1, (3, 2), float32))
+
+* ``decision``: 0 = left lane change, 1 = lane following, 2 = right lane change.
+* ``params[p] = (steering, accel_brake)`` for decision ``p``; only the row ``params[decision]`` is
+  executed (the others are the actor's proposals for the other decisions, kept for the critic).
+
+Sign conventions (the one place they are defined; control and tests follow them):
+
+* **steering > 0 steers LEFT** (counter-clockwise, the ENU/right-hand convention also used by the
+  snapshot's headings and SUMO's lateral offsets, positive = left). The paper (§III-A) uses the
+  opposite sign (negative = left); a policy trained with the paper's sign maps with
+  ``steering = -deg_paper / 60``. ``steering = ±1`` is ``±VehicleConfig.max_steer_deg`` (60°),
+  linear in between.
+* **accel_brake > 0 is throttle**, ``a = accel_brake · max_accel`` (+1 → +3 m/s²);
+  **accel_brake < 0 is brake**, ``a = accel_brake · max_decel`` (−1 → −6 m/s²); 0 is coasting at
+  constant speed (no rolling resistance is modelled). Speeds never go below 0 (no reversing).
+
+Bad input: ``stack_actions`` raises ``ValueError`` naming the agent and field for a missing
+action, a non-finite value, a value outside the space, or an action for an agent that is not
+live. The last is a deliberate choice: PettingZoo's ``parallel_api_test`` only ever sends actions
+for ``env.agents``, and a stale action for a finished agent is almost always a bookkeeping bug in
+the caller, so it is reported rather than silently ignored (``strict_agents=False`` ignores them).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+
+from mixed_traffic.config import VehicleConfig
+
+LEFT, FOLLOW, RIGHT = 0, 1, 2
+DECISIONS = ("left_change", "follow", "right_change")
+N_DECISIONS = 3
+N_PARAMS = 2  # (steering, accel_brake)
+
+
+def action_space(seed: int | None = None) -> spaces.Dict:
+    """The per-agent parameterized action space (see the module docstring)."""
+    space = spaces.Dict(
+        {
+            "decision": spaces.Discrete(N_DECISIONS),
+            "params": spaces.Box(-1.0, 1.0, (N_DECISIONS, N_PARAMS), np.float32),
+        }
+    )
+    if seed is not None:
+        space.seed(seed)
+    return space
+
+
+def _decision_value(agent: str, value: Any) -> int:
+    arr = np.asarray(value)
+    if arr.size != 1:
+        raise ValueError(
+            f"action of agent {agent!r}: 'decision' must be one integer, got {value!r}"
+        )
+    v = arr.reshape(()).item()
+    if isinstance(v, float):
+        if not np.isfinite(v):
+            raise ValueError(f"action of agent {agent!r}: 'decision' is not finite ({v!r})")
+        if v != int(v):
+            raise ValueError(f"action of agent {agent!r}: 'decision'={v!r} is not an integer")
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ValueError(f"action of agent {agent!r}: 'decision'={value!r} is not an integer")
+    v = int(v)
+    if not 0 <= v < N_DECISIONS:
+        raise ValueError(
+            f"action of agent {agent!r}: 'decision'={v} is outside the space; allowed 0, 1, 2 "
+            f"({', '.join(DECISIONS)})"
+        )
+    return v
+
+
+def _params_value(agent: str, value: Any, low: np.ndarray, high: np.ndarray) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as e:
+        raise ValueError(f"action of agent {agent!r}: 'params' is not numeric: {e}") from e
+    if arr.shape != (N_DECISIONS, N_PARAMS):
+        raise ValueError(
+            f"action of agent {agent!r}: 'params' has shape {arr.shape}, expected "
+            f"({N_DECISIONS}, {N_PARAMS}) = (decision, (steering, accel_brake))"
+        )
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        p, k = np.argwhere(bad)[0]
+        raise ValueError(
+            f"action of agent {agent!r}: 'params'[{p}, {k}] ({DECISIONS[p]}, "
+            f"{('steering', 'accel_brake')[k]}) is not finite ({arr[p, k]!r})"
+        )
+    out = (arr < low - 1e-6) | (arr > high + 1e-6)
+    if out.any():
+        p, k = np.argwhere(out)[0]
+        raise ValueError(
+            f"action of agent {agent!r}: 'params'[{p}, {k}]={arr[p, k]!r} "
+            f"({DECISIONS[p]}, {('steering', 'accel_brake')[k]}) is outside the space; "
+            f"allowed [{low[p, k]}, {high[p, k]}]"
+        )
+    return np.clip(arr, low, high)
+
+
+def stack_actions(
+    actions: Mapping[str, Any],
+    agents: Sequence[str],
+    space: spaces.Dict | None = None,
+    *,
+    strict_agents: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Validate per-agent dict actions and stack them in ``agents`` order.
+
+    Args:
+        actions: agent id -> ``{"decision": int, "params": (3, 2)}``.
+        agents: the live agents, in the order of the output rows (A of them).
+        space: the action space (default ``action_space()``), for the bounds.
+        strict_agents: raise on actions for agents that are not live (default); False ignores them.
+
+    Returns:
+        ``decision`` (A,) int64 and ``params`` (A, 3, 2) float64 within the bounds.
+
+    Raises:
+        ValueError: naming the agent (and field/value/bounds) for a missing action, a
+            non-finite value, a value outside the space, or an action for a non-live agent.
+    """
+    space = space if space is not None else action_space()
+    box = space["params"]
+    low, high = box.low.astype(np.float64), box.high.astype(np.float64)
+    live = set(agents)
+    extra = [a for a in actions if a not in live]
+    if extra and strict_agents:
+        raise ValueError(
+            f"actions given for agents that are not live: {sorted(extra)}; live agents are "
+            f"{list(agents)} (finished agents must not receive actions)"
+        )
+    n = len(agents)
+    decision = np.empty(n, dtype=np.int64)
+    params = np.empty((n, N_DECISIONS, N_PARAMS), dtype=np.float64)
+    for i, agent in enumerate(agents):
+        if agent not in actions:
+            raise ValueError(f"no action for live agent {agent!r}; every live agent needs one")
+        act = actions[agent]
+        if not isinstance(act, Mapping) or "decision" not in act or "params" not in act:
+            raise ValueError(
+                f"action of agent {agent!r} must be a dict with keys 'decision' and 'params' "
+                f"(use wrappers.FlatActionWrapper for flat vectors), got {type(act).__name__}"
+            )
+        decision[i] = _decision_value(agent, act["decision"])
+        params[i] = _params_value(agent, act["params"], low, high)
+    return decision, params
+
+
+def chosen_params(decision: np.ndarray, params: np.ndarray) -> np.ndarray:
+    """(A, 2) the executed row ``params[a, decision[a]]`` = (steering, accel_brake)."""
+    return params[np.arange(len(decision)), decision]
+
+
+def to_physical(
+    decision: np.ndarray, params: np.ndarray, vehicle: VehicleConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Executed normalised command -> physical command.
+
+    Args:
+        decision: (A,) int in {0, 1, 2}.
+        params: (A, 3, 2) normalised (steering, accel_brake) in [-1, 1].
+        vehicle: limits (``max_steer_deg``, ``max_accel``, ``max_decel``).
+
+    Returns:
+        ``steer`` (A,) front-wheel angle [rad], positive = left, ``±1 -> ±max_steer_deg``;
+        ``accel`` (A,) [m/s²], ``accel_brake·max_accel`` if > 0 else ``accel_brake·max_decel``.
+    """
+    row = chosen_params(np.asarray(decision, dtype=np.int64), np.asarray(params, np.float64))
+    steer = row[:, 0] * np.deg2rad(vehicle.max_steer_deg)
+    ab = row[:, 1]
+    accel = np.where(ab > 0, ab * vehicle.max_accel, ab * vehicle.max_decel)
+    return steer, accel
