@@ -1,0 +1,251 @@
+"""seaborn figures of sweep results with 95 % t confidence intervals across seeds.
+
+Figures are drawn on ``matplotlib.figure.Figure`` with the Agg canvas (no pyplot, no GUI
+backend, nothing global switched). Each ``plot_*`` function saves one PNG atomically and returns
+its path, or returns ``None`` when the data lacks the dimension the figure needs. Error bars are
+the same t-intervals as the tables (:func:`analysis.results.summarise`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import seaborn as sns
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from analysis.results import (
+    filter_condition,
+    ok_rows,
+    reference_condition,
+    summarise,
+    sweep_condition,
+)
+from analysis.style import REFERENCE_COLOR, describe_condition, order_policies, policy_palette
+from mixed_traffic.schema import MACRO, METRICS, MICRO, label
+
+DPI = 170
+"""Resolution of saved PNGs (sharp when embedded in an A4 PDF)."""
+_STYLE = "whitegrid"
+_CONTEXT = "paper"
+
+
+def save_figure(fig: Figure, path: str | os.PathLike[str], dpi: int = DPI) -> Path:
+    """Save ``fig`` as PNG atomically (temporary file + rename) and return the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp")
+    try:
+        FigureCanvasAgg(fig)
+        fig.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def _new_figure(width: float, height: float, ncols: int = 1) -> tuple[Figure, list[Axes]]:
+    """A figure with ``ncols`` axes in the report's seaborn style."""
+    with sns.axes_style(_STYLE), sns.plotting_context(_CONTEXT, font_scale=1.1):
+        fig = Figure(figsize=(width, height), layout="constrained")
+        axes = fig.subplots(1, ncols, squeeze=False)[0]
+    return fig, list(axes)
+
+
+def _errorbar_lines(
+    ax: Axes, stats: pd.DataFrame, x: str, metric: str, x_scale: float = 1.0, jitter: float = 0.0
+) -> None:
+    """One line with CI error bars per policy (colour from the fixed palette)."""
+    palette = policy_palette(stats["policy"])
+    policies = order_policies(stats["policy"])
+    offsets = (np.arange(len(policies)) - (len(policies) - 1) / 2) * jitter
+    for off, policy in zip(offsets, policies):
+        s = stats[stats["policy"] == policy].sort_values(x)
+        s = s[s[f"{metric}_n"] > 0]
+        if s.empty:
+            continue
+        ci = s[f"{metric}_ci"].fillna(0.0)
+        ax.errorbar(
+            s[x] * x_scale + off,
+            s[f"{metric}_mean"],
+            yerr=ci,
+            color=palette[policy],
+            marker="o",
+            markersize=5,
+            linewidth=1.8,
+            capsize=4,
+            label=policy,
+        )
+
+
+def plot_penetration(
+    df: pd.DataFrame, out_dir: str | os.PathLike[str], metric: str = "dt_tf", name: str = ""
+) -> Path | None:
+    """DT-TF (or ``metric``) against AV penetration [%] per policy, with the 0 % reference.
+
+    The all-IDM 0 % cells (any policy) are drawn as a dashed horizontal line with its CI band and
+    a point at 0 %. ``None`` when penetration takes fewer than two values under one condition.
+    """
+    cond = sweep_condition(df, "penetration")
+    if cond is None:
+        return None
+    sub = ok_rows(filter_condition(df, cond))
+    stats = summarise(sub[sub["penetration"] > 0], ["policy", "penetration"], [metric])
+    ref = summarise(sub[sub["penetration"] == 0], [], [metric])
+    has_ref = not ref.empty and ref[f"{metric}_n"].iloc[0] > 0
+    if stats.empty or stats[f"{metric}_n"].sum() == 0:
+        return None
+    if stats["penetration"].nunique() + int(has_ref) < 2:
+        return None
+    fig, (ax,) = _new_figure(6.4, 4.2)
+    _errorbar_lines(ax, stats, "penetration", metric, x_scale=100.0, jitter=1.0)
+    if has_ref:
+        m, h = ref[f"{metric}_mean"].iloc[0], ref[f"{metric}_ci"].iloc[0]
+        ax.axhline(m, color=REFERENCE_COLOR, linestyle="--", linewidth=1.3, label="0 % (all IDM)")
+        if h == h:
+            ax.axhspan(m - h, m + h, color=REFERENCE_COLOR, alpha=0.10, linewidth=0)
+        ax.errorbar(
+            [0], [m], yerr=[0 if h != h else h], color=REFERENCE_COLOR, marker="s", capsize=4
+        )
+    ticks = sorted(
+        {0.0, *(stats["penetration"] * 100).round(6)}
+        if has_ref
+        else set(stats["penetration"] * 100)
+    )
+    ax.set_xticks(ticks)
+    ax.set_xlabel("AV penetration rate (%)")
+    ax.set_ylabel(label(metric))
+    ax.set_title(f"{METRICS[metric].label} vs penetration\n{describe_condition(cond)}", fontsize=10)
+    ax.legend(title="policy", frameon=True)
+    fig.text(0.99, 0.0, "error bars: 95 % t-CI across seeds", ha="right", va="bottom", fontsize=7)
+    return save_figure(fig, Path(out_dir) / f"{name}{metric}_vs_penetration.png")
+
+
+def plot_density(
+    df: pd.DataFrame,
+    out_dir: str | os.PathLike[str],
+    metrics: Sequence[str] = MACRO,
+    name: str = "",
+) -> Path | None:
+    """AvgDT-A, AvgAT-C and AvgDI-C (paper Fig. "Scalability Analysis" (a)-(c)) vs density.
+
+    One panel per metric, one line per policy. ``None`` without two densities under one
+    condition.
+    """
+    cond = sweep_condition(df, "density")
+    if cond is None:
+        return None
+    sub = ok_rows(filter_condition(df, cond))
+    stats = summarise(sub, ["policy", "density"], list(metrics))
+    metrics = [m for m in metrics if stats[f"{m}_n"].sum() > 0]
+    if not metrics:
+        return None
+    fig, axes = _new_figure(3.6 * len(metrics), 3.6, ncols=len(metrics))
+    span = float(stats["density"].max() - stats["density"].min()) or 1.0
+    for letter, ax, m in zip("abcdefgh", axes, metrics):
+        _errorbar_lines(ax, stats, "density", m, jitter=span * 0.012)
+        ax.set_xticks(sorted(stats["density"].unique()))
+        ax.set_xlabel("traffic density (veh/km)")
+        ax.set_ylabel(label(m))
+        ax.set_title(f"({letter}) {METRICS[m].label}", fontsize=10)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, title="policy", loc="outside right center")
+    fig.suptitle(f"Macroscopic metrics vs density — {describe_condition(cond)}", fontsize=10)
+    return save_figure(fig, Path(out_dir) / f"{name}macro_vs_density.png")
+
+
+def _bars(ax: Axes, stats: pd.DataFrame, metric: str, hue: str | None = None) -> None:
+    """Bars of the per-policy mean with CI error bars (optionally grouped by ``hue``)."""
+    palette = policy_palette(stats["policy"])
+    policies = order_policies(stats["policy"])
+    groups = [None] if hue is None else list(dict.fromkeys(stats[hue]))
+    width = 0.8 / len(policies)
+    for i, policy in enumerate(policies):
+        xs, ys, es = [], [], []
+        for j, g in enumerate(groups):
+            s = stats[stats["policy"] == policy]
+            if hue is not None:
+                s = s[s[hue] == g]
+            if s.empty or s[f"{metric}_n"].iloc[0] == 0:
+                continue
+            xs.append(j + (i - (len(policies) - 1) / 2) * width)
+            ys.append(s[f"{metric}_mean"].iloc[0])
+            es.append(np.nan_to_num(s[f"{metric}_ci"].iloc[0]))
+        ax.bar(xs, ys, width=width * 0.95, yerr=es, capsize=3, color=palette[policy], label=policy)
+    ax.set_xticks(range(len(groups)))
+    ax.set_xticklabels([] if hue is None else [str(g) for g in groups])
+
+
+def plot_micro(
+    df: pd.DataFrame,
+    out_dir: str | os.PathLike[str],
+    metrics: Sequence[str] = MICRO,
+    condition: dict[str, Any] | None = None,
+    name: str = "",
+) -> Path | None:
+    """Small multiples: one bar panel per microscopic metric, one bar per policy, with CIs.
+
+    Uses ``condition`` or the tables' :func:`~analysis.results.reference_condition`.
+    """
+    cond = reference_condition(df) if condition is None else condition
+    if cond is None:
+        return None
+    sub = ok_rows(filter_condition(df, cond))
+    stats = summarise(sub, ["policy"], list(metrics))
+    metrics = [m for m in metrics if not stats.empty and stats[f"{m}_n"].sum() > 0]
+    if not metrics:
+        return None
+    fig, axes = _new_figure(2.5 * len(metrics) + 1.2, 3.3, ncols=len(metrics))
+    for ax, m in zip(axes, metrics):
+        _bars(ax, stats, m)
+        ax.set_ylabel(label(m))
+        better = METRICS[m].better
+        ax.set_title(METRICS[m].label + (f" ({better} is better)" if better else ""), fontsize=9)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, title="policy", loc="outside right center")
+    fig.suptitle(f"Microscopic metrics per policy — {describe_condition(cond)}", fontsize=10)
+    return save_figure(fig, Path(out_dir) / f"{name}micro_per_policy.png")
+
+
+def plot_weather(
+    df: pd.DataFrame, out_dir: str | os.PathLike[str], metric: str = "pt_rt", name: str = ""
+) -> Path | None:
+    """PT-RT (share of AV time with TTC < 4 s) per weather preset and policy (paper's robustness table).
+
+    ``None`` unless the data has at least two weathers under one condition.
+    """
+    cond = sweep_condition(df, "weather")
+    if cond is None:
+        return None
+    sub = ok_rows(filter_condition(df, cond))
+    order = {w: i for i, w in enumerate(("normal", "rain", "fog", "night"))}
+    stats = summarise(sub, ["policy", "weather"], [metric])
+    stats = stats.sort_values("weather", key=lambda s: s.map(lambda w: order.get(w, 99)))
+    if stats[f"{metric}_n"].sum() == 0:
+        return None
+    fig, (ax,) = _new_figure(6.4, 4.0)
+    _bars(ax, stats, metric, hue="weather")
+    ax.set_xlabel("weather")
+    ax.set_ylabel(label(metric))
+    ax.set_title(f"{METRICS[metric].label} per weather — {describe_condition(cond)}", fontsize=10)
+    ax.legend(title="policy")
+    return save_figure(fig, Path(out_dir) / f"{name}{metric}_per_weather.png")
+
+
+def all_figures(
+    df: pd.DataFrame, out_dir: str | os.PathLike[str], name: str = ""
+) -> dict[str, Path]:
+    """Every figure the data supports: {'penetration', 'density', 'micro', 'weather'} -> PNG path."""
+    made = {
+        "penetration": plot_penetration(df, out_dir, name=name),
+        "density": plot_density(df, out_dir, name=name),
+        "micro": plot_micro(df, out_dir, name=name),
+        "weather": plot_weather(df, out_dir, name=name),
+    }
+    return {k: v for k, v in made.items() if v is not None}
