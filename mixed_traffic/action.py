@@ -93,13 +93,13 @@ def _params_value(agent: str, value: Any, low: np.ndarray, high: np.ndarray) -> 
         p, k = np.argwhere(bad)[0]
         raise ValueError(
             f"action of agent {agent!r}: 'params'[{p}, {k}] ({DECISIONS[p]}, "
-            f"{('steering', 'accel_brake')[k]}) is not finite ({arr[p, k]!r})"
+            f"{('steering', 'accel_brake')[k]}) is not finite ({float(arr[p, k])})"
         )
     out = (arr < low - 1e-6) | (arr > high + 1e-6)
     if out.any():
         p, k = np.argwhere(out)[0]
         raise ValueError(
-            f"action of agent {agent!r}: 'params'[{p}, {k}]={arr[p, k]!r} "
+            f"action of agent {agent!r}: 'params'[{p}, {k}]={float(arr[p, k])} "
             f"({DECISIONS[p]}, {('steering', 'accel_brake')[k]}) is outside the space; "
             f"allowed [{low[p, k]}, {high[p, k]}]"
         )
