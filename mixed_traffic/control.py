@@ -20,7 +20,7 @@ Applying it: ``setSpeed(ṡ)`` (the speed along the lane, which is what SUMO adv
 position by) plus ``changeSublane(d(t+dt) − d(t))``. The AV's ``lcAccelLat`` is raised
 (``SumoBackend.set_lateral_accel``) so SUMO executes the whole lateral move in one step (up to
 the vType's ``maxSpeedLat`` = 30 m/s). Measured with libsumo 1.28 (``measure_mechanisms``,
-straight, 120 veh/km, all AVs): 0.5 µs per vehicle for both calls together against 2.6 µs for
+straight, 120 veh/km, all AVs): 0.5-0.6 µs per vehicle for both calls together against 2.6-19 µs for
 ``moveToXY(keepRoute=2)`` on this 3-edge network (DESIGN §5 quotes ≈35 µs on larger networks,
 where keepRoute=2's map search grows); setSpeed+changeSublane wins either way.
 
@@ -284,7 +284,7 @@ def measure_mechanisms(
     Times ``setSpeed`` + ``changeSublane`` and ``moveToXY(keepRoute=2)`` (to the vehicle's
     current pose) over ``repeats`` rounds for all ``ids``; a simulation step follows each round
     (not timed), so no ``moveToXY`` is left pending. Measured on this machine (libsumo 1.28,
-    straight, 120 veh/km, 187 AVs): 0.52 µs vs 2.6 µs per vehicle.
+    straight, 120 veh/km, 187 AVs, two runs): 0.52-0.61 µs vs 2.6-19 µs per vehicle.
 
     Returns:
         ``{"set_speed_change_sublane_us": ..., "move_to_xy_us": ...}`` per vehicle.
