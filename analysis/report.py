@@ -20,6 +20,7 @@ from reportlab.lib import colors
 from reportlab.lib.pagesizes import A4
 from reportlab.lib.styles import ParagraphStyle, getSampleStyleSheet
 from reportlab.lib.units import cm
+from reportlab.pdfbase.pdfmetrics import stringWidth
 from reportlab.platypus import (
     Image,
     KeepTogether,
@@ -64,10 +65,37 @@ def _p(text: Any, style: ParagraphStyle) -> Paragraph:
     return Paragraph(escape(str(text)), style)
 
 
+def _auto_widths(rows: Sequence[Sequence[Any]], total: float = PAGE_WIDTH) -> list[float]:
+    """Column widths from the content: natural widths if they fit, else shrunk towards the
+    longest word of each column (headers may wrap at spaces, values rarely)."""
+    pad = 7.0
+
+    def width(text: str, bold: bool = False) -> float:
+        return stringWidth(text, "Helvetica-Bold" if bold else "Helvetica", 7) + pad
+
+    natural, minimum = [], []
+    for j in range(len(rows[0])):
+        head = str(rows[0][j])
+        cells = [str(r[j]) for r in rows[1:]]
+        head_word = max((width(w, True) for w in head.split()), default=pad)
+        natural.append(max([head_word, *(width(c) for c in cells)]))
+        words = [w for c in cells for w in c.split()]
+        minimum.append(max([head_word, *(width(w) for w in words)]))
+    if sum(natural) <= total:
+        return natural
+    slack = [n - m for n, m in zip(natural, minimum)]
+    excess = sum(natural) - total
+    if sum(slack) <= 0 or excess >= sum(slack):
+        scale = total / sum(minimum)
+        return [m * scale for m in minimum]
+    return [n - s * excess / sum(slack) for n, s in zip(natural, slack)]
+
+
 def _grid(
     rows: Sequence[Sequence[Any]], styles: dict[str, ParagraphStyle], col_widths=None
 ) -> Table:
     """A table with a bold header row, wrapping cells and a light grid."""
+    col_widths = col_widths or _auto_widths(rows)
     data = [[_p(c, styles["head"]) for c in rows[0]]]
     data += [[_p(c, styles["cell"]) for c in r] for r in rows[1:]]
     table = Table(data, colWidths=col_widths, repeatRows=1, hAlign="LEFT")
@@ -121,6 +149,7 @@ def provenance_rows(df: pd.DataFrame, results_dir: Path) -> list[list[str]]:
         ["seeds", f"{len(seeds)}: {', '.join(map(str, seeds))}" if seeds else "n/a"],
         ["episode length", _unique(df["episode_length"].map(lambda v: f"{v:g} s"))],
         ["step length", _unique(df["step_length"].map(lambda v: f"{v:g} s"))],
+        ["warm-up", _unique(df["warmup"].dropna().map(lambda v: f"{v:g} s"))],
         ["git revision", _unique(df["git_revision"])],
         ["SUMO version", _unique(df["sumo_version"])],
         ["records created", f"{created.min()} to {created.max()}" if len(created) else "n/a"],

@@ -31,6 +31,7 @@ INFO_COLUMNS = (
     "git_revision",
     "created",
     "wall_time",
+    "warmup",
     "episode_length",
     "step_length",
     "config",
@@ -103,6 +104,7 @@ def _flatten(record: dict[str, Any]) -> dict[str, Any]:
     row["git_revision"] = record.get("git_revision")
     row["created"] = record.get("created")
     row["wall_time"] = record.get("wall_time")
+    row["warmup"] = record.get("warmup")
     row["episode_length"] = config.get("episode_length")
     row["step_length"] = config.get("step_length")
     row["config"] = json.dumps(config, sort_keys=True) if config else None
@@ -153,6 +155,7 @@ def _normalise(df: pd.DataFrame) -> pd.DataFrame:
         "density",
         "penetration",
         "wall_time",
+        "warmup",
         "episode_length",
         "step_length",
         *METRIC_KEYS,

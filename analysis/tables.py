@@ -21,7 +21,6 @@ from analysis.results import (
 from analysis.style import (
     describe_condition,
     fmt_count,
-    fmt_density,
     fmt_mean_ci,
     fmt_num,
     fmt_penetration,
@@ -149,15 +148,16 @@ def safety_table(df: pd.DataFrame, by: Sequence[str] = ("policy",)) -> pd.DataFr
     return out
 
 
-_COND_FORMAT = {"density": fmt_density, "penetration": fmt_penetration}
-_COND_HEADER = {"density": "density", "penetration": "AV share", "weather": "weather"}
+_COND_FORMAT = {"density": lambda v: fmt_num(v, 0), "penetration": fmt_penetration}
+_COND_HEADER = {"density": "density (veh/km)", "penetration": "AV share", "weather": "weather"}
 
 
 def format_table(table: pd.DataFrame, drop_constant: bool = True) -> pd.DataFrame:
     """Display strings: group columns, 'n', metric columns 'mean ± CI' with labelled headers, safety.
 
     With ``drop_constant`` the group columns (other than policy) that take one value are dropped
-    (they belong in the caption).
+    (they belong in the caption). Tables grouped by more than the policy (per-cell) show the
+    collision, terminal-event and teleport counts in one compact column.
     """
     by = list(table.attrs.get("by", ("policy",)))
     metrics = list(table.attrs.get("metrics", ()))
@@ -195,6 +195,14 @@ def format_table(table: pd.DataFrame, drop_constant: bool = True) -> pd.DataFram
             "teleports",
             "route_completion",
         ]
+    compact = len(by) > 1 and bool(metrics)
+    if compact and {"collisions", "terminal_events", "teleports"} <= set(table.columns):
+        cols["AV trips"] = [fmt_count(v) for v in table["av_trips"]]
+        cols["collisions / terminal / teleports"] = [
+            f"{fmt_count(a)} / {fmt_count(b)} / {fmt_count(c)}"
+            for a, b, c in zip(table["collisions"], table["terminal_events"], table["teleports"])
+        ]
+        safety = ["route_completion"]
     for s in safety:
         if s not in table.columns:
             continue
