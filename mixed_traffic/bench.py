@@ -1,0 +1,188 @@
+"""Benchmarks (speed only; tests never assert wall-clock times).
+
+    python -m mixed_traffic.bench [--section snapshot] [--steps N] [--densities 60 120 180]
+
+Section ``snapshot``: on ``straight`` at each density, one simulation alternates blocks of
+steps in two modes, both doing identical work so the traffic is the same:
+
+* *raw*: ``backend.raw_step()`` is timed (bare ``simulationStep``), then ``backend.collect()``
+  runs untimed so the boundary condition can keep the density;
+* *step*: ``backend.step()`` (simulationStep + events + full snapshot) is timed.
+
+Blocks come in adjacent (raw, step) pairs; per pair the mean ms/step of each mode, their ratio
+and the snapshot cost per vehicle are computed, and the median over pairs is reported (robust to
+load from other processes on a small machine). Target: the
+snapshot adds ≤ 30 % to a raw step. Sections are functions in ``SECTIONS`` so others can add
+theirs (e.g. an env step).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from mixed_traffic.backend import SumoBackend
+from mixed_traffic.boundary import PeriodicBoundary
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.scenario import load_scenario, make_demand, sumo_args, write_demand
+
+DENSITIES = (60.0, 120.0, 180.0)
+TARGET_OVERHEAD = 0.30
+
+
+@dataclass
+class SnapshotResult:
+    density: float
+    """Target density [veh/km]."""
+    raw_ms: float
+    """Median over blocks of the bare simulationStep [ms/step]."""
+    step_ms: float
+    """Median over blocks of backend.step() [ms/step]."""
+    ratio: float
+    """Median over block pairs of step / raw [-]."""
+    us_per_vehicle: float
+    """Median over block pairs of (step - raw) / vehicles: snapshot cost per vehicle [µs]."""
+    vehicles: float
+    """Mean vehicles in the network."""
+    blocks: int
+
+
+def start_straight(
+    density: float, backend_kind: str = "libsumo", seed: int = 0, episode_length: float = 3600.0
+) -> tuple[SumoBackend, PeriodicBoundary]:
+    """A running ``straight`` simulation at ``density`` with its periodic boundary (sublane on)."""
+    cfg = EnvConfig(
+        scenario="straight", density=density, penetration=0.0, seed=seed,
+        episode_length=episode_length, backend=backend_kind,
+    )  # fmt: skip
+    sc = load_scenario(cfg.scenario)
+    hd = sc.hdmap
+    demand = make_demand(sc, cfg, np.random.default_rng(seed))
+    route_file = Path(tempfile.mkdtemp(prefix="mixed_traffic_bench_")) / "demand.rou.xml"
+    write_demand(demand, cfg, route_file)
+    backend = SumoBackend(cfg.backend, cfg.second_instance)
+    backend.set_lane_table(hd.lane_ids, hd.lane_edge)
+    backend.start(sumo_args(sc, cfg, route_file, seed=seed))
+    boundary = PeriodicBoundary.for_demand(sc, demand, cfg.vehicle, cfg.step_length, False)
+    return backend, boundary
+
+
+def bench_snapshot_density(
+    density: float, steps: int, block: int = 20, warm: int = 100, backend_kind: str = "libsumo"
+) -> SnapshotResult:
+    """Alternate raw/step blocks of ``block`` steps for ``steps`` timed steps in total."""
+    backend, boundary = start_straight(density, backend_kind)
+    clock = time.perf_counter
+    try:
+        for _ in range(warm):
+            boundary.step(backend.step(), backend, [])
+        raw_blocks: list[float] = []
+        step_blocks: list[float] = []
+        n_veh: list[int] = []
+        veh_blocks: list[float] = []
+        n_blocks = max(2, steps // block) // 2 * 2
+        for b in range(n_blocks):
+            timed = 0.0
+            if b % 2 == 0:
+                for _ in range(block):
+                    t0 = clock()
+                    backend.raw_step()
+                    timed += clock() - t0
+                    snap = backend.collect()
+                    boundary.step(snap, backend, [])
+                raw_blocks.append(timed / block)
+            else:
+                for _ in range(block):
+                    t0 = clock()
+                    snap = backend.step()
+                    timed += clock() - t0
+                    boundary.step(snap, backend, [])
+                    n_veh.append(snap.n)
+                step_blocks.append(timed / block)
+                veh_blocks.append(float(np.mean(n_veh[-block:])))
+    finally:
+        backend.close()
+    pairs = list(zip(raw_blocks, step_blocks, veh_blocks))
+    return SnapshotResult(
+        density=density,
+        raw_ms=statistics.median(raw_blocks) * 1e3,
+        step_ms=statistics.median(step_blocks) * 1e3,
+        ratio=statistics.median(s / r for r, s, _ in pairs),
+        us_per_vehicle=statistics.median((s - r) * 1e6 / max(v, 1.0) for r, s, v in pairs),
+        vehicles=float(np.mean(n_veh)),
+        blocks=n_blocks,
+    )
+
+
+def section_snapshot(args: argparse.Namespace) -> list[SnapshotResult]:
+    """Raw simulationStep vs backend step()+snapshot on straight at each density."""
+    print(
+        f"snapshot: straight, sublane on, {args.backend}, {args.steps} timed steps per density "
+        f"in alternating blocks of {args.block} (median of blocks)"
+    )
+    head = f"{'veh/km':>7} {'vehicles':>9} {'raw ms':>8} {'step ms':>8} {'ratio':>6} {'us/veh':>7}  target"
+    print(head)
+    print("-" * len(head))
+    results = []
+    for density in args.densities:
+        r = bench_snapshot_density(density, args.steps, args.block, backend_kind=args.backend)
+        ok = "ok" if r.ratio <= 1 + TARGET_OVERHEAD else f"MISSED (> {1 + TARGET_OVERHEAD:.2f})"
+        print(
+            f"{r.density:>7.0f} {r.vehicles:>9.0f} {r.raw_ms:>8.3f} {r.step_ms:>8.3f} "
+            f"{r.ratio:>6.3f} {r.us_per_vehicle:>7.2f}  {ok}",
+            flush=True,
+        )
+        results.append(r)
+    return results
+
+
+#: Section name -> function(args). Other modules' sections are registered here.
+SECTIONS: dict[str, Callable[[argparse.Namespace], object]] = {"snapshot": section_snapshot}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m mixed_traffic.bench",
+        description="Speed benchmarks of the simulation stack.",
+    )
+    p.add_argument(
+        "--section", choices=sorted(SECTIONS), nargs="+", default=sorted(SECTIONS),
+        help="sections to run (default: all)",
+    )  # fmt: skip
+    p.add_argument(
+        "--steps", type=int, default=2000, help="timed steps per density (default: 2000)"
+    )
+    p.add_argument(
+        "--block", type=int, default=20, help="steps per alternating block (default: 20)"
+    )
+    p.add_argument(
+        "--densities", type=float, nargs="+", default=list(DENSITIES), metavar="K",
+        help="densities [veh/km] (default: 60 120 180)",
+    )  # fmt: skip
+    p.add_argument(
+        "--backend", choices=("libsumo", "traci"), default="libsumo",
+        help="SUMO binding (default: libsumo)",
+    )  # fmt: skip
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.steps < 2 * args.block or args.block < 1:
+        parser.error(f"--steps={args.steps} must be at least 2 x --block={args.block}")
+    for name in args.section:
+        SECTIONS[name](args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
