@@ -50,11 +50,13 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], dpi: int = DPI) -> Pa
     return path
 
 
-def _new_figure(width: float, height: float, ncols: int = 1) -> tuple[Figure, list[Axes]]:
-    """A figure with ``ncols`` axes in the report's seaborn style."""
+def _new_figure(
+    width: float, height: float, ncols: int = 1, nrows: int = 1
+) -> tuple[Figure, list[Axes]]:
+    """A figure with ``nrows`` x ``ncols`` axes (row-major list) in the report's seaborn style."""
     with sns.axes_style(_STYLE), sns.plotting_context(_CONTEXT, font_scale=1.1):
         fig = Figure(figsize=(width, height), layout="constrained")
-        axes = fig.subplots(1, ncols, squeeze=False)[0]
+        axes = fig.subplots(nrows, ncols, squeeze=False).ravel()
     return fig, list(axes)
 
 
@@ -201,14 +203,23 @@ def plot_micro(
     metrics = [m for m in metrics if not stats.empty and stats[f"{m}_n"].sum() > 0]
     if not metrics:
         return None
-    fig, axes = _new_figure(2.5 * len(metrics) + 1.2, 3.3, ncols=len(metrics))
+    ncols = min(3, len(metrics))
+    nrows = -(-len(metrics) // ncols)
+    fig, axes = _new_figure(3.0 * ncols + 0.8, 3.0 * nrows, ncols=ncols, nrows=nrows)
+    for ax in axes[len(metrics) :]:
+        ax.set_visible(False)
     for ax, m in zip(axes, metrics):
         _bars(ax, stats, m)
         ax.set_ylabel(label(m))
         better = METRICS[m].better
         ax.set_title(METRICS[m].label + (f" ({better} is better)" if better else ""), fontsize=9)
     handles, labels = axes[0].get_legend_handles_labels()
-    fig.legend(handles, labels, title="policy", loc="outside right center")
+    if len(axes) > len(metrics):
+        axes[-1].set_visible(True)
+        axes[-1].axis("off")
+        axes[-1].legend(handles, labels, title="policy", loc="center")
+    else:
+        fig.legend(handles, labels, title="policy", loc="outside right center")
     fig.suptitle(f"Microscopic metrics per policy — {describe_condition(cond)}", fontsize=10)
     return save_figure(fig, Path(out_dir) / f"{name}micro_per_policy.png")
 
