@@ -17,7 +17,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="python -m mixed_traffic.report",
         description=(
-            "Build the PDF report (tables, figures with 95 %% CIs, safety counts, findings, "
+            "Build the PDF report (tables, figures with 95 % CIs, safety counts, findings, "
             "provenance) from the episode records in RESULTS_DIR (records.jsonl and/or "
             "records.parquet). Needs no SUMO."
         ),
