@@ -292,6 +292,7 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
 
     # initial placement: evenly spaced per lane with a random phase, on every road edge
     placement = scenario.placement_edges or tuple(dict.fromkeys(e for r in routes for e in r.edges))
+    signalised = {src for src, _ in hd.tls_links}
     for edge in placement:
         e = hd.edge_of(edge)
         base = scenario.routes
@@ -308,7 +309,9 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
             spacing = length / n
             # rounding n up makes the spacing tighter than the target: SUMO refuses to insert
             # at a speed above the IDM equilibrium of the actual spacing
-            v_lane = min(v_eq, idm_equilibrium_speed(spacing, speed_limit, config.vehicle))
+            lane_row = int(hd.edge_lanes[e, lane])
+            lane_limit = float(hd.lane_speed[lane_row])  # e.g. a slower on-ramp
+            v_lane = min(v_eq, idm_equilibrium_speed(spacing, lane_limit, config.vehicle))
             start = rng.random() * spacing
             for k in range(n):
                 pos = start + k * spacing
@@ -316,7 +319,14 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
                     continue
                 r = int(rng.choice(candidates, p=cw))
                 route_idx = _suffix_route(routes, r, edge)
-                planned.append((0.0, route_idx, pos, lane, v_lane))
+                # a lane that ends ahead (lane drop, acceleration lane): SUMO only inserts a
+                # vehicle that can still stop before the end (IDM brakes gently: b, not 2b)
+                last = routes[route_idx].edges[-1] if routes[route_idx].edges else ""
+                d = _distance_to_lane_end(hd, lane_row, pos, hd.edge_row.get(last, -1))
+                if lane_row in signalised:  # the light ahead may be red
+                    d = min(d, length - pos)
+                v = min(v_lane, math.sqrt(max(0.0, config.vehicle.idm_decel * (d - 15.0))))
+                planned.append((0.0, route_idx, pos, lane, v))
 
     # the inflow queue: vehicles that replace leaving ones at the entries (PeriodicBoundary)
     inflow = per_lane * scenario.lanes * v_eq if v_eq > 0 else 0.0
@@ -342,6 +352,20 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
         for j, r in enumerate(queue_routes)
     )
     return Demand(tuple(routes), vehicles, queue, v_eq, inflow)
+
+
+def _distance_to_lane_end(hd: HDMap, lane: int, pos: float, last_edge: int) -> float:
+    """Distance [m] from ``pos`` on ``lane`` to where the lane chain ends (inf: it continues)."""
+    d = float(hd.lane_length[lane]) - pos
+    for _ in range(6):  # a few hops (normal -> internal -> normal) are enough for placement
+        if hd.lane_edge[lane] == last_edge:
+            return math.inf
+        nxt = int(hd.lane_next[lane])
+        if nxt < 0:
+            return d
+        lane = nxt
+        d += float(hd.lane_length[lane])
+    return math.inf
 
 
 def _vehicle_ids(is_av: np.ndarray) -> list[str]:
