@@ -1,0 +1,115 @@
+"""Atomic, validated checkpoints of an :class:`agents.rbpdqn.RBPDQN` learner.
+
+File content (``torch.save`` of a plain dict, loadable with ``weights_only=True``):
+``{"format": FORMAT, "learner": learner.state_dict(), "meta": {...}}`` where ``meta`` holds at
+least ``lca`` (LCAConfig fields incl. z, m), ``learner_cfg`` and ``obs_shapes``; callers add
+their own keys (command, git revision, env steps, ...).
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from agents.lca import LCAConfig
+from agents.rbpdqn import RBPDQN, LearnerConfig
+
+FORMAT = "mixed_traffic.rbpdqn/1"
+_REQUIRED = ("format", "learner", "meta")
+
+
+def save_checkpoint(
+    path: str | os.PathLike, learner: RBPDQN, meta: dict[str, Any] | None = None
+) -> Path:
+    """Write atomically: temp file in the same directory, fsync, then ``os.replace``.
+
+    A crash mid-write leaves the previous checkpoint intact (no torn files).
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    full_meta = dict(meta or {})
+    full_meta.update(
+        lca=learner.lca_cfg.to_dict(),
+        learner_cfg=learner.cfg.to_dict(),
+        obs_shapes={k: list(v) for k, v in learner.lca_cfg.obs_shapes().items()},
+    )
+    payload = {"format": FORMAT, "learner": learner.state_dict(), "meta": full_meta}
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(payload, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """Load and structurally validate; ValueError naming the file on any problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"checkpoint {path}: file not found")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # truncated zip, garbage bytes, unsafe pickle, ...
+        raise ValueError(
+            f"checkpoint {path}: corrupt or unreadable ({type(exc).__name__}: {exc})"
+        ) from exc
+    if not isinstance(data, dict) or any(k not in data for k in _REQUIRED):
+        keys = sorted(data) if isinstance(data, dict) else type(data).__name__
+        raise ValueError(
+            f"checkpoint {path}: not an RBP-DQN checkpoint (expected keys {_REQUIRED}, got {keys})"
+        )
+    if data["format"] != FORMAT:
+        raise ValueError(f"checkpoint {path}: format {data['format']!r}, expected {FORMAT!r}")
+    return data
+
+
+def load_checkpoint(
+    path: str | os.PathLike,
+    z: int | None = None,
+    m: int | None = None,
+    learner: RBPDQN | None = None,
+) -> tuple[RBPDQN, dict[str, Any]]:
+    """Rebuild (or fill ``learner``) from ``path`` → (learner, meta).
+
+    ``z``/``m`` are the observation config the caller will feed; a mismatch with the stored
+    shapes raises ValueError listing both. With ``learner`` given, its LCA config must match.
+    """
+    data = read_checkpoint(path)
+    meta = data["meta"]
+    try:
+        lca = LCAConfig(**meta["lca"])
+        lcfg = LearnerConfig(**meta["learner_cfg"])
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"checkpoint {path}: invalid meta ({exc})") from exc
+    want = LCAConfig(
+        **{**lca.to_dict(), "z": lca.z if z is None else z, "m": lca.m if m is None else m}
+    )
+    if learner is not None:
+        want = learner.lca_cfg
+    if want != lca:
+        diff = {
+            k: (tuple(a), tuple(want.obs_shapes()[k]))
+            for k, a in lca.obs_shapes().items()
+            if tuple(a) != tuple(want.obs_shapes()[k])
+        }
+        detail = ", ".join(f"{k}: checkpoint {a} vs requested {b}" for k, (a, b) in diff.items())
+        raise ValueError(
+            f"checkpoint {path}: observation/model config mismatch "
+            f"(checkpoint z={lca.z}, m={lca.m}, d={lca.d}; requested z={want.z}, m={want.m}, "
+            f"d={want.d}){'; ' + detail if detail else ''}"
+        )
+    out = learner if learner is not None else RBPDQN(lca, lcfg)
+    try:
+        out.load_state_dict(data["learner"])
+    except (KeyError, RuntimeError, ValueError) as exc:
+        raise ValueError(f"checkpoint {path}: state does not fit the model ({exc})") from exc
+    return out, meta

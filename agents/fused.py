@@ -1,0 +1,196 @@
+"""Fused actor + critic inference path (no autograd), numerically equal to the reference modules.
+
+Why: at B = 128 agents the reference path spends most of its time in per-op overhead, fresh
+large allocations (page faults on every step) and a slow CPU ``tanh``. This path:
+
+- runs the GRUs of both networks together: the six (lane, vehicle, light) × (actor, critic)
+  GRUs share N = 3B rows and run as one ``baddbmm`` per time step (the two ego GRUs as another);
+- re-parameterises each GRU so a step is ``baddbmm → sigmoid → addcmul → sigmoid → lerp``:
+  tanh(a) = 2σ(2a) − 1 and h = 2h̃ − 1 are folded into derived weights (see
+  :func:`_derive_gru`), so the hidden update is a single ``lerp`` on h̃;
+- writes every intermediate into buffers preallocated per batch size (``out=``).
+
+Only the default LCA (history, lane-wise, star) is fused; :class:`FusedActorCritic` refuses
+other configs and callers fall back to the reference modules. Derived weights are snapshots:
+call :meth:`FusedActorCritic.refresh` after the source networks change.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from agents.lca import LCA, N_LANES, N_NODE_TYPES, HistoryGRU
+from agents.networks import ACTION_DIM, N_DECISIONS, N_PARAMS, Actor, Critic
+
+
+def _derive_gru(gru: HistoryGRU) -> dict[str, Tensor]:
+    """Derived weights of one GRU for the h̃ = (h + 1)/2, tanh(a) = 2σ(2a) − 1 formulation.
+
+    With these, one step is: ``out = [P_rz, c] + h̃·whᵀ`` (pre-activations of r, z and
+    2·(W_hn·h + b_hn)), ``a = P_n + r ⊙ out_n`` (= 2× the tanh argument), ``s = σ(a)``,
+    ``h̃ ← s + u·(h̃ − s)``. Keys (transposed weights ready for ``addmm``):
+
+    - ``wx_rz`` (F, 2D), ``bx_rz`` (2D): P_rz = x·wx_rz + bx_rz (both biases, minus W_hh·1);
+    - ``wx_n`` (F, D), ``bx_n`` (D): P_n = 2·(W_in·x + b_in);
+    - ``c`` (D): constant of the recurrent n block, 2·(b_hn − W_hn·1);
+    - ``wh`` (D, 3D): recurrent weights on h̃; ``k0`` (3D): h̃₀·wh with h̃₀ = 0.5 (h₀ = 0).
+    """
+    d = gru.d
+    w_ih, w_hh, b_ih, b_hh = gru.w_ih, gru.w_hh, gru.b_ih, gru.b_hh
+    row_sum = w_hh.sum(dim=1)  # W_hh·1, from h = 2h̃ − 1
+    wh = torch.cat((2.0 * w_hh[: 2 * d], 4.0 * w_hh[2 * d :]))
+    return {
+        "wx_rz": w_ih[: 2 * d].t().contiguous(),
+        "bx_rz": b_ih[: 2 * d] + b_hh[: 2 * d] - row_sum[: 2 * d],
+        "wx_n": (2.0 * w_ih[2 * d :]).t().contiguous(),
+        "bx_n": 2.0 * b_ih[2 * d :],
+        "c": 2.0 * (b_hh[2 * d :] - row_sum[2 * d :]),
+        "wh": wh.t().contiguous(),
+        "k0": 0.5 * wh.sum(dim=1),
+    }
+
+
+class _GroupGRU:
+    """G GRUs with equal row count N run in lock-step; buffers preallocated per (N, z)."""
+
+    def __init__(self, grus: list[HistoryGRU]) -> None:
+        self.w = [_derive_gru(g) for g in grus]
+        self.d = grus[0].d
+        self.wh = torch.stack([w["wh"] for w in self.w])  # (G, D, 3D)
+        self.k0 = torch.stack([w["k0"] for w in self.w])[:, None, :]  # (G, 1, 3D)
+        self.half = torch.full((1, 1, 1), 0.5)
+        self._buf: dict[tuple[int, int], dict[str, Tensor]] = {}
+
+    def _buffers(self, n: int, z: int) -> dict[str, Tensor]:
+        key = (n, z)
+        if key not in self._buf:
+            g, d = len(self.w), self.d
+            p = torch.empty(g, n, z, 3 * d)
+            for i, w in enumerate(self.w):
+                p[i, :, :, 2 * d :] = w["c"]  # constant block, written once per buffer
+            self._buf[key] = {
+                "p": p,
+                "pn": torch.empty(g, n, z, d),
+                "out": torch.empty(g, n, 3 * d),
+                "rz": torch.empty(g, n, 2 * d),
+                "a": torch.empty(g, n, d),
+                "h": torch.empty(g, n, d),
+            }
+        return self._buf[key]
+
+    def __call__(self, xs: list[Tensor]) -> Tensor:
+        """xs: G inputs (N, z, F_g) → final hidden h (G, N, D) (a buffer, valid until next call)."""
+        n, z = xs[0].shape[0], xs[0].shape[1]
+        d = self.d
+        buf = self._buffers(n, z)
+        p, pn, out, rz, a, h = buf["p"], buf["pn"], buf["out"], buf["rz"], buf["a"], buf["h"]
+        for g, x in enumerate(xs):
+            w, x2 = self.w[g], x.reshape(n * z, -1)
+            # Strided out= (leading dimension 3D) is written in place by BLAS, no copy.
+            torch.addmm(w["bx_rz"], x2, w["wx_rz"], out=p[g].view(n * z, 3 * d)[:, : 2 * d])
+            torch.addmm(w["bx_n"], x2, w["wx_n"], out=pn[g].view(n * z, d))
+        for t in range(z):
+            pt = p[:, :, t]  # (G, N, 3D) strided view, no copy
+            if t == 0:
+                torch.add(pt, self.k0, out=out)  # h₀ = 0: no matmul needed
+            else:
+                torch.baddbmm(pt, h, self.wh, out=out)
+            torch.sigmoid(out[..., : 2 * d], out=rz)
+            torch.addcmul(pn[:, :, t], rz[..., :d], out[..., 2 * d :], out=a)
+            torch.sigmoid(a, out=a)  # s = (n + 1) / 2
+            torch.lerp(a, self.half if t == 0 else h, rz[..., d:], out=h)  # h̃ ← s + u·(h̃ − s)
+        return h.mul_(2.0).sub_(1.0)  # back to h = 2h̃ − 1
+
+
+def _stack_t(ws: list[Tensor]) -> Tensor:
+    """Stack transposed weights: list of (O, I) → (G, I, O)."""
+    return torch.stack([w.t() for w in ws]).contiguous()
+
+
+class FusedActorCritic:
+    """Inference-only fused forward of an (actor, critic) pair.
+
+    ``__call__(obs) -> (params (B, 3, 2), q (B, 3))`` with q = critic(obs, actor(obs)).
+    """
+
+    def __init__(self, actor: Actor, critic: Critic) -> None:
+        for lca in (actor.lca, critic.lca):
+            c = lca.cfg
+            if not (c.history and c.lane_wise and c.star):
+                raise ValueError("FusedActorCritic supports only the default LCA configuration")
+        self.actor, self.critic = actor, critic
+        self.refresh()
+
+    @torch.no_grad()
+    def refresh(self) -> None:
+        """Re-derive all fused weights from the current actor and critic parameters."""
+        la, lc = self.actor.lca, self.critic.lca
+        self.d = la.cfg.d
+        self._abuf: dict[int, dict[str, Tensor]] = {}
+        self.nodes_gru = _GroupGRU(
+            [la.lane_rnn, la.veh_rnn, la.light_rnn, lc.lane_rnn, lc.veh_rnn, lc.light_rnn]
+        )
+        self.ego_gru = _GroupGRU([la.ego_rnn, lc.ego_rnn])
+        lcas: list[LCA] = [la, lc]
+        d = self.d
+        # logits = (W_q·h_e)ᵀ(W_k·h_n)·scale = (h_eᵀ·M)·h_n with M = W_qᵀ·W_k·scale: one small
+        # matmul per agent instead of a key projection of every node.
+        w_k = [m.w_kv.weight[:d] for m in lcas]
+        w_v = [m.w_kv.weight[d:] for m in lcas]
+        self.m_qk = torch.stack([m.w_q.weight.t() @ wk * m.scale for m, wk in zip(lcas, w_k)])
+        # Σ_t att·(W_v·h_t) = W_v·(Σ_t att·h_t): W_v moves past the weighted sum and is folded
+        # into the fusion layer, W8' = W8·blockdiag(W_v, W_v, W_v).
+        wf = []
+        for m, wv in zip(lcas, w_v):
+            w8 = m.fuse[0].weight  # (D, 3D)
+            wf.append(torch.cat([w8[:, i * d : (i + 1) * d] @ wv for i in range(N_LANES)], dim=1))
+        self.wf_t = _stack_t(wf)  # (2, 3D, D)
+        self.bf = torch.stack([m.fuse[0].bias for m in lcas])[:, None, :]
+        self.actor_head = [t.detach().clone() for t in self.actor.head.parameters()]
+        self.critic_w10 = [t.detach().clone() for t in self.critic.act_embed.parameters()]
+        self.critic_head = [t.detach().clone() for t in self.critic.head.parameters()]
+
+    def _attn_buffers(self, b: int) -> dict[str, Tensor]:
+        if b not in self._abuf:
+            d = self.d
+            self._abuf[b] = {
+                "q": torch.empty(2, b, d),
+                "prod": torch.empty(2, N_NODE_TYPES, b, N_LANES, d),
+                "es": torch.empty(2, b, d),
+            }
+        return self._abuf[b]
+
+    @torch.inference_mode()
+    def __call__(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        b, z = obs["ego"].shape[0], obs["ego"].shape[1]
+        d = self.d
+        lanes = obs["lanes"].reshape(b * N_LANES, z, -1)
+        veh = obs["vehicles"].reshape(b * N_LANES, z, -1)
+        light = obs["lights"].reshape(b * N_LANES, z, -1)
+        ego = obs["ego"]
+        h_nodes = self.nodes_gru([lanes, veh, light, lanes, veh, light])  # (6, 3B, D) as h̃
+        h_ego = self.ego_gru([ego, ego])  # (2, B, D) as h̃
+        # Rows of h_nodes per net are ordered (type, b, lane); attention runs in that layout
+        # (elementwise products + sums) so nothing is permuted or copied.
+        buf = self._attn_buffers(b)
+        q = torch.bmm(h_ego, self.m_qk, out=buf["q"])  # (2, B, D)
+        nodes = h_nodes.view(2, N_NODE_TYPES, b, N_LANES, d)
+        prod = torch.mul(nodes, q.view(2, 1, b, 1, d), out=buf["prod"])
+        logits = prod.sum(-1)  # (2, T, B, L)
+        mask = (obs["node_mask"] > 0.5).permute(2, 0, 1)  # (T, B, L)
+        logits = logits.masked_fill_(~mask, -1e9)
+        att = torch.softmax(logits, dim=1).mul_(mask.any(0))  # all-masked lane → 0
+        wsum = torch.mul(nodes, att.unsqueeze(-1), out=buf["prod"]).sum(1)  # (2, B, L, D)
+        e = wsum.view(2, b, N_LANES * d)
+        e_s = torch.relu_(torch.baddbmm(self.bf, e, self.wf_t, out=buf["es"]))  # (2, B, D)
+        w1, b1, w2, b2 = self.actor_head
+        hid = torch.relu(torch.addmm(b1, e_s[0], w1.t()))
+        params = torch.sigmoid(2.0 * torch.addmm(b2, hid, w2.t())) * 2.0 - 1.0  # tanh
+        w10, b10 = self.critic_w10
+        e_a = torch.relu(torch.addmm(b10, params, w10.t()))
+        c1, cb1, c2, cb2 = self.critic_head
+        hid = torch.relu(torch.addmm(cb1, torch.cat((e_s[1], e_a), dim=1), c1.t()))
+        q_val = torch.addmm(cb2, hid, c2.t())
+        assert params.shape[1] == ACTION_DIM
+        return params.view(b, N_DECISIONS, N_PARAMS), q_val

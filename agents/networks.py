@@ -1,0 +1,75 @@
+"""Actor, critic and masked decision selection (paper §IV-D, DESIGN §10).
+
+Decisions: 0 = left change, 1 = follow, 2 = right change. Params per decision:
+(steering, accel_brake) in [-1, 1].
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from agents.lca import LCA, N_LANES, LCAConfig, fast_tanh
+
+N_DECISIONS = 3
+"""Parameterized-action decisions (left change, follow, right change)."""
+N_PARAMS = 2
+"""Continuous parameters per decision (steering, accel_brake)."""
+ACTION_DIM = N_DECISIONS * N_PARAMS
+FOLLOW = 1
+"""Fallback decision when a row has every decision masked (should not happen per DESIGN §6:
+following the current lane is always physically possible; the env stops the car at the end)."""
+
+assert N_DECISIONS == N_LANES  # one decision per target lane (left, current, right)
+
+
+class Actor(nn.Module):
+    """LCA → MLP → tanh. obs dict (B, ...) → params (B, 3, 2) in [-1, 1]."""
+
+    def __init__(self, cfg: LCAConfig) -> None:
+        super().__init__()
+        d = cfg.d
+        self.lca = LCA(cfg)
+        self.head = nn.Sequential(nn.Linear(d, d), nn.ReLU(), nn.Linear(d, ACTION_DIM))  # W9
+
+    def forward(self, obs: dict[str, Tensor]) -> Tensor:
+        out = fast_tanh(self.head(self.lca(obs)))
+        return out.view(-1, N_DECISIONS, N_PARAMS)
+
+
+class Critic(nn.Module):
+    """Own LCA + ReLU(W10·A) → MLP → Q for all three decisions.
+
+    obs dict (B, ...), params (B, 3, 2) → Q (B, 3) where Q[:, p] = Q(s, p, params[:, p]).
+    """
+
+    def __init__(self, cfg: LCAConfig) -> None:
+        super().__init__()
+        d = cfg.d
+        self.lca = LCA(cfg)
+        self.act_embed = nn.Linear(ACTION_DIM, d)  # W10
+        self.head = nn.Sequential(nn.Linear(2 * d, d), nn.ReLU(), nn.Linear(d, N_DECISIONS))  # W11
+
+    def forward(self, obs: dict[str, Tensor], params: Tensor) -> Tensor:
+        e_s = self.lca(obs)
+        e_a = torch.relu(self.act_embed(params.reshape(-1, ACTION_DIM)))
+        return self.head(torch.cat((e_s, e_a), dim=-1))
+
+
+def masked_q(q: Tensor, action_mask: Tensor) -> Tensor:
+    """q (B, 3), action_mask (B, 3) (bool or 0/1) → q with masked entries set to -inf."""
+    return q.masked_fill(
+        action_mask <= 0 if action_mask.dtype != torch.bool else ~action_mask, -torch.inf
+    )
+
+
+def select(q: Tensor, action_mask: Tensor) -> Tensor:
+    """Argmax over unmasked Q. q (B, 3), action_mask (B, 3) → decision (B,) int64.
+
+    A row with every decision masked falls back to ``FOLLOW`` (1) instead of returning an
+    arbitrary index of an all -inf row.
+    """
+    qm = masked_q(q, action_mask)
+    dec = qm.argmax(dim=-1)
+    any_ok = torch.isfinite(qm).any(dim=-1)
+    return torch.where(any_ok, dec, torch.full_like(dec, FOLLOW))

@@ -1,0 +1,232 @@
+"""RBP-DQN learner (paper §IV-F eq. train_actor / train_critic) and the batched inference policy.
+
+Batch layout (what :meth:`agents.replay.ReplayBuffer.sample` returns), B = batch size:
+
+- ``obs``, ``next_obs``: dicts of float tensors (B, ...) per DESIGN §6 (``next_obs`` includes
+  ``action_mask`` (B, 3), used to mask the TD target);
+- ``decision`` (B,) int64, ``params`` (B, 3, 2) float (all three rows as stored, A^t),
+  ``reward`` (B,), ``done`` (B,) float (1 = terminal, no bootstrap).
+
+Deviation from the paper's printed actor loss: it puts the behaviour-cloning term inside the
+negated sum, which would *reward* drifting from the data; as in TD3+BC (the cited source) the
+regulariser is added: L_a = −Σ_p α·Q(s, p, u_p(s))/AvgQ + Σ_p ‖u_p(s) − a_p‖².
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from agents.fused import FusedActorCritic
+from agents.lca import LCAConfig
+from agents.networks import FOLLOW, Actor, Critic, masked_q, select
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    """Learner hyper-parameters (paper §IV-F / DESIGN §10 defaults)."""
+
+    gamma: float = 0.9
+    tau: float = 0.01
+    """Soft target update rate."""
+    alpha: float = 0.6
+    """Weight of the normalised Q term in the actor loss."""
+    lr: float = 1e-3
+    batch_size: int = 128
+    grad_clip: float = 10.0
+    """Max global gradient norm per network."""
+    regularize: bool = True
+    """False → BP-DQN baseline: actor loss −Σ_p Q, no behaviour cloning, no AvgQ scaling."""
+    avgq_eps: float = 1e-6
+
+    def to_dict(self) -> dict[str, float | int | bool]:
+        return asdict(self)
+
+
+def _soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
+    """target ← (1 − τ)·target + τ·source, in place."""
+    with torch.no_grad():
+        for t, s in zip(target.parameters(), source.parameters(), strict=True):
+            t.lerp_(s, tau)
+
+
+class RBPDQN:
+    """Actor, critic, their targets and optimisers; :meth:`update` does one gradient step each."""
+
+    def __init__(self, lca: LCAConfig, cfg: LearnerConfig | None = None, seed: int = 0) -> None:
+        self.lca_cfg = lca
+        self.cfg = cfg or LearnerConfig()
+        torch.manual_seed(seed)  # parameter init is the only randomness in the learner
+        self.actor = Actor(lca)
+        self.critic = Critic(lca)
+        self.actor_targ = copy.deepcopy(self.actor).requires_grad_(False)
+        self.critic_targ = copy.deepcopy(self.critic).requires_grad_(False)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.lr)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.lr)
+        self.steps = 0
+
+    def td_target(self, batch: dict) -> Tensor:
+        """y (B,) = r + γ(1 − done)·max over unmasked next decisions of Q_targ(s', p, u_targ(s'))."""
+        nxt = batch["next_obs"]
+        with torch.no_grad():
+            q_next = masked_q(self.critic_targ(nxt, self.actor_targ(nxt)), nxt["action_mask"])
+            best = q_next.max(dim=-1).values
+            # A row with every decision masked has no successor value; treat it as 0 rather
+            # than letting -inf poison the loss (the env never emits such a row, DESIGN §6).
+            best = torch.where(torch.isfinite(best), best, torch.zeros_like(best))
+            return batch["reward"] + self.cfg.gamma * (1.0 - batch["done"]) * best
+
+    def critic_loss(self, batch: dict) -> Tensor:
+        """½·mean (y − Q(s, p_taken, A_taken))²."""
+        y = self.td_target(batch)
+        q = self.critic(batch["obs"], batch["params"]).gather(1, batch["decision"][:, None])
+        return 0.5 * (y - q[:, 0]).pow(2).mean()
+
+    def actor_loss(self, batch: dict) -> Tensor:
+        """RBP-DQN: −Σ_p α·Q(s,p,u_p)/AvgQ + Σ_p ‖u_p − a_p‖²; BP-DQN: −Σ_p Q (batch mean)."""
+        obs = batch["obs"]
+        u = self.actor(obs)  # (B, 3, 2)
+        q = self.critic(obs, u)  # (B, 3)
+        if not self.cfg.regularize:
+            return -q.sum(dim=1).mean()
+        avg_q = q.abs().mean().detach() + self.cfg.avgq_eps
+        bc = (u - batch["params"]).pow(2).sum(dim=(1, 2))
+        return (-(self.cfg.alpha / avg_q) * q.sum(dim=1) + bc).mean()
+
+    def update(self, batch: dict) -> dict[str, float]:
+        """One critic step, one actor step (critic frozen), soft target update. → losses."""
+        c_loss = self.critic_loss(batch)
+        self.critic_opt.zero_grad(set_to_none=True)
+        c_loss.backward()
+        c_norm = nn.utils.clip_grad_norm_(self.critic.parameters(), self.cfg.grad_clip)
+        self.critic_opt.step()
+
+        # Freeze the critic so the actor loss does not build critic parameter gradients.
+        self.critic.requires_grad_(False)
+        try:
+            a_loss = self.actor_loss(batch)
+            self.actor_opt.zero_grad(set_to_none=True)
+            a_loss.backward()
+            a_norm = nn.utils.clip_grad_norm_(self.actor.parameters(), self.cfg.grad_clip)
+            self.actor_opt.step()
+        finally:
+            self.critic.requires_grad_(True)
+
+        _soft_update(self.critic_targ, self.critic, self.cfg.tau)
+        _soft_update(self.actor_targ, self.actor, self.cfg.tau)
+        self.steps += 1
+        return {
+            "critic_loss": float(c_loss.detach()),
+            "actor_loss": float(a_loss.detach()),
+            "critic_grad_norm": float(c_norm),
+            "actor_grad_norm": float(a_norm),
+        }
+
+    def state_dict(self) -> dict:
+        """Tensors and plain values only (loadable with ``torch.load(weights_only=True)``)."""
+        return {
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "actor_targ": self.actor_targ.state_dict(),
+            "critic_targ": self.critic_targ.state_dict(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "steps": self.steps,
+        }
+
+    def load_state_dict(self, sd: dict) -> None:
+        self.actor.load_state_dict(sd["actor"])
+        self.critic.load_state_dict(sd["critic"])
+        self.actor_targ.load_state_dict(sd["actor_targ"])
+        self.critic_targ.load_state_dict(sd["critic_targ"])
+        self.actor_opt.load_state_dict(sd["actor_opt"])
+        self.critic_opt.load_state_dict(sd["critic_opt"])
+        self.steps = int(sd["steps"])
+
+
+OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
+
+
+def obs_to_torch(obs: dict[str, np.ndarray]) -> dict[str, Tensor]:
+    """numpy (A, ...) → float32 tensors, zero-copy when already float32 and contiguous."""
+    return {k: torch.from_numpy(np.ascontiguousarray(obs[k], dtype=np.float32)) for k in OBS_KEYS}
+
+
+class Policy:
+    """Batched inference for all agents of a step: one forward of actor + critic + selection.
+
+    Uses the fused path (:mod:`agents.fused`) for the default LCA and the reference modules for
+    ablations. Holds a snapshot of the weights: call :meth:`sync` after the learner updates.
+    """
+
+    def __init__(
+        self,
+        actor: Actor,
+        critic: Critic,
+        noise_std: float = 0.1,
+        epsilon: float = 0.05,
+        threads: int | None = None,
+        fused: bool = True,
+    ) -> None:
+        if threads is not None:
+            torch.set_num_threads(threads)  # rollout workers: one core each, no oversubscription
+        self.actor, self.critic = actor, critic
+        self.noise_std = noise_std
+        self.epsilon = epsilon
+        c = actor.lca.cfg
+        self._fused = (
+            FusedActorCritic(actor, critic)
+            if fused and c.history and c.lane_wise and c.star
+            else None
+        )
+
+    def sync(self) -> None:
+        """Re-snapshot weights after the networks were updated or loaded."""
+        if self._fused is not None:
+            self._fused.refresh()
+
+    @torch.inference_mode()
+    def q_and_params(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+        """→ (q (A, 3), params (A, 3, 2)) without exploration."""
+        if self._fused is not None:
+            params, q = self._fused(obs)
+            return q, params
+        params = self.actor(obs)
+        return self.critic(obs, params), params
+
+    @torch.inference_mode()
+    def act(
+        self, obs: dict[str, np.ndarray], explore: bool, rng: np.random.Generator | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """obs numpy (A, ...) → (decision (A,) int64, params (A, 3, 2) float32 in [-1, 1]).
+
+        Exploration: Gaussian noise (std ``noise_std``) on all params, clipped to [-1, 1], and
+        the critic scores the *noisy* params (they are what gets executed and stored); then with
+        probability ``epsilon`` a uniformly random unmasked decision replaces the argmax.
+        """
+        t = obs_to_torch(obs)
+        mask = t["action_mask"] > 0.5
+        if not explore:
+            q, params = self.q_and_params(t)
+            return select(q, mask).numpy(), params.numpy().copy()
+        if rng is None:
+            raise ValueError("explore=True needs an rng")
+        if self._fused is not None:
+            params, _ = self._fused(t)
+        else:
+            params = self.actor(t)
+        noise = rng.normal(0.0, self.noise_std, size=tuple(params.shape)).astype(np.float32)
+        params = (params + torch.from_numpy(noise)).clamp_(-1.0, 1.0)
+        # Reference critic here (not the fused one): it must score the noisy params.
+        dec = select(self.critic(t, params), mask)
+        dec_np = dec.numpy().copy()
+        mask_np = mask.numpy()
+        rand_rows = rng.random(len(dec_np)) < self.epsilon
+        for i in np.flatnonzero(rand_rows):  # ε rows only: a short loop
+            ok = np.flatnonzero(mask_np[i])
+            dec_np[i] = rng.choice(ok) if len(ok) else FOLLOW
+        return dec_np, params.numpy().copy()

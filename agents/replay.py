@@ -1,0 +1,115 @@
+"""Numpy structure-of-arrays replay buffer for dict observations (ring, preallocated).
+
+One array per observation key for ``obs`` and ``next_obs`` (``next_obs`` keeps its
+``action_mask``, needed to mask the TD target), plus decision, params, reward, done.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from agents.lca import LCAConfig
+
+OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
+
+
+class ReplayBuffer:
+    """Ring buffer of capacity transitions; ``add_batch`` writes many agents at once."""
+
+    def __init__(self, capacity: int, lca: LCAConfig) -> None:
+        if capacity <= 0:
+            raise ValueError("capacity must be positive")
+        self.capacity = capacity
+        self.shapes = lca.obs_shapes()
+        self.obs = {k: np.zeros((capacity, *s), np.float32) for k, s in self.shapes.items()}
+        self.next_obs = {k: np.zeros((capacity, *s), np.float32) for k, s in self.shapes.items()}
+        self.decision = np.zeros(capacity, np.int64)
+        self.params = np.zeros((capacity, 3, 2), np.float32)
+        self.reward = np.zeros(capacity, np.float32)
+        self.done = np.zeros(capacity, np.float32)
+        self.pos = 0
+        """Next write index."""
+        self.size = 0
+
+    def __len__(self) -> int:
+        return self.size
+
+    def add_batch(
+        self,
+        obs: dict[str, np.ndarray],
+        decision: np.ndarray,
+        params: np.ndarray,
+        reward: np.ndarray,
+        next_obs: dict[str, np.ndarray],
+        done: np.ndarray,
+    ) -> None:
+        """Append n transitions (arrays with leading dim n); the oldest are overwritten."""
+        n = len(decision)
+        if n == 0:
+            return
+        if n > self.capacity:  # only the newest `capacity` survive anyway
+            sl = slice(n - self.capacity, n)
+            obs = {k: v[sl] for k, v in obs.items()}
+            next_obs = {k: v[sl] for k, v in next_obs.items()}
+            decision, params, reward, done = decision[sl], params[sl], reward[sl], done[sl]
+            n = self.capacity
+        idx = (self.pos + np.arange(n)) % self.capacity
+        for k in OBS_KEYS:
+            self.obs[k][idx] = obs[k]
+            self.next_obs[k][idx] = next_obs[k]
+        self.decision[idx] = decision
+        self.params[idx] = np.reshape(params, (n, 3, 2))
+        self.reward[idx] = reward
+        self.done[idx] = done
+        self.pos = int((self.pos + n) % self.capacity)
+        self.size = min(self.size + n, self.capacity)
+
+    def sample(self, batch: int, rng: np.random.Generator) -> dict:
+        """Uniform sample with replacement → batch dict of torch tensors (see agents.rbpdqn)."""
+        if self.size == 0:
+            raise ValueError("cannot sample from an empty replay buffer")
+        idx = rng.integers(0, self.size, size=batch)
+        t = torch.from_numpy
+        return {
+            "obs": {k: t(v[idx]) for k, v in self.obs.items()},
+            "next_obs": {k: t(v[idx]) for k, v in self.next_obs.items()},
+            "decision": t(self.decision[idx]),
+            "params": t(self.params[idx]),
+            "reward": t(self.reward[idx]),
+            "done": t(self.done[idx]),
+        }
+
+    def state_dict(self) -> dict:
+        """Only the filled part, as torch tensors + ints so it round-trips through
+        ``torch.save`` / ``torch.load(weights_only=True)``; restore with :meth:`load_state_dict`."""
+        n = self.size
+
+        def t(a: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(a[:n].copy())
+
+        return {
+            "capacity": self.capacity,
+            "pos": self.pos,
+            "size": n,
+            "obs": {k: t(v) for k, v in self.obs.items()},
+            "next_obs": {k: t(v) for k, v in self.next_obs.items()},
+            "decision": t(self.decision),
+            "params": t(self.params),
+            "reward": t(self.reward),
+            "done": t(self.done),
+        }
+
+    def load_state_dict(self, sd: dict) -> None:
+        if sd["capacity"] != self.capacity:
+            raise ValueError(f"replay capacity {sd['capacity']} != {self.capacity}")
+        n = int(sd["size"])
+        for k in OBS_KEYS:
+            got = tuple(sd["obs"][k].shape[1:])
+            if got != self.obs[k].shape[1:]:
+                raise ValueError(f"replay obs '{k}' shape {got} != {self.obs[k].shape[1:]}")
+            self.obs[k][:n] = np.asarray(sd["obs"][k])
+            self.next_obs[k][:n] = np.asarray(sd["next_obs"][k])
+        for name in ("decision", "params", "reward", "done"):
+            getattr(self, name)[:n] = np.asarray(sd[name])
+        self.pos, self.size = int(sd["pos"]), n
