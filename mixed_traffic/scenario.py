@@ -51,6 +51,17 @@ class Route:
 
 
 @dataclass(frozen=True)
+class OwnVehicle:
+    """A vehicle given by the user's own route files (``Scenario.own_vehicles``)."""
+
+    vid: str
+    depart: float
+    """Departure time [s]."""
+    route: int
+    """Index into ``Scenario.routes``."""
+
+
+@dataclass(frozen=True)
 class Scenario:
     """A loadable scenario: network, routes, measurement segment."""
 
@@ -70,6 +81,8 @@ class Scenario:
     """Edges on which vehicles are placed at reset (default: all edges of the routes)."""
     periodic: bool = False
     """Close the main road into a ring with a virtual leader (see ``boundary``)."""
+    own_vehicles: tuple[OwnVehicle, ...] = ()
+    """A user's .sumocfg vehicles: used instead of generated demand (see ``user_scenario``)."""
 
     @property
     def hdmap(self) -> HDMap:
@@ -280,6 +293,8 @@ def check_density(scenario: Scenario, density: float) -> None:
 
 def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator) -> Demand:
     """Initial placement plus entry inflow for one episode of ``config``."""
+    if scenario.own_vehicles:
+        return _own_demand(scenario, config, rng)
     check_density(scenario, config.density)
     hd = scenario.hdmap
     per_lane = config.density / scenario.lanes / 1000.0  # veh/m per lane
@@ -352,6 +367,23 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
         for j, r in enumerate(queue_routes)
     )
     return Demand(tuple(routes), vehicles, queue, v_eq, inflow)
+
+
+def _own_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator) -> Demand:
+    """The user's vehicles as given; exactly round(p*N) of them, drawn by the seed, become AVs."""
+    own = sorted(scenario.own_vehicles, key=lambda v: v.depart)  # SUMO wants sorted departures
+    n_av = int(round(config.penetration * len(own)))
+    is_av = np.zeros(len(own), dtype=bool)
+    is_av[rng.choice(len(own), size=n_av, replace=False)] = True
+    vehicles, k = [], 0
+    for v, av in zip(own, is_av):
+        if av:
+            vid, k = f"av_{k}", k + 1
+        else:  # keep the user's id unless it could clash with an AV id
+            vid = f"hv_{v.vid}" if v.vid.startswith("av_") else v.vid
+        vehicles.append(PlannedVehicle(vid, v.depart, v.route, bool(av)))
+    span = max(1.0, own[-1].depart - own[0].depart)
+    return Demand(scenario.routes, tuple(vehicles), (), 0.0, len(own) / span)
 
 
 def _distance_to_lane_end(hd: HDMap, lane: int, pos: float, last_edge: int) -> float:

@@ -1,0 +1,246 @@
+"""A user's own SUMO network (``.net.xml``) or configuration (``.sumocfg``) as a ``Scenario``.
+
+A bare network gets generated demand: SUMO-routed trips between fringe edges, density measured
+over the whole network. A configuration keeps its own vehicles (``<vehicle>``, ``<trip>``,
+``<flow>`` from its route files); ``make_demand`` turns round(p·N) of them into AVs.
+"""
+
+from __future__ import annotations
+
+import xml.etree.ElementTree as ET
+from collections import Counter, deque
+from pathlib import Path
+
+import numpy as np
+
+from mixed_traffic.scenario import OwnVehicle, Route, Scenario
+
+#: Fringe origin/destination pairs kept for a bare network (enough for route choice, few routes).
+MAX_OD_PAIRS = 12
+#: Horizon [s] for flows without an ``end`` (SUMO's default end is effectively unbounded).
+DEFAULT_FLOW_END = 3600.0
+
+
+def load_user_scenario(path: Path) -> Scenario:
+    """Load ``path`` (a ``.net.xml`` or ``.sumocfg``); raises ``ValueError`` naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"scenario file {path} does not exist")
+    if path.name.endswith(".sumocfg"):
+        return _from_sumocfg(path)
+    if path.name.endswith(".net.xml"):
+        return _from_net(path)
+    raise ValueError(f"{path}: expected a .net.xml or .sumocfg file")
+
+
+# --------------------------------------------------------------------------- network
+def _parse(path: Path, what: str) -> ET.Element:
+    if not path.is_file():
+        raise ValueError(f"{what} {path} does not exist")
+    try:
+        return ET.parse(path).getroot()
+    except ET.ParseError as e:
+        raise ValueError(f"{what} {path} is malformed XML: {e}") from e
+
+
+class _Net:
+    """Normal edges and their successor graph, read from a .net.xml."""
+
+    def __init__(self, path: Path) -> None:
+        root = _parse(path, "network file")
+        if root.tag != "net":
+            raise ValueError(f"{path} is not a SUMO network (root <{root.tag}>, expected <net>)")
+        self.path = path
+        self.lanes: dict[str, int] = {}
+        self.nodes: dict[str, tuple[str, str]] = {}
+        for e in root.iter("edge"):
+            if e.get("function") in ("internal", "walkingarea", "crossing"):
+                continue
+            self.lanes[e.get("id")] = len(e.findall("lane"))
+            self.nodes[e.get("id")] = (e.get("from"), e.get("to"))
+        if not self.lanes:
+            raise ValueError(f"network file {path} contains no edges")
+        self.succ: dict[str, set[str]] = {e: set() for e in self.lanes}
+        for c in root.iter("connection"):
+            a, b = c.get("from"), c.get("to")
+            if a in self.succ and b in self.lanes:
+                self.succ[a].add(b)
+
+    def reachable(self, start: str) -> set[str]:
+        seen, todo = {start}, deque([start])
+        while todo:
+            for nxt in self.succ[todo.popleft()]:
+                if nxt not in seen:
+                    seen.add(nxt)
+                    todo.append(nxt)
+        return seen
+
+    def fringe(self) -> tuple[list[str], list[str]]:
+        """Entry and exit edges: those touching a node with a single neighbouring node."""
+        neighbours: dict[str, set[str]] = {}
+        for a, b in self.nodes.values():
+            neighbours.setdefault(a, set()).add(b)
+            neighbours.setdefault(b, set()).add(a)
+        dead = {n for n, nb in neighbours.items() if len(nb) == 1}
+        entries = sorted(e for e, (a, _) in self.nodes.items() if a in dead)
+        exits = sorted(e for e, (_, b) in self.nodes.items() if b in dead)
+        return entries or sorted(self.lanes), exits or sorted(self.lanes)
+
+    def common_lanes(self) -> int:
+        return Counter(self.lanes.values()).most_common(1)[0][0]
+
+
+def _from_net(path: Path) -> Scenario:
+    net = _Net(path)
+    entries, exits = net.fringe()
+    reach = {o: net.reachable(o) for o in entries}
+    pairs = [(o, d) for o in entries for d in exits if d in reach[o] and d != o]
+    if not pairs:
+        raise ValueError(f"network file {path}: no exit edge is reachable from any entry edge")
+    # spread the kept pairs over the list so every entry appears (deterministic, no seed needed)
+    idx = np.unique(np.linspace(0, len(pairs) - 1, min(MAX_OD_PAIRS, len(pairs))).round())
+    chosen = [pairs[int(i)] for i in idx]
+    routes = tuple(Route(origin=o, destination=d) for o, d in chosen)
+    dests = {d for _, d in chosen}
+    # vehicles are placed only where every destination can still be reached
+    placement = tuple(e for e in sorted(net.lanes) if dests <= net.reachable(e))
+    return Scenario(
+        name=str(path),
+        family="user",
+        split="eval",
+        description=f"user network {path.name}",
+        net_file=path.resolve(),
+        routes=routes,
+        measurement=tuple(sorted(net.lanes)),
+        lanes=net.common_lanes(),
+        placement_edges=placement or tuple(o for o, _ in chosen),
+    )
+
+
+# --------------------------------------------------------------------------- sumocfg
+def _cfg_value(root: ET.Element, key: str) -> str:
+    """``<input><net-file value=.../>`` (also accepts the attribute form ``<input net-file=...>``)."""
+    for el in root.iter(key):
+        if el.get("value"):
+            return el.get("value", "")
+    for el in root.iter("input"):
+        if el.get(key):
+            return el.get(key, "")
+    return ""
+
+
+def _from_sumocfg(path: Path) -> Scenario:
+    root = _parse(path, "SUMO configuration")
+    net_value = _cfg_value(root, "net-file")
+    if not net_value:
+        raise ValueError(f"SUMO configuration {path} has no net-file")
+    net_path = (path.parent / net_value).resolve()
+    net = _Net(net_path)
+    route_files = [
+        (path.parent / f.strip()).resolve()
+        for f in _cfg_value(root, "route-files").split(",")
+        if f.strip()
+    ]
+    seed = int(_cfg_value(root, "seed") or 0)
+    routes: list[Route] = []
+    own: list[OwnVehicle] = []
+    for rf in route_files:
+        _read_routes(_parse(rf, "route file"), rf, net, routes, own, np.random.default_rng(seed))
+    if not own:
+        raise ValueError(f"SUMO configuration {path}: its route files define no vehicles")
+    return Scenario(
+        name=str(path),
+        family="user",
+        split="eval",
+        description=f"user configuration {path.name}",
+        net_file=net_path,
+        routes=tuple(routes),
+        measurement=tuple(sorted(net.lanes)),
+        lanes=net.common_lanes(),
+        sumocfg=path.resolve(),
+        own_vehicles=tuple(own),
+    )
+
+
+def _route_index(routes: list[Route], route: Route) -> int:
+    if route not in routes:
+        routes.append(route)
+    return routes.index(route)
+
+
+def _route_of(el: ET.Element, named: dict[str, tuple[str, ...]], net: _Net, source: Path) -> Route:
+    """The route of a vehicle/trip/flow: a named route, an inline ``<route>``, or from/to."""
+    if el.get("route"):
+        if el.get("route") not in named:
+            raise ValueError(f"{source}: {el.tag} {el.get('id')!r} uses unknown route")
+        edges = named[el.get("route", "")]
+    elif el.find("route") is not None:
+        edges = tuple(el.find("route").get("edges", "").split())  # type: ignore[union-attr]
+    elif el.get("from") and el.get("to"):
+        route = Route(origin=el.get("from", ""), destination=el.get("to", ""))
+        for e in (route.origin, route.destination):
+            if e not in net.lanes:
+                raise ValueError(f"{source}: {el.tag} {el.get('id')!r} uses unknown edge {e!r}")
+        return route
+    else:
+        raise ValueError(f"{source}: {el.tag} {el.get('id')!r} has no route and no from/to")
+    for e in edges:
+        if e not in net.lanes:
+            raise ValueError(f"{source}: {el.tag} {el.get('id')!r} uses unknown edge {e!r}")
+    return Route(edges=edges)
+
+
+def _read_routes(
+    root: ET.Element,
+    source: Path,
+    net: _Net,
+    routes: list[Route],
+    own: list[OwnVehicle],
+    rng: np.random.Generator,
+) -> None:
+    named = {r.get("id", ""): tuple(r.get("edges", "").split()) for r in root.findall("route")}
+    for el in root:
+        if el.tag in ("vehicle", "trip"):
+            r = _route_index(routes, _route_of(el, named, net, source))
+            own.append(OwnVehicle(el.get("id", ""), _depart(el, source), r))
+        elif el.tag == "flow":
+            r = _route_index(routes, _route_of(el, named, net, source))
+            for k, t in enumerate(_flow_departures(el, source, rng)):
+                own.append(OwnVehicle(f"{el.get('id')}.{k}", t, r))
+
+
+def _depart(el: ET.Element, source: Path) -> float:
+    value = el.get("depart", "0")
+    try:
+        return float(value)
+    except ValueError:
+        if value in ("triggered", "containerTriggered", "now", "begin"):
+            return 0.0
+        raise ValueError(f"{source}: {el.get('id')!r} has depart={value!r}") from None
+
+
+def _flow_departures(el: ET.Element, source: Path, rng: np.random.Generator) -> list[float]:
+    """Departure times of a ``<flow>``, as SUMO defines number / period / vehsPerHour / probability."""
+    begin = float(el.get("begin", 0.0))
+    end = float(el.get("end", DEFAULT_FLOW_END))
+    if el.get("number"):
+        n = int(el.get("number", 0))
+        period = float(el.get("period") or ((end - begin) / n if n else 1.0))
+        return [begin + k * period for k in range(n)]
+    if el.get("period", "").startswith("exp("):  # Poisson arrivals with the given rate
+        rate = float(el.get("period", "")[4:-1])
+        times, t = [], begin + rng.exponential(1.0 / rate)
+        while t < end:
+            times.append(t)
+            t += rng.exponential(1.0 / rate)
+        return times
+    if el.get("period") or el.get("vehsPerHour"):
+        period = float(el.get("period") or 3600.0 / float(el.get("vehsPerHour", 1)))
+        return list(np.arange(begin, end, period))
+    if el.get("probability"):
+        p = float(el.get("probability", 0))
+        steps = np.arange(begin, end, 1.0)  # one Bernoulli draw per second
+        return [float(t) for t in steps[rng.random(len(steps)) < p]]
+    raise ValueError(
+        f"{source}: flow {el.get('id')!r} needs number, period, vehsPerHour or probability"
+    )
