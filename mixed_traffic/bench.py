@@ -83,7 +83,7 @@ def bench_snapshot_density(
     clock = time.perf_counter
     try:
         for _ in range(warm):
-            boundary.step(backend.step(), backend, [])
+            boundary.step(backend.step(), backend)
         raw_blocks: list[float] = []
         step_blocks: list[float] = []
         n_veh: list[int] = []
@@ -97,14 +97,14 @@ def bench_snapshot_density(
                     backend.raw_step()
                     timed += clock() - t0
                     snap = backend.collect()
-                    boundary.step(snap, backend, [])
+                    boundary.step(snap, backend)
                 raw_blocks.append(timed / block)
             else:
                 for _ in range(block):
                     t0 = clock()
                     snap = backend.step()
                     timed += clock() - t0
-                    boundary.step(snap, backend, [])
+                    boundary.step(snap, backend)
                     n_veh.append(snap.n)
                 step_blocks.append(timed / block)
                 veh_blocks.append(float(np.mean(n_veh[-block:])))

@@ -46,16 +46,23 @@ class PeriodicBoundary:
     _next: int = 0
     _held: set[str] = field(default_factory=set)
 
-    def step(self, snap: TrafficSnapshot, backend: SumoBackend, finished_avs: list[str]) -> None:
-        """Apply the boundary after a step: refill and hold the exit heads."""
-        self._refill(snap, backend, finished_avs)
+    def step(self, snap: TrafficSnapshot, backend: SumoBackend) -> None:
+        """After a step: replace vehicles that arrived or collided, and hold the exit heads."""
+        crashed = [v for c in snap.collisions for v in (c.collider, c.victim)]
+        self.replace(backend, [*snap.arrived, *dict.fromkeys(crashed)])
         if self.virtual_leader and self.exit_edge:
             self._hold_heads(snap, backend)
 
-    def _refill(self, snap: TrafficSnapshot, backend: SumoBackend, finished_avs: list[str]) -> None:
-        for vid in snap.arrived:
-            if vid.startswith("av_") and self.fixed_fleet:
-                backend.add_vehicle(vid, self.route_ids[0], "av", "base", "free", "last")
+    def replace(self, backend: SumoBackend, gone: list[str]) -> None:
+        """Insert one vehicle at the entry for each vehicle in ``gone`` (which left the road).
+
+        With ``fixed_fleet`` an AV re-enters under its own id; otherwise the next queued
+        vehicle enters (nothing once the queue is used up).
+        """
+        for vid in gone:
+            if self.fixed_fleet and vid.startswith("av_"):
+                backend.add_vehicle(vid, self.route_ids[0], "av", "base", "free", "last",
+                                    self.destinations[0])  # fmt: skip
                 continue
             if self._next >= len(self.queue):
                 continue
@@ -63,9 +70,6 @@ class PeriodicBoundary:
             self._next += 1
             backend.add_vehicle(q.vid, self.route_ids[q.route], "av" if q.is_av else "hv",
                                 "base", "free", "last", self.destinations[q.route])  # fmt: skip
-        if self.fixed_fleet:  # terminated AVs (collision, violation) re-enter as well
-            for vid in finished_avs:
-                backend.add_vehicle(vid, self.route_ids[0], "av", "base", "free", "last")
 
     def _hold_heads(self, snap: TrafficSnapshot, backend: SumoBackend) -> None:
         hd = self.hdmap

@@ -196,6 +196,11 @@ class BicycleController:
         self.v, self.psi = self.v[keep], self.psi[keep]
         self.body_offset, self.length = self.body_offset[keep], self.length[keep]
 
+    @property
+    def tracked(self) -> set[str]:
+        """Ids of the agents whose model state is kept."""
+        return set(self._row)
+
     def rows(self, ids: Sequence[str]) -> np.ndarray:
         """(A,) state rows of ``ids``; KeyError names an untracked agent."""
         try:

@@ -154,7 +154,7 @@ def run_episode(
             steps = range(config.steps_per_episode)
             for _ in tqdm(steps, desc="steps", leave=False, disable=not progress):
                 snap = backend.step()
-                boundary.step(snap, backend, finished_avs=[])
+                boundary.step(snap, backend)
                 recorder.update(snap)
                 policy.after_step(snap, backend)
     finally:

@@ -37,7 +37,7 @@ class Sim:
         snap = None
         for _ in range(n):
             snap = self.backend.step()
-            self.boundary.step(snap, self.backend, [])
+            self.boundary.step(snap, self.backend)
         return snap
 
 

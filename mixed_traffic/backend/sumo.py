@@ -106,9 +106,12 @@ class SumoBackend:
         kind: ``libsumo`` (default, fastest), ``traci``, or ``auto`` (libsumo unless busy).
         second_instance: when libsumo is already owned by another backend in this process:
             ``traci`` falls back to a TraCI connection, ``error`` raises ``SumoError``.
+        gui: run ``sumo-gui`` (over TraCI) instead of ``sumo``.
     """
 
-    def __init__(self, kind: str = "libsumo", second_instance: str = "traci") -> None:
+    def __init__(
+        self, kind: str = "libsumo", second_instance: str = "traci", gui: bool = False
+    ) -> None:
         if kind not in ("libsumo", "traci", "auto"):
             raise ValueError(f"backend kind {kind!r} is not one of ('libsumo', 'traci', 'auto')")
         if kind in ("libsumo", "auto") and libsumo_busy():
@@ -126,6 +129,9 @@ class SumoBackend:
                 )
             kind = "traci"
         self.kind = "libsumo" if kind == "auto" else kind
+        self.gui = gui
+        if gui:  # libsumo has no GUI: sumo-gui is driven over TraCI
+            self.kind = "traci"
         self._api = None
         self._label: str | None = None
         self._pending_move = False
@@ -168,7 +174,11 @@ class SumoBackend:
         if self.running:
             self.load(args)
             return
-        cmd = [binary("sumo"), *args]
+        cmd = (
+            [binary("sumo-gui"), "--start", "--quit-on-end", *args]
+            if self.gui
+            else [binary("sumo"), *args]
+        )
         try:
             if self.kind == "libsumo":
                 if libsumo_busy():

@@ -1,0 +1,545 @@
+"""MixedTrafficEnv: a PettingZoo ParallelEnv in which the AVs of a SUMO simulation are agents.
+
+MDP (DESIGN §3, §6-§9; paper §III-IV)
+-------------------------------------
+Agents
+    ``possible_agents = av_0 … av_{N-1}``: every AV the episode's demand contains (fixed for a
+    config). An AV becomes an agent when it enters the network and stops being one when it
+    arrives (terminated, ``event="arrived"``), collides or commits another terminal event;
+    ids are never reused within an episode. ``fixed_fleet=True``: all AVs are agents from
+    reset until truncation; an AV that arrives or fails re-enters upstream under the same id
+    (a failure still gives its penalty and ``event``), and an AV waiting to re-enter gets the
+    empty observation (only ``follow`` allowed) and its actions are ignored.
+Observation
+    ``Dict(ego (z,5), lanes (3,z,4m), vehicles (3,z,12), lights (3,z,4), node_mask (3,3),
+    action_mask (3,))``, see ``mixed_traffic.observation`` for features and scales. Sensors
+    (LiDAR vehicles, camera lights, GNSS/IMU ego) apply the weather preset's noise and
+    misdetection; rewards, terminations and metrics use ground truth.
+Action
+    ``Dict(decision=Discrete(3), params=Box(-1, 1, (3, 2)))``: decision 0 left change, 1 follow,
+    2 right change; the chosen row ``(steering, accel_brake)`` is executed: steering ±1 =
+    ±60° (+ = left), accel_brake +1 = +3 m/s², −1 = −6 m/s² (``VehicleConfig``). A kinematic
+    bicycle model integrates it and SUMO applies it (setSpeed + changeSublane) with its own
+    safety checks off. Invalid actions (NaN, out of the space, missing for a live agent, given
+    to an agent that is not live) raise ``ValueError`` naming the agent.
+Reward
+    ``0.9·r1 + 0.8·r2 + 0.6·r3 + 0.2·r4`` (``RewardConfig``), every term by name in
+    ``infos[agent]["reward_terms"]``: r1_ttc, r1_lane, r1_terminal, r2_speed, r2_lane_change,
+    r3_comfort, r4_impact (``mixed_traffic.reward``).
+Termination / truncation
+    Terminated on arrival or a terminal event (``infos[agent]["event"]`` = collision,
+    off_road, route_deviation, red_light, speed_limit; the vehicle leaves SUMO). All live
+    agents are truncated when the simulated time reaches ``episode_length``.
+Metrics
+    ``episode_metrics()`` (also in the last step's infos under ``"episode"``): DT-TF, AvgDT-A,
+    AvgAT-C, AvgDI-C, MinTTC-A, AvgOFF-A, AvgVEL-A, AvgJERK-A, AvgDEC-C, PT-RT, AvgR and
+    safety counts (``mixed_traffic.schema``).
+
+Arguments: every field of ``EnvConfig`` as a keyword (``parallel_env(density=180, ...)``) or a
+whole ``config=EnvConfig(...)``; ``render_mode`` ``"rgb_array"`` (headless bird's-eye view) or
+``"human"`` (sumo-gui, needs a display); ``warmup`` [s] before flow metrics count.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+from pettingzoo.utils.conversions import parallel_to_aec
+
+from mixed_traffic import reward as rw
+from mixed_traffic.action import action_space, stack_actions, to_physical
+from mixed_traffic.backend import SumoBackend, TrafficSnapshot
+from mixed_traffic.boundary import PeriodicBoundary
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.control import BicycleController
+from mixed_traffic.metrics import FlowRecorder
+from mixed_traffic.metrics_av import AVMetrics, AVStep
+from mixed_traffic.observation import ObservationBuilder, observation_space
+from mixed_traffic.perception import (
+    CURRENT,
+    Perception,
+    PerceptionFrame,
+    bumper_gap,
+    next_route_edge,
+    ttc,
+)
+from mixed_traffic.scenario import (
+    check_density,
+    load_scenario,
+    make_demand,
+    sumo_args,
+    write_demand,
+)
+from mixed_traffic.schema import METRICS
+
+FOLLOW = 1
+
+
+@dataclass
+class _AgentState:
+    """Ground truth of the live agents kept from one step to the next, aligned with ``ids``."""
+
+    ids: list[str] = field(default_factory=list)
+    accel: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    lane: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    edge: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    next_edge: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    front_gap: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rear_ids: list[str] = field(default_factory=list)
+    rear_speed: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+class MixedTrafficEnv(ParallelEnv):
+    __doc__ = __doc__
+    metadata: ClassVar[dict[str, Any]] = {
+        "name": "mixed_traffic_v0",
+        "render_modes": ["rgb_array", "human"],
+        "render_fps": 10,
+    }
+
+    def __init__(
+        self,
+        config: EnvConfig | None = None,
+        render_mode: str | None = None,
+        warmup: float = 0.0,
+        **kwargs: Any,
+    ) -> None:
+        if config is not None and kwargs:
+            raise ValueError(
+                f"pass either config=EnvConfig(...) or keyword fields, not both: {sorted(kwargs)}"
+            )
+        self.config = cfg = config if config is not None else EnvConfig(**kwargs)
+        if render_mode not in (None, *self.metadata["render_modes"]):
+            raise ValueError(
+                f"render_mode={render_mode!r} is not one of {self.metadata['render_modes']}"
+            )
+        if render_mode == "human":
+            _check_gui()
+        self.render_mode = render_mode
+        self.scenario = load_scenario(cfg.scenario)
+        check_density(self.scenario, cfg.density)
+        self.hdmap = self.scenario.hdmap
+        self.warmup = warmup
+        demand = make_demand(self.scenario, cfg, np.random.default_rng(cfg.seed))
+        self.possible_agents = sorted(demand.av_ids, key=lambda a: int(a[3:]))
+        self._obs_space = observation_space(cfg)
+        self._act_space = action_space()
+        self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
+        self._controller = BicycleController(cfg.vehicle, self.hdmap, cfg.step_length)
+        self._builder = ObservationBuilder(cfg, self.hdmap)
+        self._backend = SumoBackend("traci" if render_mode == "human" else cfg.backend, cfg.second_instance,
+                                    gui=render_mode == "human")  # fmt: skip
+        self._backend.set_lane_table(self.hdmap.lane_ids, self.hdmap.lane_edge)
+        self._tmp = tempfile.mkdtemp(prefix="mixed_traffic_")
+        self._episode_rng = np.random.default_rng(cfg.seed)
+        self.agents: list[str] = []
+        self._snap: TrafficSnapshot | None = None
+
+    # ------------------------------------------------------------------ spaces
+    def observation_space(self, agent: str) -> spaces.Dict:
+        return self._obs_space
+
+    def action_space(self, agent: str) -> spaces.Dict:
+        return self._act_space
+
+    # ------------------------------------------------------------------ reset
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        if seed is None:
+            seed = int(self._episode_rng.integers(2**31 - 1))
+        cfg = replace(self.config, seed=int(seed))
+        demand_seed, sumo_seed, noise_seed = np.random.SeedSequence(int(seed)).generate_state(3)
+        demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
+        route_file = Path(self._tmp) / "demand.rou.xml"
+        write_demand(demand, cfg, route_file)
+        self._backend.start(sumo_args(self.scenario, cfg, route_file, seed=int(sumo_seed) % 2**31))
+        self._boundary = PeriodicBoundary.for_demand(
+            self.scenario, demand, cfg.vehicle, cfg.step_length, cfg.fixed_fleet
+        )
+        self._noise_rng = np.random.default_rng(noise_seed)
+        self._controller.reset()
+        self._builder.reset()
+        self._flow = FlowRecorder(
+            self.hdmap, self.scenario.measurement, cfg.step_length, self.warmup
+        )
+        self._av = AVMetrics(cfg.step_length, cfg.reward.rear_speed_drop)
+        self._routes: dict[str, np.ndarray] = {}
+        self._finished: set[str] = set()
+        self._last_obs: dict[str, dict] = {}
+        self._decision: dict[str, int] = {}
+        self._state = _AgentState()
+        self.agents = list(self.possible_agents) if cfg.fixed_fleet else []
+        snap = self._advance()
+        self._admit(snap)
+        rows = self._live_rows(snap)
+        truth, sensed = self._sense(snap, rows)
+        self._remember(snap, rows, truth)
+        obs = self._observe(snap, rows, sensed)
+        self._snap = snap
+        return {a: obs.get(a, self._empty_obs) for a in self.agents}, {a: {} for a in self.agents}
+
+    # ------------------------------------------------------------------ step
+    def step(self, actions: dict[str, Any]):
+        decision, params = stack_actions(actions, self.agents, self._act_space)  # action
+        steer, accel = to_physical(decision, params, self.config.vehicle)
+        cmd = self._control(steer, accel, decision)  # control
+        snap = self._advance()  # SUMO step + density boundary
+        rows = self._live_rows(snap)
+        truth, sensed = self._sense(snap, rows)  # perception
+        events = self._events(snap, rows, cmd)  # termination
+        rewards, terms, changed = self._rewards(snap, rows, truth, events)  # reward
+        self._record(snap, rows, truth, rewards, changed)  # metrics
+        self._remember(snap, rows, truth)
+        obs = self._observe(snap, rows, sensed)  # observation
+        return self._finish(snap, obs, rewards, terms, events)
+
+    # ------------------------------------------------------------------ stages
+    def _control(self, steer: np.ndarray, accel: np.ndarray, decision: np.ndarray):
+        """Bicycle model -> SUMO for every agent present in the simulation."""
+        rows = self._live_rows(self._snap)
+        acting = [i for i, a in enumerate(self.agents) if a in rows]
+        ids = [self.agents[i] for i in acting]
+        self._decision = dict(zip(ids, decision[acting].tolist()))
+        return self._controller.step(self._backend, self._snap, ids, steer[acting], accel[acting])
+
+    def _advance(self) -> TrafficSnapshot:
+        """One SUMO step; the boundary replaces vehicles that left; flow metrics."""
+        snap = self._backend.step()
+        self._boundary.step(snap, self._backend)
+        self._flow.update(snap)
+        ids = self._perception.tls_ids
+        self._tls = dict(zip(ids, self._backend.tls_states(ids)))
+        return snap
+
+    def _admit(self, snap: TrafficSnapshot) -> list[str]:
+        """Start controlling AVs that (re-)entered the network; returns their ids."""
+        known = self._controller.tracked
+        new = [
+            v
+            for v, av in zip(snap.ids, snap.is_av.tolist())
+            if av and v not in known and v not in self._finished
+        ]
+        if not new:
+            return []
+        self._controller.add_from_snapshot(snap, new, self._backend)
+        for a in new:
+            edges = self._backend.vehicle_route(a)
+            self._routes[a] = np.array(
+                [self.hdmap.edge_row.get(e, -1) for e in edges], dtype=np.int64
+            )
+        self._builder.drop(new)
+        if not self.config.fixed_fleet:
+            self.agents += new
+        return new
+
+    def _live_rows(self, snap: TrafficSnapshot) -> dict[str, int]:
+        """Snapshot row of every agent present in the simulation, in agent order."""
+        index = snap.index_of()
+        return {a: index[a] for a in self.agents if a in index}
+
+    def _sense(
+        self, snap: TrafficSnapshot, rows: dict[str, int]
+    ) -> tuple[PerceptionFrame, PerceptionFrame]:
+        r = np.fromiter(rows.values(), np.int64, len(rows))
+        nxt = next_route_edge([self._routes[a] for a in rows], snap.route_index[r])
+        tls = [self._tls[t] for t in self._perception.tls_ids]
+        return self._perception.sense(snap, r, nxt, tls, self._noise_rng)
+
+    def _events(self, snap: TrafficSnapshot, rows: dict[str, int], cmd) -> dict[str, str]:
+        """'arrived', a terminal reason, or '' for every agent that acted."""
+        prev, hd = self._state, self.hdmap
+        crashed = rw.collided_mask(prev.ids, snap.collisions)
+        arrived = set(snap.arrived)
+        events = {
+            a: "collision" if c else "arrived" if a in arrived else ""
+            for a, c in zip(prev.ids, crashed)
+        }
+        here = [i for i, a in enumerate(prev.ids) if a in rows and not events[a]]
+        if not here:
+            return events
+        ids = [prev.ids[i] for i in here]
+        p = np.array(here, dtype=np.int64)
+        r = np.array([rows[a] for a in ids], dtype=np.int64)
+        # SUMO clamps lateral moves to the road: judge off-road by the commanded position
+        lateral = _aligned(cmd.ids, cmd.intended_lateral, ids, snap.lateral[r])
+        reasons = rw.terminal_events(
+            collision=np.zeros(len(r), bool),
+            off_road=rw.off_road_mask(hd, prev.lane[p], lateral),
+            route_deviation=rw.route_deviation_mask(hd, snap.edge[r], snap.lane[r], snap.lane_pos[r],
+                                                    _padded([self._routes[a] for a in ids]), snap.route_index[r]),
+            red_light=rw.red_light_mask(hd, prev.lane[p], snap.lane[r], prev.next_edge[p], self._tls_prev),
+            speed_limit=rw.speed_limit_mask(snap.speed[r], hd.lane_speed[snap.lane[r]], self.config.speed_tolerance),
+        )  # fmt: skip
+        events.update(zip(ids, reasons.tolist()))
+        return events
+
+    def _rewards(
+        self,
+        snap: TrafficSnapshot,
+        rows: dict[str, int],
+        truth: PerceptionFrame,
+        events: dict[str, str],
+    ):
+        """Reward, named terms and completed lane changes of every agent that acted."""
+        prev, cfg, hd = self._state, self.config, self.hdmap
+        rewards: dict[str, float] = {}
+        terms_out: dict[str, dict[str, float]] = {}
+        failed = {a for a, e in events.items() if e not in ("", "arrived")}
+        for a in prev.ids:
+            if a not in rows:  # left the network this step: only the terminal penalty applies
+                t = dict.fromkeys(rw.TERM_NAMES, 0.0)
+                t["r1_terminal"] = cfg.reward.terminal_penalty if a in failed else 0.0
+                terms_out[a], rewards[a] = t, cfg.reward.w_safety * t["r1_terminal"]
+        here = [i for i, a in enumerate(prev.ids) if a in rows]
+        if not here:
+            return rewards, terms_out, {}
+        ids = [prev.ids[i] for i in here]
+        p = np.array(here, dtype=np.int64)
+        r = np.array([rows[a] for a in ids], dtype=np.int64)
+        order = {a: j for j, a in enumerate(rows)}  # truth was sensed in the order of rows
+        k = np.array([order[a] for a in ids], dtype=np.int64)
+        front = _FrontView(snap, truth, k, r)
+        rear_now = _speeds_of(snap, [prev.rear_ids[i] for i in here])
+        lane = snap.lane[r]
+        changed = rw.lane_change_completed(prev.lane[p], lane, prev.edge[p], snap.edge[r])
+        terms = rw.reward_terms(
+            cfg.reward, cfg.step_length,
+            front_distance=front.distance, closing_speed=front.closing, length=snap.length[r],
+            front_length=front.length,
+            centre_distance=rw.centreline_distance(hd, lane, snap.lane_pos[r], snap.x[r], snap.y[r]),
+            lane_width=hd.lane_width[lane], terminal=np.array([a in failed for a in ids]),
+            speed=snap.speed[r], speed_limit=hd.lane_speed[lane],
+            lane_changed=changed, gap_new=front.gap, gap_old=prev.front_gap[p],
+            lidar_range=cfg.sensors.lidar_range, accel=snap.accel[r], prev_accel=prev.accel[p],
+            rear_speed_prev=prev.rear_speed[p], rear_speed_now=rear_now, rear_same=~np.isnan(rear_now),
+        )  # fmt: skip
+        total = rw.total_reward(terms, cfg.reward)
+        for j, a in enumerate(ids):
+            terms_out[a] = {name: float(v[j]) for name, v in terms.items()}
+            rewards[a] = float(total[j])
+        return rewards, terms_out, dict(zip(ids, changed.tolist()))
+
+    def _record(self, snap, rows: dict[str, int], truth: PerceptionFrame, rewards: dict[str, float],
+                changed: dict[str, bool]) -> None:  # fmt: skip
+        """Per-AV metrics of this step (flow metrics are recorded in ``_advance``)."""
+        ids = list(rows)
+        r = np.fromiter(rows.values(), np.int64, len(rows))
+        front = _FrontView(snap, truth, np.arange(len(r)), r)
+        rear_ids, rear_speed = _rear_conventional(snap, truth)
+        prev = self._state
+        pos = {a: i for i, a in enumerate(prev.ids)}
+        pi = np.array([pos.get(a, -1) for a in ids], dtype=np.int64)
+        prev_accel = np.where(pi >= 0, _take(prev.accel, pi), snap.accel[r])
+        same = np.array([pi[j] >= 0 and rear_ids[j] != "" and prev.rear_ids[pi[j]] == rear_ids[j]
+                         for j in range(len(ids))], bool)  # fmt: skip
+        self._av.step(
+            AVStep(ids=ids, speed=snap.speed[r], accel=snap.accel[r], prev_accel=prev_accel,
+                   lateral=snap.lateral[r],
+                   following=np.array([self._decision.get(a, FOLLOW) == FOLLOW for a in ids], bool),
+                   lane_changed=np.array([changed.get(a, False) for a in ids], bool),
+                   ttc=np.where(front.exists, ttc(front.gap, front.closing), np.inf),
+                   rear_ids=rear_ids, rear_speed=np.nan_to_num(rear_speed),
+                   rear_prev_speed=np.where(same, _take(prev.rear_speed, pi), np.nan),
+                   reward=np.array([rewards.get(a, 0.0) for a in ids])),
+            snap.time,
+            dict(zip(snap.ids, snap.speed.tolist())),
+        )  # fmt: skip
+
+    def _remember(
+        self, snap: TrafficSnapshot, rows: dict[str, int], truth: PerceptionFrame
+    ) -> None:
+        """Ground truth of this step that the next step's events and rewards compare against."""
+        ids = list(rows)
+        r = np.fromiter(rows.values(), np.int64, len(rows))
+        rear_ids, rear_speed = _rear_conventional(snap, truth)
+        self._state = _AgentState(
+            ids=ids, accel=snap.accel[r].copy(), lane=snap.lane[r].astype(np.int64),
+            edge=snap.edge[r].astype(np.int64),
+            next_edge=next_route_edge([self._routes[a] for a in ids], snap.route_index[r]),
+            front_gap=_FrontView(snap, truth, np.arange(len(r)), r).gap, rear_ids=rear_ids, rear_speed=rear_speed,
+        )  # fmt: skip
+        self._tls_prev = dict(self._tls)
+
+    def _observe(self, snap, rows: dict[str, int], sensed: PerceptionFrame) -> dict[str, dict]:
+        ids = list(rows)
+        r = np.fromiter(rows.values(), np.int64, len(rows))
+        obs = (
+            self._builder.build(snap, ids, r, sensed, [self._routes[a] for a in ids]) if ids else {}
+        )
+        self._last_obs.update(obs)
+        return obs
+
+    def _finish(self, snap, obs, rewards, terms, events):
+        """Retire finished agents, admit new ones, and assemble the PettingZoo dicts."""
+        cfg = self.config
+        done = sorted(a for a, e in events.items() if e)
+        for a in done:
+            self._av.end_trip(a, events[a])
+            if events[a] not in ("arrived", "collision"):
+                self._backend.remove(a)  # SUMO already removed arrived and collided vehicles
+        removed = [a for a in done if events[a] not in ("arrived", "collision")]
+        self._boundary.replace(self._backend, removed)
+        self._controller.remove(done)
+        truncate = snap.time >= cfg.episode_length - 1e-9
+        agents = list(self.agents)
+        terminated = {a: a in events and bool(events[a]) and not cfg.fixed_fleet for a in agents}
+        truncated = {a: truncate and not terminated[a] for a in agents}
+        infos = {a: {"reward_terms": terms.get(a, {}), "event": events.get(a, "")} for a in agents}
+        obs_out = {a: obs.get(a, self._last_obs.get(a, self._empty_obs)) for a in agents}
+        rew_out = {a: rewards.get(a, 0.0) for a in agents}
+        if not cfg.fixed_fleet:
+            self._finished.update(done)
+            self.agents = [a for a in agents if not terminated[a]]
+        new = self._admit(snap)
+        if new:
+            rows = self._live_rows(snap)
+            rows = {a: rows[a] for a in new}
+            new_obs = self._observe(snap, rows, self._sense(snap, rows)[1])
+            self._remember_new(snap, rows)
+            for a in new:
+                if a not in obs_out or cfg.fixed_fleet:
+                    obs_out[a], rew_out[a] = new_obs[a], rew_out.get(a, 0.0)
+                    terminated[a], truncated[a] = False, truncate
+                    infos.setdefault(a, {"reward_terms": {}, "event": ""})["event"] = "entered"
+        if truncate:
+            self.agents = []
+            summary = self.episode_metrics()
+            for info in infos.values():
+                info["episode"] = summary
+        self._snap = snap
+        return obs_out, rew_out, terminated, truncated, infos
+
+    def _remember_new(self, snap: TrafficSnapshot, rows: dict[str, int]) -> None:
+        """Add entering agents to the per-agent memory (they act from the next step on)."""
+        all_rows = self._live_rows(snap)
+        truth, _ = self._sense(snap, all_rows)
+        self._remember(snap, all_rows, truth)
+
+    @cached_property
+    def _empty_obs(self) -> dict[str, np.ndarray]:
+        obs = {k: np.zeros(s.shape, s.dtype) for k, s in self._obs_space.spaces.items()}
+        obs["action_mask"][FOLLOW] = 1
+        return obs
+
+    # ------------------------------------------------------------------ metrics, render, close
+    def episode_metrics(self) -> dict[str, float | None]:
+        """Every DESIGN §9 metric of the episode so far (keys of ``schema.METRICS``)."""
+        out: dict[str, Any] = dict.fromkeys(METRICS)
+        out.update(self._flow.summary())
+        out.update(self._av.summary())
+        di = self._flow.delay_index(sorted(self._av.rear_vehicles))
+        di = di[np.isfinite(di)] if len(di) else di
+        out["avg_di_c"] = float(np.mean(di)) if len(di) else None
+        return out
+
+    def render(self) -> np.ndarray | None:
+        if self.render_mode != "rgb_array" or self._snap is None:
+            return None
+        from mixed_traffic.render import Renderer
+
+        if not hasattr(self, "_renderer"):
+            self._renderer = Renderer(self.hdmap)
+        snap = self._snap
+        centre = None
+        rows = self._live_rows(snap)
+        if rows:
+            i = next(iter(rows.values()))
+            centre = np.array([snap.x[i], snap.y[i]])
+        return self._renderer.draw(snap, centre, self._tls)
+
+    def close(self) -> None:
+        self._backend.close()
+        shutil.rmtree(self._tmp, ignore_errors=True)
+
+    def __del__(self) -> None:
+        with contextlib.suppress(Exception):
+            self.close()
+
+
+class _FrontView:
+    """Ground-truth front vehicle in the current lane for agents at truth rows ``k``, snapshot rows ``r``."""
+
+    def __init__(
+        self, snap: TrafficSnapshot, truth: PerceptionFrame, k: np.ndarray, r: np.ndarray
+    ) -> None:
+        nb = truth.neighbours
+        row = nb.front[k, CURRENT]
+        self.exists = row >= 0
+        f = np.maximum(row, 0)
+        self.distance = nb.front_dist[k, CURRENT]
+        self.length = np.where(self.exists, snap.length[f], 0.0)
+        self.closing = snap.speed[r] - np.where(self.exists, snap.speed[f], 0.0)
+        self.gap = bumper_gap(self.distance, snap.length[r], self.length)
+
+
+def _rear_conventional(
+    snap: TrafficSnapshot, truth: PerceptionFrame
+) -> tuple[list[str], np.ndarray]:
+    """C, the conventional vehicle behind each agent in its lane ('' if none or an AV), and its speed."""
+    rear = truth.neighbours.rear[:, CURRENT]
+    ok = (rear >= 0) & ~snap.is_av[np.maximum(rear, 0)]
+    ids = [snap.ids[j] if c else "" for j, c in zip(rear.tolist(), ok.tolist())]
+    return ids, np.where(ok, snap.speed[np.maximum(rear, 0)], np.nan)
+
+
+def _speeds_of(snap: TrafficSnapshot, ids: list[str]) -> np.ndarray:
+    """Speed of each vehicle id now, nan if it is not in the network (or '')."""
+    index = snap.index_of()
+    return np.array([snap.speed[index[v]] if v in index else np.nan for v in ids], dtype=np.float64)
+
+
+def _take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """values[idx] with idx = -1 giving nan (also for an empty ``values``)."""
+    out = np.full(len(idx), np.nan)
+    ok = idx >= 0
+    out[ok] = values[idx[ok]]
+    return out
+
+
+def _aligned(
+    cmd_ids: list[str], values: np.ndarray, ids: list[str], default: np.ndarray
+) -> np.ndarray:
+    """``values`` (ordered as ``cmd_ids``) reordered to ``ids``; ``default`` where absent."""
+    pos = {a: i for i, a in enumerate(cmd_ids)}
+    out = np.array(default, dtype=np.float64, copy=True)
+    for j, a in enumerate(ids):
+        if a in pos:
+            out[j] = values[pos[a]]
+    return out
+
+
+def _padded(routes: list[np.ndarray]) -> np.ndarray:
+    """(A, R) edge rows, -1 padded."""
+    width = max((len(r) for r in routes), default=1)
+    out = np.full((len(routes), width), -1, dtype=np.int64)
+    for i, r in enumerate(routes):
+        out[i, : len(r)] = r
+    return out
+
+
+def _check_gui() -> None:
+    from mixed_traffic.backend import binary
+
+    if not os.environ.get("DISPLAY"):
+        raise ValueError("render_mode='human' needs sumo-gui and a display (DISPLAY is not set); "
+                         "use render_mode='rgb_array' for headless rendering")  # fmt: skip
+    binary("sumo-gui")
+
+
+def parallel_env(**kwargs: Any) -> MixedTrafficEnv:
+    """The PettingZoo ParallelEnv; keywords are ``EnvConfig`` fields (or ``config=``)."""
+    return MixedTrafficEnv(**kwargs)
+
+
+def env(**kwargs: Any):
+    """The AEC version of ``parallel_env`` (via ``parallel_to_aec``)."""
+    return parallel_to_aec(parallel_env(**kwargs))
