@@ -1,0 +1,266 @@
+"""Agents: LCA/actor/critic shapes, masked selection, learner, replay, checkpoints, fused path.
+
+Pure torch/numpy (no SUMO), small sizes, fast.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from agents.bench_inference import random_obs
+from agents.checkpoint import load_checkpoint, save_checkpoint
+from agents.fused import FusedActorCritic
+from agents.lca import LCA, LCAConfig
+from agents.networks import FOLLOW, Actor, Critic, select
+from agents.rbpdqn import RBPDQN, LearnerConfig, Policy, obs_to_torch
+from agents.replay import ReplayBuffer
+
+ABLATIONS = [
+    {},
+    {"history": False},
+    {"lane_wise": False},
+    {"star": False},
+    {"history": False, "lane_wise": False, "star": False},
+]
+
+
+def _obs(b: int, cfg: LCAConfig, seed: int = 0) -> dict[str, torch.Tensor]:
+    return obs_to_torch(random_obs(b, cfg, np.random.default_rng(seed)))
+
+
+def _batch(b: int, cfg: LCAConfig, seed: int = 0) -> dict:
+    rng = np.random.default_rng(seed)
+    buf = ReplayBuffer(b, cfg)
+    obs, nxt = random_obs(b, cfg, rng), random_obs(b, cfg, rng)
+    buf.add_batch(
+        obs,
+        rng.integers(0, 3, b),
+        rng.uniform(-1, 1, (b, 3, 2)).astype(np.float32),
+        rng.normal(size=b).astype(np.float32),
+        nxt,
+        (rng.random(b) < 0.1).astype(np.float32),
+    )
+    return buf.sample(b, rng)
+
+
+@pytest.mark.parametrize("flags", ABLATIONS)
+@pytest.mark.parametrize("b", [1, 7])
+def test_shapes(flags: dict, b: int) -> None:
+    cfg = LCAConfig(z=4, m=6, **flags)  # non-default z, m: nothing may be hard-coded
+    obs = _obs(b, cfg)
+    assert LCA(cfg)(obs).shape == (b, cfg.d)
+    params = Actor(cfg)(obs)
+    assert params.shape == (b, 3, 2)
+    assert params.abs().max() <= 1.0
+    q = Critic(cfg)(obs, params)
+    assert q.shape == (b, 3)
+    assert select(q, obs["action_mask"]).shape == (b,)
+
+
+def test_config_from_shapes() -> None:
+    cfg = LCAConfig(z=3, m=7)
+    assert LCAConfig.from_obs_shapes(cfg.obs_shapes()) == cfg
+
+
+def test_fully_masked_lane_no_nan() -> None:
+    cfg = LCAConfig()
+    obs = _obs(5, cfg)
+    obs["node_mask"][:] = 0.0
+    for flags in ABLATIONS:
+        c = LCAConfig(**flags)
+        assert torch.isfinite(LCA(c)(obs)).all()
+
+
+def test_masked_decision_never_chosen() -> None:
+    g = torch.Generator().manual_seed(0)
+    for _ in range(50):
+        q = torch.randn(64, 3, generator=g) * 10
+        mask = torch.rand(64, 3, generator=g) < 0.5
+        # Include rows with exactly one allowed decision.
+        mask[:8] = False
+        mask[torch.arange(8), torch.randint(0, 3, (8,), generator=g)] = True
+        mask[8] = False  # all masked → documented fallback
+        dec = select(q, mask)
+        ok = mask[torch.arange(64), dec]
+        some = mask.any(1)
+        assert ok[some].all()
+        assert (dec[~some] == FOLLOW).all() and not some[8]
+        # Among allowed ones it is the argmax.
+        best = q.masked_fill(~mask, -1e30).argmax(1)
+        assert torch.equal(dec[:8], best[:8])
+
+
+def test_policy_respects_mask_with_exploration() -> None:
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg)
+    pol = Policy(learner.actor, learner.critic, epsilon=0.5)
+    rng = np.random.default_rng(1)
+    obs = random_obs(40, cfg, rng)
+    obs["action_mask"][:] = 0.0
+    obs["action_mask"][np.arange(40), rng.integers(0, 3, 40)] = 1.0
+    for explore in (False, True):
+        dec, params = pol.act(obs, explore=explore, rng=rng)
+        assert dec.shape == (40,) and params.shape == (40, 3, 2)
+        assert (obs["action_mask"][np.arange(40), dec] == 1).all()
+        assert np.abs(params).max() <= 1.0
+
+
+@pytest.mark.parametrize("b", [1, 7, 128])
+def test_fused_matches_reference(b: int) -> None:
+    cfg = LCAConfig()
+    torch.manual_seed(3)
+    actor, critic = Actor(cfg), Critic(cfg)
+    obs = _obs(b, cfg, seed=b)
+    obs["node_mask"][0] = 0.0  # a fully masked agent
+    with torch.no_grad():
+        p_ref = actor(obs)
+        q_ref = critic(obs, p_ref)
+    p, q = FusedActorCritic(actor, critic)(obs)
+    torch.testing.assert_close(p, p_ref, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(q, q_ref, atol=1e-5, rtol=1e-4)
+
+
+def test_policy_sync_after_update() -> None:
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg)
+    pol = Policy(learner.actor, learner.critic)
+    obs = _obs(6, cfg)
+    learner.update(_batch(16, cfg))
+    pol.sync()
+    q, p = pol.q_and_params(obs)
+    with torch.no_grad():
+        torch.testing.assert_close(p, learner.actor(obs), atol=1e-5, rtol=1e-4)
+        torch.testing.assert_close(q, learner.critic(obs, p), atol=1e-5, rtol=1e-4)
+
+
+@pytest.mark.parametrize("regularize", [True, False])
+def test_learner_lowers_critic_loss(regularize: bool) -> None:
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg, LearnerConfig(regularize=regularize), seed=0)
+    batch = _batch(64, cfg)
+    first = learner.critic_loss(batch).item()
+    for _ in range(30):
+        out = learner.update(batch)
+    assert np.isfinite(out["actor_loss"])
+    assert learner.critic_loss(batch).item() < first
+
+
+def test_td_target_ignores_masked_decisions() -> None:
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg)
+    batch = _batch(8, cfg)
+    batch["done"][:] = 0.0
+    nxt = batch["next_obs"]
+    with torch.no_grad():
+        q = learner.critic_targ(nxt, learner.actor_targ(nxt))
+    nxt["action_mask"][:] = 0.0
+    nxt["action_mask"][:, 2] = 1.0
+    y = learner.td_target(batch)
+    torch.testing.assert_close(y, batch["reward"] + 0.9 * q[:, 2])
+
+
+def test_determinism() -> None:
+    cfg = LCAConfig()
+
+    def run() -> list[torch.Tensor]:
+        learner = RBPDQN(cfg, seed=11)
+        for i in range(3):
+            learner.update(_batch(32, cfg, seed=i))
+        return [p.detach().clone() for p in learner.actor.parameters()] + [
+            p.detach().clone() for p in learner.critic.parameters()
+        ]
+
+    for a, b in zip(run(), run(), strict=True):
+        assert torch.equal(a, b)
+
+
+def test_replay_shapes_and_wraparound() -> None:
+    cfg = LCAConfig(z=3, m=4)
+    rng = np.random.default_rng(0)
+    buf = ReplayBuffer(10, cfg)
+    for step in range(3):  # 3 × 4 = 12 > 10: wraps
+        n = 4
+        obs = random_obs(n, cfg, rng)
+        buf.add_batch(
+            obs,
+            np.full(n, step),
+            np.zeros((n, 3, 2), np.float32),
+            np.full(n, float(step), np.float32),
+            random_obs(n, cfg, rng),
+            np.zeros(n, np.float32),
+        )
+    assert len(buf) == 10 and buf.pos == 2
+    # Slots 0, 1 hold the newest step (2); slots 2..9 hold steps 0 (2 left) and 1.
+    assert list(buf.reward) == [2, 2, 0, 0, 1, 1, 1, 1, 2, 2]
+    batch = buf.sample(5, rng)
+    for k, s in cfg.obs_shapes().items():
+        assert batch["obs"][k].shape == (5, *s)
+        assert batch["next_obs"][k].shape == (5, *s)
+    assert batch["params"].shape == (5, 3, 2)
+    assert batch["decision"].dtype == torch.int64
+    # Round trip through state_dict.
+    other = ReplayBuffer(10, cfg)
+    other.load_state_dict(buf.state_dict())
+    assert other.pos == buf.pos and len(other) == len(buf)
+    np.testing.assert_array_equal(other.obs["lanes"], buf.obs["lanes"])
+
+
+def test_checkpoint_round_trip(tmp_path) -> None:
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg)
+    learner.update(_batch(16, cfg))
+    path = save_checkpoint(tmp_path / "ck.pt", learner, {"env_steps": 5})
+    loaded, meta = load_checkpoint(path, z=cfg.z, m=cfg.m)
+    assert meta["env_steps"] == 5 and meta["lca"]["z"] == cfg.z
+    assert loaded.steps == learner.steps
+    obs = _obs(7, cfg)
+    with torch.no_grad():
+        pa, pb = learner.actor(obs), loaded.actor(obs)
+        assert torch.equal(pa, pb)
+        assert torch.equal(learner.critic(obs, pa), loaded.critic(obs, pb))
+    # Training resumes identically (optimiser state included).
+    batch = _batch(16, cfg, seed=9)
+    assert learner.update(batch) == loaded.update(batch)
+    assert not list(tmp_path.glob(".*.tmp"))  # no temp files left behind
+
+
+def test_checkpoint_errors(tmp_path) -> None:
+    cfg = LCAConfig()
+    good = save_checkpoint(tmp_path / "good.pt", RBPDQN(cfg))
+
+    with pytest.raises(ValueError, match=r"missing\.pt.*not found"):
+        load_checkpoint(tmp_path / "missing.pt")
+
+    trunc = tmp_path / "trunc.pt"
+    trunc.write_bytes(good.read_bytes()[:500])
+    with pytest.raises(ValueError, match=r"trunc\.pt.*corrupt"):
+        load_checkpoint(trunc)
+
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"\x00not a checkpoint" * 50)
+    with pytest.raises(ValueError, match=r"garbage\.pt.*corrupt"):
+        load_checkpoint(garbage)
+
+    other = tmp_path / "other.pt"
+    torch.save({"weights": torch.zeros(3)}, other)
+    with pytest.raises(ValueError, match=r"other\.pt.*not an RBP-DQN checkpoint"):
+        load_checkpoint(other)
+
+    with pytest.raises(
+        ValueError,
+        match=r"good\.pt.*mismatch.*lanes: checkpoint \(3, 5, 40\) vs requested \(3, 5, 24\)",
+    ):
+        load_checkpoint(good, m=6)
+    with pytest.raises(
+        ValueError, match=r"good\.pt.*mismatch.*ego: checkpoint \(5, 5\) vs requested \(4, 5\)"
+    ):
+        load_checkpoint(good, z=4)
+
+
+def test_bench_runs() -> None:
+    from agents.bench_inference import avg_inference_us
+
+    us = avg_inference_us(n_agents=16, repeats=1, iters=2)
+    assert us > 0
