@@ -23,6 +23,15 @@ from torch import Tensor
 from agents.lca import LCA, N_LANES, N_NODE_TYPES, HistoryGRU
 from agents.networks import ACTION_DIM, N_DECISIONS, N_PARAMS, Actor, Critic
 
+_MAX_CACHED_SIZES = 4
+"""Buffer sets kept per distinct batch size (agent counts vary per step); oldest evicted."""
+
+
+def _evict(cache: dict) -> None:
+    """Drop the oldest entries so at most ``_MAX_CACHED_SIZES - 1`` remain before an insert."""
+    while len(cache) >= _MAX_CACHED_SIZES:
+        cache.pop(next(iter(cache)))
+
 
 def _derive_gru(gru: HistoryGRU) -> dict[str, Tensor]:
     """Derived weights of one GRU for the h̃ = (h + 1)/2, tanh(a) = 2σ(2a) − 1 formulation.
@@ -65,6 +74,7 @@ class _GroupGRU:
     def _buffers(self, n: int, z: int) -> dict[str, Tensor]:
         key = (n, z)
         if key not in self._buf:
+            _evict(self._buf)
             g, d = len(self.w), self.d
             p = torch.empty(g, n, z, 3 * d)
             for i, w in enumerate(self.w):
@@ -153,6 +163,7 @@ class FusedActorCritic:
 
     def _attn_buffers(self, b: int) -> dict[str, Tensor]:
         if b not in self._abuf:
+            _evict(self._abuf)
             d = self.d
             self._abuf[b] = {
                 "q": torch.empty(2, b, d),
@@ -162,7 +173,14 @@ class FusedActorCritic:
         return self._abuf[b]
 
     @torch.inference_mode()
-    def __call__(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
+    def __call__(
+        self, obs: dict[str, Tensor], noise: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """obs (B, ...) → (params (B, 3, 2), q (B, 3)).
+
+        ``noise`` (B, 3, 2), if given, is added to the actor output and clipped to [-1, 1]
+        before the critic, so q scores the executed (noisy) params.
+        """
         b, z = obs["ego"].shape[0], obs["ego"].shape[1]
         d = self.d
         lanes = obs["lanes"].reshape(b * N_LANES, z, -1)
@@ -187,6 +205,8 @@ class FusedActorCritic:
         w1, b1, w2, b2 = self.actor_head
         hid = torch.relu(torch.addmm(b1, e_s[0], w1.t()))
         params = torch.sigmoid(2.0 * torch.addmm(b2, hid, w2.t())) * 2.0 - 1.0  # tanh
+        if noise is not None:
+            params = (params + noise.view(b, -1)).clamp_(-1.0, 1.0)
         w10, b10 = self.critic_w10
         e_a = torch.relu(torch.addmm(b10, params, w10.t()))
         c1, cb1, c2, cb2 = self.critic_head

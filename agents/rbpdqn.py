@@ -215,14 +215,14 @@ class Policy:
             return select(q, mask).numpy(), params.numpy().copy()
         if rng is None:
             raise ValueError("explore=True needs an rng")
+        shape = (t["ego"].shape[0], 3, 2)
+        noise = torch.from_numpy(rng.normal(0.0, self.noise_std, size=shape).astype(np.float32))
         if self._fused is not None:
-            params, _ = self._fused(t)
+            params, q = self._fused(t, noise=noise)
         else:
-            params = self.actor(t)
-        noise = rng.normal(0.0, self.noise_std, size=tuple(params.shape)).astype(np.float32)
-        params = (params + torch.from_numpy(noise)).clamp_(-1.0, 1.0)
-        # Reference critic here (not the fused one): it must score the noisy params.
-        dec = select(self.critic(t, params), mask)
+            params = (self.actor(t) + noise).clamp_(-1.0, 1.0)
+            q = self.critic(t, params)
+        dec = select(q, mask)
         dec_np = dec.numpy().copy()
         mask_np = mask.numpy()
         rand_rows = rng.random(len(dec_np)) < self.epsilon

@@ -264,3 +264,28 @@ def test_bench_runs() -> None:
 
     us = avg_inference_us(n_agents=16, repeats=1, iters=2)
     assert us > 0
+
+
+def test_policy_fused_equals_reference_with_exploration() -> None:
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg, seed=4)
+    obs = random_obs(30, cfg, np.random.default_rng(2))
+    outs = []
+    for fused in (True, False):
+        pol = Policy(learner.actor, learner.critic, epsilon=0.2, fused=fused)
+        outs.append(pol.act(obs, explore=True, rng=np.random.default_rng(5)))
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    np.testing.assert_allclose(outs[0][1], outs[1][1], atol=1e-5)
+
+
+def test_fused_varying_batch_sizes() -> None:
+    cfg = LCAConfig()
+    torch.manual_seed(0)
+    actor, critic = Actor(cfg), Critic(cfg)
+    fused = FusedActorCritic(actor, critic)
+    for b in (3, 9, 3, 20, 1, 5, 9, 2):  # more sizes than the buffer cache holds
+        obs = _obs(b, cfg, seed=b)
+        _p, q = fused(obs)
+        with torch.no_grad():
+            torch.testing.assert_close(q, critic(obs, actor(obs)), atol=1e-5, rtol=1e-4)
+    assert len(fused._abuf) <= 4 and len(fused.nodes_gru._buf) <= 4
