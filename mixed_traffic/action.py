@@ -42,9 +42,20 @@ N_DECISIONS = 3
 N_PARAMS = 2  # (steering, accel_brake)
 
 
+class ParameterizedActionSpace(spaces.Dict):
+    """``Dict(decision, params)`` whose ``sample(mask=...)`` also takes the observation's
+    ``action_mask`` (3,) directly, the PettingZoo convention, and then samples only allowed
+    decisions (params stay uniform)."""
+
+    def sample(self, mask: Any = None, probability: Any = None) -> dict[str, Any]:
+        if mask is not None and not isinstance(mask, Mapping):
+            mask = {"decision": np.asarray(mask, dtype=np.int8), "params": None}
+        return super().sample(mask=mask, probability=probability)
+
+
 def action_space(seed: int | None = None) -> spaces.Dict:
     """The per-agent parameterized action space (see the module docstring)."""
-    space = spaces.Dict(
+    space = ParameterizedActionSpace(
         {
             "decision": spaces.Discrete(N_DECISIONS),
             "params": spaces.Box(-1.0, 1.0, (N_DECISIONS, N_PARAMS), np.float32),

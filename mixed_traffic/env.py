@@ -399,7 +399,7 @@ class MixedTrafficEnv(ParallelEnv):
         if not cfg.fixed_fleet:
             self._finished.update(done)
             self.agents = [a for a in agents if not terminated[a]]
-        new = self._admit(snap)
+        new = [] if truncate else self._admit(snap)  # nobody enters at the time limit
         if new:
             rows = self._live_rows(snap)
             rows = {a: rows[a] for a in new}
@@ -408,7 +408,7 @@ class MixedTrafficEnv(ParallelEnv):
             for a in new:
                 if a not in obs_out or cfg.fixed_fleet:
                     obs_out[a], rew_out[a] = new_obs[a], rew_out.get(a, 0.0)
-                    terminated[a], truncated[a] = False, truncate
+                    terminated[a], truncated[a] = False, False
                     infos.setdefault(a, {"reward_terms": {}, "event": ""})["event"] = "entered"
         if truncate:
             self.agents = []

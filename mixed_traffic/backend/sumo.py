@@ -114,24 +114,11 @@ class SumoBackend:
     ) -> None:
         if kind not in ("libsumo", "traci", "auto"):
             raise ValueError(f"backend kind {kind!r} is not one of ('libsumo', 'traci', 'auto')")
-        if kind in ("libsumo", "auto") and libsumo_busy():
-            if second_instance == "error":
-                raise SumoError(
-                    "libsumo already runs a simulation in this process and allows only one; "
-                    "a second libsumo.start() would silently replace it. Close the first env, "
-                    "use backend='traci', or run the second env in another process."
-                )
-            if kind == "libsumo":
-                warnings.warn(
-                    "libsumo is busy in this process; this simulation falls back to TraCI",
-                    RuntimeWarning,
-                    stacklevel=2,
-                )
-            kind = "traci"
-        self.kind = "libsumo" if kind == "auto" else kind
-        self.gui = gui
-        if gui:  # libsumo has no GUI: sumo-gui is driven over TraCI
-            self.kind = "traci"
+        self.second_instance = second_instance
+        self._warn_fallback = kind == "libsumo"
+        self.kind = "traci" if gui else "libsumo" if kind == "auto" else kind
+        self.gui = gui  # libsumo has no GUI: sumo-gui is driven over TraCI
+        self._check_libsumo_free()
         self._api = None
         self._label: str | None = None
         self._pending_move = False
@@ -146,6 +133,24 @@ class SumoBackend:
         self._lane_edge_arr = np.full(1, -1, np.int32)
         self._lane_idx_arr = np.zeros(1, np.int16)
         self.time = 0.0
+
+    def _check_libsumo_free(self) -> None:
+        """Fall back to TraCI (or refuse) when another backend owns libsumo in this process."""
+        if self.kind != "libsumo" or not libsumo_busy() or _libsumo_owner is self:
+            return
+        if self.second_instance == "error":
+            raise SumoError(
+                "libsumo already runs a simulation in this process and allows only one; "
+                "a second libsumo.start() would silently replace it. Close the first env, "
+                "use backend='traci', or run the second env in another process."
+            )
+        if self._warn_fallback:
+            warnings.warn(
+                "libsumo is busy in this process; this simulation falls back to TraCI",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+        self.kind = "traci"
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -179,10 +184,9 @@ class SumoBackend:
             if self.gui
             else [binary("sumo"), *args]
         )
+        self._check_libsumo_free()  # another env may have started since this one was made
         try:
             if self.kind == "libsumo":
-                if libsumo_busy():
-                    raise SumoError("libsumo is already running a simulation in this process")
                 libsumo.start(cmd)
                 self._api = libsumo
                 _libsumo_owner = self
