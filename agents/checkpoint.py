@@ -16,7 +16,7 @@ from typing import Any
 import torch
 
 from agents.lca import LCAConfig
-from agents.rbpdqn import RBPDQN, LearnerConfig
+from agents.rbpdqn import RBPDQN, LearnerConfig, Policy
 
 FORMAT = "mixed_traffic.rbpdqn/1"
 _REQUIRED = ("format", "learner", "meta")
@@ -113,3 +113,11 @@ def load_checkpoint(
     except (KeyError, RuntimeError, ValueError) as exc:
         raise ValueError(f"checkpoint {path}: state does not fit the model ({exc})") from exc
     return out, meta
+
+
+def load_policy(
+    path: str | os.PathLike, z: int | None = None, m: int | None = None, **policy_kw: Any
+) -> Policy:
+    """Checkpoint → batched inference :class:`Policy` (eval mode); kwargs go to ``Policy``."""
+    learner, _ = load_checkpoint(path, z=z, m=m)
+    return Policy(learner.actor.eval(), learner.critic.eval(), **policy_kw)

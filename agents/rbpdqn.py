@@ -60,9 +60,12 @@ class RBPDQN:
     def __init__(self, lca: LCAConfig, cfg: LearnerConfig | None = None, seed: int = 0) -> None:
         self.lca_cfg = lca
         self.cfg = cfg or LearnerConfig()
-        torch.manual_seed(seed)  # parameter init is the only randomness in the learner
-        self.actor = Actor(lca)
-        self.critic = Critic(lca)
+        # Parameter init is the only randomness in the learner; seed it without touching the
+        # caller's global torch RNG.
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.actor = Actor(lca)
+            self.critic = Critic(lca)
         self.actor_targ = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_targ = copy.deepcopy(self.critic).requires_grad_(False)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.lr)

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from agents.bench_inference import random_obs
-from agents.checkpoint import load_checkpoint, save_checkpoint
+from agents.checkpoint import load_checkpoint, load_policy, save_checkpoint
 from agents.fused import FusedActorCritic
 from agents.lca import LCA, LCAConfig
 from agents.networks import FOLLOW, Actor, Critic, select
@@ -224,6 +224,9 @@ def test_checkpoint_round_trip(tmp_path) -> None:
     batch = _batch(16, cfg, seed=9)
     assert learner.update(batch) == loaded.update(batch)
     assert not list(tmp_path.glob(".*.tmp"))  # no temp files left behind
+    pol = load_policy(path)
+    dec, params = pol.act({k: v.numpy() for k, v in obs.items()}, explore=False)
+    assert dec.shape == (7,) and params.shape == (7, 3, 2)
 
 
 def test_checkpoint_errors(tmp_path) -> None:
