@@ -1,0 +1,22 @@
+"""AUTO agent (paper §IV-C/D/F, DESIGN §10). Submodules are imported explicitly (torch is heavy):
+
+- ``agents.lca``: ``LCAConfig`` (z, m, d, ablation flags), ``LCA`` encoder.
+- ``agents.networks``: ``Actor``, ``Critic``, ``select`` (masked argmax; all-masked → follow).
+- ``agents.rbpdqn``: ``RBPDQN`` learner (``update(batch) -> losses``; ``regularize=False`` is
+  BP-DQN), ``Policy`` (batched ``act`` for all agents of a step).
+- ``agents.fused``: fused actor + critic inference, numerically equal to the modules.
+- ``agents.replay``: ``ReplayBuffer`` (numpy SoA ring, resumable).
+- ``agents.checkpoint``: ``save_checkpoint`` / ``load_checkpoint`` / ``load_policy``.
+- ``agents.bench_inference``: ``avg_inference_us`` (AvgIT per decision).
+
+Deviations from the paper, and why:
+
+- Actor loss: the BC term is *added* (TD3+BC, the paper's cited source); the printed equation
+  negates it too, which would push the actor away from the data.
+- A lane whose nodes are all masked contributes a zero vector to the fusion (softmax over an
+  empty set is undefined); the paper does not say.
+- MLP depths (not given in the paper): fusion Linear(3D, D)+ReLU; actor head D→D→6;
+  critic head 2D→D→3; D = 32 everywhere (D1 = D2 = D3 = D4).
+- NoSTAR: one residual masked self-attention layer over [ego, 9 nodes], then the same
+  lane-wise read-out; NoLANE: one ego attention over all 9 nodes, fusion of that one vector.
+"""
