@@ -145,6 +145,11 @@ class MixedTrafficEnv(ParallelEnv):
         self.agents: list[str] = []
         self._snap: TrafficSnapshot | None = None
 
+    @property
+    def sim_time(self) -> float:
+        """Simulated time of the current episode [s] (0 before the first reset)."""
+        return self._snap.time if self._snap is not None else 0.0
+
     # ------------------------------------------------------------------ spaces
     def observation_space(self, agent: str) -> spaces.Dict:
         return self._obs_space

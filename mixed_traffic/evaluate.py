@@ -86,14 +86,18 @@ class IdmPolicy:
         return {f"terminal_{r}": 0 for r in TERMINAL_REASONS}
 
 
-#: Policy name -> factory. Env-driven policies (auto, acc-lc, random) are added by the env.
+#: Policies that drive the AVs through the env (observations -> parameterized actions).
+ENV_POLICIES = ("auto", "acc-lc", "random")
+#: Policy name -> factory for the SUMO-only loop (env-driven policies are made by ``agents``).
 POLICIES: dict[str, Any] = {"idm": IdmPolicy}
 
 
 def make_policy(name: str, **kwargs: Any) -> Policy:
     """A fresh policy object by name."""
     if name not in POLICIES:
-        raise ValueError(f"policy {name!r} is not available; choose from {sorted(POLICIES)}")
+        raise ValueError(
+            f"policy {name!r} is not available; choose from {sorted([*POLICIES, *ENV_POLICIES])}"
+        )
     return POLICIES[name](**kwargs)
 
 
@@ -131,6 +135,8 @@ def run_episode(
         ValueError: bad scenario, density or warm-up (before SUMO starts).
         SumoError: SUMO failed to start.
     """
+    if isinstance(policy, str) and policy in ENV_POLICIES:
+        return run_env_episode(config, policy, warmup, progress=progress, **policy_kwargs)
     scenario = check_run(config, warmup)
     if isinstance(policy, str):
         kwargs = {k: v for k, v in policy_kwargs.items() if v is not None and policy != "idm"}
@@ -175,6 +181,85 @@ def run_episode(
     }
 
 
+def run_env_episode(
+    config: EnvConfig,
+    policy: str,
+    warmup: float = DEFAULT_WARMUP,
+    *,
+    checkpoint: str | Path | None = None,
+    gif: str | Path | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """One episode of the env with an observation-driven policy (auto, acc-lc, random).
+
+    Inference is one batched call per step for all agents; AvgIT is its wall time per decision.
+    """
+    from agents.policies import make_policy, stack_obs, to_actions
+    from mixed_traffic.env import MixedTrafficEnv
+
+    check_run(config, warmup)
+    meta = record_meta(config)
+    t0 = time.perf_counter()
+    agent = make_policy(policy, seed=config.seed, checkpoint=checkpoint,
+                        z=config.sensors.history, m=config.sensors.waypoints)  # fmt: skip
+    env = MixedTrafficEnv(config=config, warmup=warmup, render_mode="rgb_array" if gif else None)
+    frames = _frames(gif)
+    infer, decisions = 0.0, 0
+    try:
+        obs, _ = env.reset(seed=config.seed)
+        for _ in tqdm(
+            range(config.steps_per_episode), desc="steps", leave=False, disable=not progress
+        ):
+            agents = list(env.agents)
+            actions: dict[str, Any] = {}
+            if agents:
+                batch = stack_obs(obs, agents)
+                t = time.perf_counter()
+                decision, params = agent.act(batch)
+                infer += time.perf_counter() - t
+                decisions += len(agents)
+                actions = to_actions(agents, decision, params)
+            obs, *_ = env.step(actions)
+            frames.add(env)
+            if env.sim_time >= config.episode_length - 1e-9:
+                break
+        metrics: dict[str, Any] = dict.fromkeys(METRICS)
+        metrics.update(env.episode_metrics())
+    finally:
+        env.close()
+    frames.save()
+    metrics["avg_it"] = 1000.0 * infer / decisions if decisions else None
+    cell = {k: getattr(config, k) for k in CELL_KEYS if k not in ("policy", "seed")}
+    record = {
+        "cell": {"policy": policy, **cell, "seed": config.seed},
+        "status": "ok",
+        "error": None,
+        **meta,
+        "warmup": warmup,
+        "wall_time": round(time.perf_counter() - t0, 3),
+        "metrics": json_safe(metrics),
+    }
+    if policy == "auto":
+        record["checkpoint"] = str(getattr(agent, "checkpoint", ""))
+    return record
+
+
+class _NoFrames:
+    def add(self, env: Any) -> None:
+        pass
+
+    def save(self) -> None:
+        pass
+
+
+def _frames(gif: str | Path | None) -> Any:
+    if gif is None:
+        return _NoFrames()
+    from mixed_traffic.render import FrameRecorder
+
+    return FrameRecorder(Path(gif))
+
+
 # --------------------------------------------------------------------------- output
 def _fmt(value: Any) -> str:
     if value is None:
@@ -217,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run episodes of a policy and report flow and safety metrics (DESIGN §9).",
     )
     parser.add_argument(
-        "--policy", choices=sorted(POLICIES), default="idm",
+        "--policy", choices=sorted([*POLICIES, *ENV_POLICIES]), default="idm",
         help="policy driving the AVs; idm = all-IDM reference (default: idm)",
     )  # fmt: skip
     add_config_args(parser, EnvConfig, only=CONFIG_OPTIONS, group_title="environment")
@@ -236,6 +321,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--json", action="store_true", help="print the records as JSON lines on stdout"
     )
+    parser.add_argument(
+        "--checkpoint", type=Path, default=None, metavar="FILE",
+        help="AUTO checkpoint for --policy auto (default: the shipped agents/checkpoints/auto.pt)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--gif", type=Path, default=None, metavar="FILE",
+        help="record the (first) episode as an animated GIF (bird's-eye view)",
+    )  # fmt: skip
     return parser
 
 
@@ -247,12 +340,15 @@ def main(argv: list[str] | None = None) -> int:
         check_run(configs[0], args.warmup)
     except (ValueError, KeyError) as e:
         parser.error(str(e).strip("'\""))
+    if args.gif is not None and args.policy not in ENV_POLICIES:
+        parser.error(f"--gif records the env's view; use an env-driven policy {ENV_POLICIES}")
     records: list[dict[str, Any]] = []
     failed = 0
     for cfg in tqdm(configs, desc="episodes", disable=len(configs) == 1 or None):
         try:
-            record = run_episode(cfg, args.policy, args.warmup)
-        except SumoError as e:
+            extra = {"checkpoint": args.checkpoint, "gif": args.gif if cfg is configs[0] else None}
+            record = run_episode(cfg, args.policy, args.warmup, **extra)
+        except (SumoError, ValueError) as e:  # e.g. SUMO failed, or a bad checkpoint
             print(f"error: seed {cfg.seed}: {e}", file=sys.stderr)
             failed += 1
             record = {

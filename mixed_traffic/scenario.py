@@ -329,9 +329,7 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
             v_lane = min(v_eq, idm_equilibrium_speed(spacing, lane_limit, config.vehicle))
             start = rng.random() * spacing
             for k in range(n):
-                pos = start + k * spacing
-                if pos > length - 1.0:
-                    continue
+                pos = min(start + k * spacing, length - 1.0)  # clip, never drop: fixed count
                 r = int(rng.choice(candidates, p=cw))
                 route_idx = _suffix_route(routes, r, edge)
                 # a lane that ends ahead (lane drop, acceleration lane): SUMO only inserts a

@@ -1,0 +1,85 @@
+"""Policies that drive the env's agents from observations, by name: auto, acc-lc, random.
+
+Every policy maps a *batch* of observations (each key stacked over the A agents of a step) to
+``(decision (A,), params (A, 3, 2))`` in one call, so inference is one batched pass per step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, Protocol
+
+import numpy as np
+
+OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
+SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "auto.pt"
+
+
+class BatchPolicy(Protocol):
+    name: str
+
+    def act(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """obs (A, ...) per key -> (decision (A,) int, params (A, 3, 2) float in [-1, 1])."""
+
+
+def stack_obs(
+    obs: Mapping[str, Mapping[str, np.ndarray]], agents: list[str]
+) -> dict[str, np.ndarray]:
+    """{agent: {key: x}} -> {key: (A, ...)} in the order of ``agents``."""
+    return {k: np.stack([obs[a][k] for a in agents]) for k in OBS_KEYS}
+
+
+def to_actions(
+    agents: list[str], decision: np.ndarray, params: np.ndarray
+) -> dict[str, dict[str, Any]]:
+    """Batched policy output -> the env's per-agent action dicts."""
+    params = np.asarray(params, dtype=np.float32)
+    return {a: {"decision": int(decision[i]), "params": params[i]} for i, a in enumerate(agents)}
+
+
+class RandomPolicy:
+    """Uniform random parameters and a uniformly random *allowed* decision."""
+
+    name = "random"
+
+    def __init__(self, seed: int = 0) -> None:
+        self.rng = np.random.default_rng(seed)
+
+    def act(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        mask = obs["action_mask"].astype(bool)
+        a = len(mask)
+        scores = self.rng.random((a, 3)) + mask  # any allowed decision beats every masked one
+        return scores.argmax(axis=1), self.rng.uniform(-1, 1, (a, 3, 2)).astype(np.float32)
+
+
+class AutoPolicy:
+    """The AUTO agent (LCA + RBP-DQN actor/critic) from a checkpoint, greedy."""
+
+    name = "auto"
+
+    def __init__(
+        self, checkpoint: str | Path | None = None, z: int | None = None, m: int | None = None
+    ) -> None:
+        from agents.checkpoint import load_policy
+
+        path = Path(checkpoint) if checkpoint is not None else SHIPPED_CHECKPOINT
+        self.checkpoint = path
+        self._policy = load_policy(path, z=z, m=m, threads=1)
+
+    def act(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        return self._policy.act(obs, explore=False)
+
+
+def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = None, z: int | None = None,
+                m: int | None = None) -> BatchPolicy:  # fmt: skip
+    """A policy by name; ``z``/``m`` are the env's history and waypoint counts (checked for auto)."""
+    if name == "random":
+        return RandomPolicy(seed)
+    if name == "acc-lc":
+        from agents.acc_lc import AccLcPolicy
+
+        return AccLcPolicy()
+    if name == "auto":
+        return AutoPolicy(checkpoint, z=z, m=m)
+    raise ValueError(f"unknown policy {name!r}; choose from auto, acc-lc, random")
