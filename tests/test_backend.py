@@ -105,13 +105,15 @@ def test_collision_is_reported(sim) -> None:
     # an AV ignores SUMO's safety checks (speedMode 32): drive it into whatever is ahead
     collided = False
     for _ in range(300):
-        if snap.ids[av] if av < snap.n else None:
-            pass
         vid = snap.ids[av]
         sim.backend.set_speeds([vid], np.array([40.0]))
         snap = sim.step(1)
         if any(vid in (c.collider, c.victim) for c in snap.collisions):
             collided = True
+            # SUMO lists collision removals as arrivals too; the snapshot must not
+            assert not {vid, *(v for c in snap.collisions for v in (c.collider, c.victim))} & set(
+                snap.arrived
+            )
             break
         if vid not in snap.ids:
             break

@@ -66,7 +66,8 @@ class TrafficSnapshot:
     departed: list[str] = field(default_factory=list)
     """Vehicles that entered the network in the last step."""
     arrived: list[str] = field(default_factory=list)
-    """Vehicles that reached the end of their route in the last step."""
+    """Vehicles that reached the end of their route in the last step (not those removed by a
+    collision, which SUMO also reports as arrived)."""
     collisions: list[Collision] = field(default_factory=list)
     """Collisions of the last step (colliding vehicles are removed by SUMO)."""
     teleports: list[str] = field(default_factory=list)

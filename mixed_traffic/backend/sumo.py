@@ -263,12 +263,12 @@ class SumoBackend:
         departed = list(sim.getDepartedIDList())
         for vid in departed:
             self._register(vid)
-        arrived = list(sim.getArrivedIDList())
         collisions = [Collision(c.collider, c.victim, c.type, c.lane) for c in sim.getCollisions()]
+        crashed = {v for c in collisions for v in (c.collider, c.victim)}
+        # SUMO also lists vehicles removed by a collision as arrived; they did not arrive
+        arrived = [v for v in sim.getArrivedIDList() if v not in crashed]
         teleports = list(sim.getStartingTeleportIDList())
-        for vid in itertools.chain(
-            arrived, (c.collider for c in collisions), (c.victim for c in collisions)
-        ):
+        for vid in itertools.chain(arrived, crashed):
             self._static.pop(vid, None)
             self._route_pos.pop(vid, None)
         snap = self.read()
