@@ -1,0 +1,133 @@
+"""Sweeps end to end on real SUMO: records, figures and a PDF; resume after a kill; bad args."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+from pypdf import PdfReader
+
+from mixed_traffic.provenance import read_records
+from mixed_traffic.sweep import SweepConfig, cells, main, parse_args
+
+TINY = [
+    "--values",
+    "0.5",
+    "--policies",
+    "random",
+    "--seeds",
+    "0",
+    "--episode-length",
+    "60",
+    "--warmup",
+    "5",
+]
+
+
+def _pdf_text(path: Path) -> str:
+    return "\n".join(page.extract_text() for page in PdfReader(path).pages)
+
+
+def test_tiny_sweep_writes_records_figures_and_report(tmp_path: Path) -> None:
+    out, pdf = tmp_path / "res", tmp_path / "rep.pdf"
+    assert (
+        main(
+            ["--penetration", *TINY, "--at-density", "60", "--out", str(out), "--report", str(pdf)]
+        )
+        == 0
+    )
+    records = read_records(out / "records.jsonl")
+    assert sorted(r["cell"]["policy"] for r in records) == ["idm", "random"]
+    assert all(r["status"] == "ok" for r in records), [r.get("error") for r in records]
+    for r in records:
+        assert r["sumo_version"] and r["git_revision"] and r["config"]["density"] == 60.0
+    idm = next(r for r in records if r["cell"]["policy"] == "idm")
+    assert idm["cell"]["penetration"] == 0.0
+    dt_tf = idm["metrics"]["dt_tf"]
+    assert dt_tf is not None and 35 < dt_tf < 60  # 1 km at roughly 24 m/s free flow
+    assert list(tmp_path.glob("rep-*.png")), "figures are written beside the report"
+    text = _pdf_text(pdf)
+    for name in (
+        "DT-TF",
+        "AvgDT-A",
+        "MinTTC-A",
+        "collisions",
+        "SUMO version",
+        records[0]["git_revision"],
+    ):
+        assert name in text, name
+    assert f"{dt_tf:.2f}" in text  # the reference's DT-TF appears as the report formats it
+
+
+def test_interrupted_sweep_resumes_without_duplicates(tmp_path: Path) -> None:
+    out = tmp_path / "res"
+    args = [sys.executable, "-m", "mixed_traffic.sweep", "--penetration", "--values", "0.3", "0.6",
+            "--policies", "random", "--seeds", "0", "--episode-length", "20", "--warmup", "2",
+            "--workers", "1", "--no-report", "--out", str(out)]  # fmt: skip
+    proc = subprocess.Popen(
+        args, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+    )
+    records_file = out / "records.jsonl"
+    deadline = time.time() + 120
+    while time.time() < deadline and not (records_file.exists() and read_records(records_file)):
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)  # the sweep and its worker die mid-run
+    proc.wait()
+    first = read_records(records_file)
+    assert 1 <= len(first) < 3
+    subprocess.run(
+        args, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=300
+    )
+    records = read_records(records_file)
+    keys = [json.dumps(r["cell"], sort_keys=True) for r in records]
+    assert len(keys) == len(set(keys)) == 3  # idm reference + 2 penetrations, each once
+    assert all(r["status"] == "ok" for r in records)
+
+
+def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path: Path) -> None:
+    out = tmp_path / "res"
+    missing = tmp_path / "no_such_checkpoint.pt"
+    assert main(["--penetration", "--values", "0.5", "--policies", "auto", "random", "--seeds", "0",
+                 "--episode-length", "10", "--warmup", "1", "--no-report", "--no-reference",
+                 "--checkpoint", str(missing), "--out", str(out)]) == 0  # fmt: skip
+    records = {r["cell"]["policy"]: r for r in read_records(out / "records.jsonl")}
+    assert (
+        records["auto"]["status"] == "failed" and "no_such_checkpoint" in records["auto"]["error"]
+    )
+    assert records["random"]["status"] == "ok"
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["--policies", "magic"], "unknown policies"),
+        (["--workers", "0"], "--workers"),
+        (["--values", "1.5"], "penetration"),
+        (["--density", "--values", "-3"], "density"),
+        (["--warmup", "200", "--episode-length", "100"], "--warmup"),
+        (["--at-penetration", "2"], "penetration"),
+    ],
+)
+def test_bad_arguments_exit_with_a_clear_message(argv: list[str], message: str, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        parse_args(argv)
+    assert exit_info.value.code == 2
+    assert message in capsys.readouterr().err
+
+
+def test_default_penetration_sweep_cells() -> None:
+    sweep = parse_args([])
+    assert sweep == SweepConfig(
+        out=Path("results/penetration"), report=Path("reports/penetration.pdf")
+    )
+    grid = cells(sweep)
+    # 5 penetrations x 2 policies + the all-IDM 0 % reference, for 3 seeds
+    assert len(grid) == 33
+    assert {c.policy for c in grid} == {"auto", "acc-lc", "idm"}
+    assert {c.penetration for c in grid if c.policy == "idm"} == {0.0}
