@@ -351,7 +351,10 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
     n_av = int(round(config.penetration * n_total))
     is_av = np.zeros(n_total, dtype=bool)
     if config.fixed_fleet:  # all AVs exist from reset
-        is_av[rng.choice(n_init, size=min(n_av, n_init), replace=False)] = True
+        # the fleet is the initial vehicles: p of them (not p of initial + queued ones)
+        is_av[rng.choice(n_init, size=int(round(config.penetration * n_init)), replace=False)] = (
+            True
+        )
     else:
         is_av[rng.choice(n_total, size=n_av, replace=False)] = True
     order = sorted(range(n_init), key=lambda i: -(planned[i][2] or 0.0))  # downstream first
