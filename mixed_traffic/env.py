@@ -247,9 +247,13 @@ class MixedTrafficEnv(ParallelEnv):
         return new
 
     def _live_rows(self, snap: TrafficSnapshot) -> dict[str, int]:
-        """Snapshot row of every agent present in the simulation, in agent order."""
-        index = snap.index_of()
-        return {a: index[a] for a in self.agents if a in index}
+        """Snapshot row of every admitted agent present in the simulation, in agent order.
+
+        With ``fixed_fleet`` an AV that was still waiting to enter at reset is an agent before
+        ``_admit`` has seen it: it only counts once admitted (its route is known).
+        """
+        index, routes = snap.index_of(), self._routes
+        return {a: index[a] for a in self.agents if a in index and a in routes}
 
     def _sense(
         self, snap: TrafficSnapshot, rows: dict[str, int]
@@ -328,9 +332,10 @@ class MixedTrafficEnv(ParallelEnv):
             rear_speed_prev=prev.rear_speed[p], rear_speed_now=rear_now, rear_same=~np.isnan(rear_now),
         )  # fmt: skip
         total = rw.total_reward(terms, cfg.reward)
-        for j, a in enumerate(ids):
-            terms_out[a] = {name: float(v[j]) for name, v in terms.items()}
-            rewards[a] = float(total[j])
+        names = list(terms)
+        columns = [np.asarray(v, np.float64).tolist() for v in terms.values()]
+        terms_out.update((a, dict(zip(names, row))) for a, *row in zip(ids, *columns))
+        rewards.update(zip(ids, np.asarray(total, np.float64).tolist()))
         return rewards, terms_out, dict(zip(ids, changed.tolist()))
 
     def _record(self, snap, rows: dict[str, int], truth: PerceptionFrame, rewards: dict[str, float],

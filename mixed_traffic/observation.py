@@ -212,17 +212,13 @@ class ObservationBuilder:
         h_veh = _push(self._veh, slots, veh, axis=2)
         h_lights = _push(self._lights, slots, lights, axis=2)
         act = act.astype(np.int8)
+        # list(array) makes the per-agent views in C; a dict literal per agent is the cheapest
         return {
-            a: {
-                "ego": h_ego[i],
-                "lanes": h_lanes[i],
-                "vehicles": h_veh[i],
-                "lights": h_lights[i],
-                "node_mask": node[i],
-                "action_mask": act[i],
-            }
-            for i, a in enumerate(agent_ids)
-        }
+            a: {"ego": e, "lanes": ln, "vehicles": v, "lights": li, "node_mask": nm,
+                "action_mask": am}
+            for a, e, ln, v, li, nm, am in zip(agent_ids, list(h_ego), list(h_lanes),
+                                                list(h_veh), list(h_lights), list(node), list(act))
+        }  # fmt: skip
 
     # ------------------------------------------------------------------ features
     def _waypoints(self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray) -> np.ndarray:
@@ -300,12 +296,17 @@ class ObservationBuilder:
 def _push(buf: np.ndarray, slots: np.ndarray, frame: np.ndarray, axis: int) -> np.ndarray:
     """Shift the history of ``slots`` one frame back along ``axis`` (of the per-slot array,
     +1 for the slot axis), append ``frame``, store, and return the (copied) histories."""
-    hist = buf[slots]  # (A, ...) copy
+    n = len(slots)
+    contiguous = n and slots[-1] - slots[0] == n - 1 and (np.diff(slots) == 1).all()
+    # usual case: shift in place in a view, then one copy out; else gather a copy
+    hist = buf[slots[0] : slots[0] + n] if contiguous else buf[slots]
     if axis == 1:
         hist[:, :-1] = hist[:, 1:]
         hist[:, -1] = frame
     else:
         hist[:, :, :-1] = hist[:, :, 1:]
         hist[:, :, -1] = frame
+    if contiguous:
+        return hist.copy()
     buf[slots] = hist
     return hist

@@ -205,11 +205,11 @@ def next_route_edge(routes: Sequence[Sequence[int]], route_index: np.ndarray) ->
         routes: per agent, the edge rows of its route (``HDMap.edge_row`` of each edge id).
         route_index: (A,) index of the current (or last normal) edge within the route.
     """
-    out = np.full(len(routes), -1, dtype=np.int64)
-    for i, (r, k) in enumerate(zip(routes, np.asarray(route_index).tolist())):
-        if 0 <= k + 1 < len(r):
-            out[i] = r[k + 1]
-    return out
+    nxt = (
+        r[k] if 0 <= k < len(r) else -1
+        for r, k in zip(routes, (np.asarray(route_index) + 1).tolist())
+    )
+    return np.fromiter(nxt, np.int64, len(routes))
 
 
 # --------------------------------------------------------------------------- neighbours
