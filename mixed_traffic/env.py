@@ -474,6 +474,12 @@ class MixedTrafficEnv(ParallelEnv):
         with contextlib.suppress(Exception):
             self.close()
 
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        """A copy (pickle, e.g. SuperSuit's ``concat_vec_envs``) gets its own scratch directory,
+        so copies neither overwrite each other's route file nor delete it on close."""
+        self.__dict__.update(state)
+        self._tmp = tempfile.mkdtemp(prefix="mixed_traffic_")
+
 
 class _FrontView:
     """Ground-truth front vehicle in the current lane for agents at truth rows ``k``, snapshot rows ``r``."""

@@ -2,11 +2,14 @@
 
 Lanes are drawn from the HD map, AVs red, conventional vehicles grey-blue, traffic lights as
 coloured bars at their stop lines. The view follows a vehicle (the first live agent by default).
+``FrameCollector`` + ``record_gif`` turn an episode's frames into an animated GIF.
 """
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from PIL import Image, ImageDraw
@@ -109,3 +112,60 @@ def _corners(snap: TrafficSnapshot, i: int) -> np.ndarray:
     back = front - fwd * snap.length[i]
     half = left * snap.width[i] / 2
     return np.array([front + half, front - half, back - half, back + half])
+
+
+class FrameCollector:
+    """Keeps every ``every``-th frame of an episode, at most ``max_frames`` of them, each scaled
+    down so its longer side is at most ``max_side`` pixels (bounded GIF size).
+
+    Usage with an env made with ``render_mode="rgb_array"``::
+
+        frames = FrameCollector(every=2)
+        frames.add(env.render())          # after reset and after each step
+        record_gif(frames.frames, "out.gif", fps=env.metadata["render_fps"] / frames.every)
+    """
+
+    def __init__(self, every: int = 1, max_frames: int = 600, max_side: int = 640) -> None:
+        if every < 1 or max_frames < 1 or max_side < 16:
+            raise ValueError(
+                f"FrameCollector: every={every} and max_frames={max_frames} must be >= 1, "
+                f"max_side={max_side} >= 16"
+            )
+        self.every, self.max_frames, self.max_side = every, max_frames, max_side
+        self.frames: list[np.ndarray] = []
+        self._seen = 0
+
+    def add(self, frame: np.ndarray | None) -> None:
+        """Offer one frame (``None``, e.g. from a non-rendering env, is ignored)."""
+        if frame is None:
+            return
+        keep = self._seen % self.every == 0 and len(self.frames) < self.max_frames
+        self._seen += 1
+        if not keep:
+            return
+        img = Image.fromarray(np.asarray(frame, dtype=np.uint8))
+        if max(img.size) > self.max_side:
+            scale = self.max_side / max(img.size)
+            img = img.resize((max(1, round(img.width * scale)), max(1, round(img.height * scale))))
+        self.frames.append(np.asarray(img))
+
+
+def record_gif(frames: list[np.ndarray], path: str | Path, fps: float = 10.0) -> Path:
+    """Write (H, W, 3) uint8 frames as a looping animated GIF at ``fps`` (Pillow); the path.
+
+    Written to a temporary file and renamed, so a failed write leaves nothing half-written.
+    """
+    if not frames:
+        raise ValueError(
+            "record_gif: no frames to write (was the env made with render_mode='rgb_array'?)"
+        )
+    if fps <= 0:
+        raise ValueError(f"record_gif: fps={fps} must be > 0")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
+    tmp = path.with_name(path.name + ".part")
+    images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:],
+                   duration=max(20, round(1000 / fps)), loop=0, optimize=False)  # fmt: skip
+    os.replace(tmp, path)
+    return path

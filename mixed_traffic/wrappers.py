@@ -69,3 +69,43 @@ class FlatActionWrapper(BaseParallelWrapper):
 
     def step(self, actions: dict[str, Any]):
         return self.env.step({a: flat_to_dict(v, a) for a, v in actions.items()})
+
+
+class FlatObservationWrapper(BaseParallelWrapper):
+    """PettingZoo parallel wrapper giving each agent one flat ``Box`` observation (float32).
+
+    The Dict observation is flattened with ``gymnasium.spaces.flatten`` in the Dict space's key
+    order (``action_mask, ego, lanes, lights, node_mask, vehicles``); ``slices[key]`` is the
+    part of the vector holding ``key`` (e.g. ``obs[..., w.slices["action_mask"]]`` is the
+    (3,) action mask). Needed by SuperSuit's ``black_death_v3`` and vector envs.
+    """
+
+    def __init__(self, env: ParallelEnv) -> None:
+        super().__init__(env)
+        agent = env.possible_agents[0]
+        self._dict_space = env.observation_space(agent)
+        flat = spaces.flatten_space(self._dict_space)
+        self._flat_space = spaces.Box(
+            flat.low.astype(np.float32), flat.high.astype(np.float32), dtype=np.float32
+        )
+        self.slices: dict[str, slice] = {}
+        start = 0
+        for key, sub in self._dict_space.spaces.items():
+            size = spaces.flatdim(sub)
+            self.slices[key] = slice(start, start + size)
+            start += size
+
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._flat_space
+
+    def _flat(self, obs: dict[str, Any]) -> dict[str, np.ndarray]:
+        space = self._dict_space
+        return {a: spaces.flatten(space, o).astype(np.float32) for a, o in obs.items()}
+
+    def reset(self, seed: int | None = None, options: dict | None = None):
+        obs, infos = self.env.reset(seed=seed, options=options)
+        return self._flat(obs), infos
+
+    def step(self, actions: dict[str, Any]):
+        obs, rew, term, trunc, infos = self.env.step(actions)
+        return self._flat(obs), rew, term, trunc, infos
