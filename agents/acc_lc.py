@@ -1,0 +1,419 @@
+"""ACC-LC baseline: rule-based adaptive cruise + lane changing + lateral control (DESIGN §10).
+
+It acts exactly like a learned policy, ``obs -> action`` through the env's parameterized action
+space, from the observation only (DESIGN §6 layout, normalisation constants of
+``mixed_traffic.observation``), vectorised over agents::
+
+    pol = AccLcPolicy()
+    decision, params = pol.act(obs_batch)   # obs_batch[key]: (A, ...) stacked observations
+    actions = pol.actions(obs)              # {agent: {"decision", "params"}} convenience
+
+``params`` (A, 3, 2) holds, for every decision (left change, follow, right change), the
+(steering, accel_brake) that decision would execute; ``decision`` is chosen by the lane-change
+rule and never a masked one.
+
+Longitudinal (per candidate lane): IDM on the lane's front vehicle (bumper gap = front-bumper
+distance - leader length) with a kinematic emergency term, the desired speed 0.95 x the lowest
+speed limit in the waypoints ahead (braking towards lower limits ahead), red / yellow lights as a
+stopped leader at the stop line (yellow only if it can stop comfortably), a junction approach
+speed at signalised stop lines (turn lanes behind a stop line are slow and the waypoints only
+look 10 m ahead), vehicles of the neighbouring lanes that overlap the ego laterally (cut-ins, or
+the ego straddling during its own change) as leaders too. The virtual stopped vehicle at the end
+of a lane that must be left is a leader like any other. The light state is a majority over the
+last three frames (misdetection filter).
+
+Lane change (MOBIL-like): a change is safe if the target lane's rear vehicle keeps a gap of
+``s0 + 0.6 s * v_rear`` plus a margin for its closing speed, and the front gap is enough for the
+ego to follow without hard braking; discretionary when the IDM acceleration in the target lane
+beats the current lane by a threshold (small keep-right bias), mandatory when the mask forbids
+follow. A change already under way (offset and lateral velocity towards the target) continues
+while it stays safe, otherwise the ego returns to its lane centre (abort). Discretionary
+changes start only near the centre line.
+
+Lateral: a target offset (0 for follow, +-LANE_SHIFT for a change, relative to the current
+lane; when the ego crosses into the target lane its offset is measured from the new lane and
+"follow" centres it) -> a lateral velocity (rate-limited by a comfortable lateral acceleration)
+-> a course angle -> steering with curvature feed-forward from the waypoint orientations and a
+steering limit that bounds the lateral acceleration.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+from mixed_traffic.observation import EGO_SCALE, SPEED_SCALE, WAYPOINT_SCALE
+
+LEFT, FOLLOW, RIGHT = 0, 1, 2
+#: lane columns in the observation (left, current, right)
+_L, _C, _R = 0, 1, 2
+
+
+@dataclass
+class AccLcConfig:
+    """Parameters of the rule-based driver (SI units)."""
+
+    lidar_range: float = 90.0
+    camera_range: float = 60.0
+    wheelbase: float = 2.8
+    max_steer_deg: float = 60.0
+    max_accel: float = 3.0
+    max_decel: float = 6.0
+    # IDM
+    a: float = 1.5
+    b: float = 2.0
+    T: float = 1.3
+    s0: float = 3.0
+    speed_factor: float = 0.95
+    # lights and junctions
+    yellow_stop_decel: float = 3.5
+    stop_margin: float = 1.5
+    junction_speed: float = 3.3
+    curve_accel: float = 2.0
+    # lane change
+    lane_shift: float = 3.4
+    lane_width_min: float = 3.2
+    lc_threshold: float = 0.4
+    keep_right_bias: float = 0.1
+    rear_headway: float = 0.6
+    rear_decel: float = 2.0
+    lc_start_offset: float = 0.3
+    # lateral
+    lat_accel: float = 2.0
+    lat_speed: float = 1.0
+    lat_gain: float = 0.8
+    heading_gain: float = 1.0
+
+
+def _idm(v, v0, gap, dv, c: AccLcConfig):
+    """IDM acceleration; dv = v - v_leader (closing speed), gap bumper gap [m] (inf = free)."""
+    v0 = np.maximum(v0, 0.1)
+    free = 1.0 - (np.minimum(v, 2 * v0) / v0) ** 4
+    s_star = c.s0 + np.maximum(0.0, v * c.T + v * dv / (2.0 * np.sqrt(c.a * c.b)))
+    inter = np.where(np.isfinite(gap), (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
+    acc = c.a * (free - inter)
+    # kinematic emergency: brake hard enough to stop behind where the leader could stop
+    v_lead = np.maximum(v - dv, 0.0)
+    room = np.maximum(gap - 1.0 + v_lead**2 / (2 * c.max_decel), 0.05)
+    need = np.where(np.isfinite(gap), v**2 / (2 * room), 0.0)
+    acc = np.where(need > c.b, np.minimum(acc, -need * 1.2), acc)
+    return acc
+
+
+class AccLcPolicy:
+    """Rule-based ACC + lane change + lateral controller over stacked observations."""
+
+    def __init__(self, config: AccLcConfig | None = None, **kwargs) -> None:
+        self.c = config if config is not None else AccLcConfig(**kwargs)
+
+    # ------------------------------------------------------------------ features
+    def _features(self, ob: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        c = self.c
+        ego = np.asarray(ob["ego"], np.float64)  # (A, z, 5)
+        lanes = np.asarray(ob["lanes"], np.float64)  # (A, 3, z, 4m)
+        veh = np.asarray(ob["vehicles"], np.float64)  # (A, 3, z, 12)
+        lights = np.asarray(ob["lights"], np.float64)  # (A, 3, z, 4)
+        A = ego.shape[0]
+        e = ego[:, -1] * EGO_SCALE
+        f = {"v": np.maximum(e[:, 0], 0.0), "h": e[:, 1], "len": e[:, 2], "wid": e[:, 3]}
+        f["d"] = e[:, 4]
+        # lateral offset history, unwrapped across lane switches (jumps > 1.5 m)
+        dh = ego[:, :, 4] * EGO_SCALE[4]
+        valid = ego[:, :, 2] > 0
+        k = max(0, ego.shape[1] - 3)
+        diffs = np.diff(dh[:, k:], axis=1)
+        ok = valid[:, k + 1 :] & valid[:, k:-1] & (np.abs(diffs) < 1.5)
+        f["vlat_hist"] = np.where(ok, diffs, 0.0).sum(1) / np.maximum(ok.sum(1), 1) / 0.1
+        m = lanes.shape[-1] // 4
+        wp = lanes[:, :, -1].reshape(A, 3, m, 4) * WAYPOINT_SCALE
+        f["wp_speed"] = wp[..., 3]  # (A, 3, m)
+        f["wp_orient"] = wp[..., 2]
+        vv = veh[:, :, -1].reshape(A, 3, 2, 6)
+        scale = np.array([c.lidar_range, SPEED_SCALE, np.pi, 10.0, 5.0, 2.0])
+        vv = vv * scale
+        present = vv[..., 4] > 0
+        f["present"] = present
+        f["vdist"] = np.where(present, vv[..., 0], np.array([np.inf, -np.inf]))
+        f["vrel"] = vv[..., 1]
+        f["vlen"] = vv[..., 3]
+        f["vwid"] = vv[..., 4]
+        f["vlat"] = vv[..., 5]
+        nm = np.asarray(ob["node_mask"])
+        f["exists"] = nm[:, :, 0] > 0
+        f["mask"] = np.asarray(ob["action_mask"]) > 0
+        # lights: majority of the last 3 frames with a detection
+        lt = lights[:, :, -3:]
+        det = lt[..., :3].sum(-1) > 0.5
+        votes = (lt[..., :3] > 0.5).sum(2)  # (A, 3, 3) counts of r/y/g
+        state = np.where(det.any(2), votes.argmax(-1), -1)
+        f["light"] = state
+        f["light_dist"] = np.where(
+            det[..., -1], lights[:, :, -1, 3] * c.camera_range, np.where(det.any(2), 0, np.inf)
+        )
+        # fall back to the last detected distance when the latest frame lost the light
+        last = lights[:, :, -2, 3] * c.camera_range
+        f["light_dist"] = np.where(~det[..., -1] & det.any(2), last, f["light_dist"])
+        return f
+
+    # ------------------------------------------------------------------ longitudinal
+    def _lane_accel(self, f, lane: int, offset: np.ndarray) -> np.ndarray:
+        """(A,) acceleration if driving in lane column ``lane`` (with the ego at lateral
+        ``offset`` relative to the current lane, for the overlap test of neighbours)."""
+        c = self.c
+        v = f["v"]
+        ln = np.where(f["exists"][:, lane], lane, _C)
+        ar = np.arange(len(v))
+        # speed limit: lowest ahead, and braking towards lower limits ahead
+        spd = f["wp_speed"][ar, ln]  # (A, m)
+        spd = np.where(spd > 0.5, spd, np.inf)
+        lim_now = np.where(np.isfinite(spd[:, 0]), spd[:, 0], np.min(spd, axis=1))
+        lim_now = np.where(np.isfinite(lim_now), lim_now, 13.9)
+        v0 = c.speed_factor * lim_now
+        dist_wp = np.arange(spd.shape[1], dtype=np.float64) + 1.0
+        # curves: lateral acceleration bound, and the along-lane speed SUMO reports grows by
+        # 1 / (1 - kappa * d) on the inside of a curve
+        o = f["wp_orient"][ar, ln]
+        kap = np.abs((np.diff(o, axis=1) + np.pi) % (2 * np.pi) - np.pi)  # per metre
+        kap = np.concatenate([kap[:, :1], kap], axis=1)
+        v_curve = np.sqrt(c.curve_accel / np.maximum(kap, 1e-4))
+        inside = np.maximum(1.0 - kap * (np.abs(offset)[:, None] + 0.3), 0.3)
+        target = np.minimum(c.speed_factor * spd, v_curve) * inside
+        need = np.where(target < v[:, None], (target**2 - v[:, None] ** 2) / (2 * dist_wp), 0.0)
+        a_lim = np.min(need, axis=1) * 1.3
+        acc = _idm(v, v0, np.full_like(v, np.inf), np.zeros_like(v), c)
+        acc = np.minimum(acc, a_lim)
+        # leaders: front vehicle of this lane and overlapping front vehicles of the others
+        for j in (_L, _C, _R):
+            dist = f["vdist"][:, j, 0]
+            gap = dist - f["vlen"][:, j, 0]
+            # lateral position of the other vehicle relative to the current lane centre
+            shift = (j - _C) * -c.lane_width_min  # left column = +width
+            lat_o = f["vlat"][:, j, 0] + shift
+            lat_ego = offset
+            half = 0.5 * (f["wid"] + f["vwid"][:, j, 0]) + 0.4
+            if j == lane:
+                relevant = np.isfinite(dist)
+            else:
+                relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half)
+            # own lane of the lane column: the chosen lane; others only on overlap
+            relevant &= f["exists"][:, j] | (j == _C)
+            if j != lane and lane != _C and j == _C:
+                # moving to another lane: the current lane's leader matters while we overlap it
+                relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half + 0.6)
+            a_j = _idm(v, v0, np.where(relevant, gap, np.inf), -f["vrel"][:, j, 0], c)
+            acc = np.minimum(acc, np.where(relevant, a_j, np.inf))
+        # traffic light of the current lane (a change does not escape the light)
+        ld = f["light_dist"][:, _C]
+        st = f["light"][:, _C]
+        stop_room = np.maximum(ld - c.stop_margin, 0.05)
+        need_stop = v**2 / (2 * stop_room)
+        stop = ((st == 0) & (need_stop < c.max_decel * 1.1)) | (
+            (st == 1) & (need_stop < c.yellow_stop_decel)
+        )
+        a_stop = _idm(v, v0, stop_room, v, c)
+        a_stop = np.minimum(a_stop, np.where(need_stop > 1.0, -need_stop * 1.1, a_stop))
+        acc = np.where(stop, np.minimum(acc, a_stop), acc)
+        # junction approach speed at a signalised stop line (turns behind it are slow)
+        lightish = (st >= 0) & np.isfinite(ld)
+        # (the waypoints see only 10 m ahead along the primary successor, not the route's turn;
+        # the tightest turns of the urban nets are limited to ~3.6 m/s)
+        vj = np.minimum(c.junction_speed, v0)
+        a_j = np.where(v > vj, (vj**2 - v**2) / (2 * np.maximum(ld - 1.0, 0.5)), np.inf)
+        acc = np.where(lightish & (lim_now < 20.0), np.minimum(acc, a_j), acc)
+        return acc
+
+    # ------------------------------------------------------------------ lateral
+    def _steer(self, f, target: np.ndarray) -> np.ndarray:
+        c = self.c
+        v = f["v"]
+        vs = np.maximum(v, 0.5)
+        err = target - f["d"]
+        mag = np.minimum.reduce(
+            [np.full_like(err, c.lat_speed), c.lat_gain * np.abs(err), np.sqrt(1.6 * np.abs(err))]
+        )
+        vl_des = np.sign(err) * mag
+        vl_now = vs * np.sin(f["h"])
+        vl = np.clip(vl_des, vl_now - c.lat_accel * 0.25, vl_now + c.lat_accel * 0.25)
+        chi = np.arcsin(np.clip(vl / vs, -0.5, 0.5))
+        # lane curvature from the current lane's waypoint orientations (relative to ego heading)
+        o = f["wp_orient"][:, _C]
+        kappa = (o[:, -1] - o[:, 2]) / max(o.shape[1] - 3, 1)
+        kappa = np.where(f["exists"][:, _C], kappa, 0.0)
+        ff = np.arctan(c.wheelbase * kappa)
+        lim = np.arctan(c.wheelbase * c.lat_accel / vs**2)
+        fb = np.clip(c.heading_gain * (chi - f["h"]) * np.minimum(1.0, 8.0 / vs), -lim, lim)
+        steer = ff + fb
+        return np.clip(steer / np.deg2rad(c.max_steer_deg), -1.0, 1.0)
+
+    def _to_ab(self, acc: np.ndarray) -> np.ndarray:
+        c = self.c
+        return np.clip(np.where(acc > 0, acc / c.max_accel, acc / c.max_decel), -1.0, 1.0)
+
+    # ------------------------------------------------------------------ lane change
+    def _safe(self, f, side: int, relaxed: bool) -> np.ndarray:
+        c = self.c
+        v = f["v"]
+        # rear vehicle of the target lane
+        rd = -f["vdist"][:, side, 1]  # positive distance behind (front bumpers)
+        rgap = rd - f["len"]
+        v_rear = np.maximum(v + f["vrel"][:, side, 1], 0.0)
+        closing = np.maximum(f["vrel"][:, side, 1], 0.0)
+        req_r = c.s0 + c.rear_headway * v_rear + closing**2 / (2 * c.rear_decel)
+        if relaxed:
+            req_r = 0.5 * req_r
+        rear_ok = ~np.isfinite(rd) | (rgap > req_r)
+        # front vehicle of the target lane
+        fd = f["vdist"][:, side, 0]
+        fgap = fd - f["vlen"][:, side, 0]
+        fclose = np.maximum(-f["vrel"][:, side, 0], 0.0)
+        req_f = c.s0 + 0.5 * v + fclose**2 / (2 * c.b)
+        if relaxed:
+            req_f = 0.5 * req_f
+        front_ok = ~np.isfinite(fd) | (fgap > req_f)
+        return f["exists"][:, side] & rear_ok & front_ok
+
+    def act(self, obs_batch: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Decisions (A,) int64 and params (A, 3, 2) float32 for stacked observations."""
+        c = self.c
+        f = self._features(obs_batch)
+        A = len(f["v"])
+        d = f["d"]
+        mask = f["mask"]
+        # accelerations and steering per decision
+        acc_f = self._lane_accel(f, _C, d)
+        acc_l = self._lane_accel(f, _L, d)
+        acc_r = self._lane_accel(f, _R, d)
+        safe_l = self._safe(f, _L, relaxed=False) & mask[:, LEFT]
+        safe_r = self._safe(f, _R, relaxed=False) & mask[:, RIGHT]
+        cont_l = self._safe(f, _L, relaxed=True) & mask[:, LEFT]
+        cont_r = self._safe(f, _R, relaxed=True) & mask[:, RIGHT]
+        vlat = f["vlat_hist"]
+        # a change under way: offset and lateral motion towards that side
+        going_l = (d > c.lc_start_offset) & (vlat > 0.1)
+        going_r = (d < -c.lc_start_offset) & (vlat < -0.1)
+        centred = np.abs(d) < c.lc_start_offset
+        # incentive (MOBIL-like, without politeness towards followers beyond the safety test)
+        inc_l = acc_l - acc_f - c.lc_threshold
+        inc_r = acc_r - acc_f - c.lc_threshold + c.keep_right_bias
+        want_l = safe_l & centred & (inc_l > 0) & (f["v"] > 3.0)
+        want_r = safe_r & centred & (inc_r > 0) & (f["v"] > 3.0)
+        both = want_l & want_r
+        want_l &= ~both | (inc_l > inc_r)
+        want_r &= ~(both & (inc_l > inc_r))
+        mand = ~mask[:, FOLLOW]
+        decision = np.full(A, FOLLOW, dtype=np.int64)
+        decision[want_r] = RIGHT
+        decision[want_l] = LEFT
+        decision[going_l & cont_l] = LEFT
+        decision[going_r & cont_r] = RIGHT
+        # mandatory: pick an allowed side, preferring the one that is safe now
+        m_l = mand & mask[:, LEFT] & (~mask[:, RIGHT] | safe_l | ~safe_r)
+        decision[mand & ~m_l & mask[:, RIGHT]] = RIGHT
+        decision[m_l] = LEFT
+        # never a masked decision
+        bad = ~mask[np.arange(A), decision]
+        if bad.any():
+            first = np.argmax(mask, axis=1)
+            decision = np.where(bad & mask[:, FOLLOW], FOLLOW, np.where(bad, first, decision))
+        # params per decision: a change row shifts the lateral target only while it is safe
+        # (a mandatory change that is not safe yet holds the lane and waits)
+        go_l = np.where(going_l, cont_l, safe_l)
+        go_r = np.where(going_r, cont_r, safe_r)
+        t_l = np.where(go_l, c.lane_shift, 0.0)
+        t_r = np.where(go_r, -c.lane_shift, 0.0)
+        # while changing, the current lane's leaders still count (min of both lanes)
+        acc_l = np.where(go_l, np.minimum(acc_l, acc_f), acc_f)
+        acc_r = np.where(go_r, np.minimum(acc_r, acc_f), acc_f)
+        params = np.empty((A, 3, 2), dtype=np.float32)
+        params[:, FOLLOW, 0] = self._steer(f, np.zeros(A))
+        params[:, LEFT, 0] = self._steer(f, t_l)
+        params[:, RIGHT, 0] = self._steer(f, t_r)
+        params[:, FOLLOW, 1] = self._to_ab(acc_f)
+        params[:, LEFT, 1] = self._to_ab(acc_l)
+        params[:, RIGHT, 1] = self._to_ab(acc_r)
+        return decision, params
+
+    def actions(self, obs: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, dict]:
+        """``{agent: obs}`` -> ``{agent: {"decision": int, "params": (3, 2)}}``."""
+        agents = list(obs)
+        if not agents:
+            return {}
+        keys = obs[agents[0]].keys()
+        batch = {k: np.stack([obs[a][k] for a in agents]) for k in keys}
+        decision, params = self.act(batch)
+        return {
+            a: {"decision": int(decision[i]), "params": params[i]} for i, a in enumerate(agents)
+        }
+
+
+def _run_episode(scenario, density, penetration, seconds, seed, weather="normal", verbose=False):
+    from mixed_traffic.env import parallel_env
+
+    e = parallel_env(
+        scenario=scenario,
+        density=density,
+        penetration=penetration,
+        episode_length=seconds,
+        seed=seed,
+        weather=weather,
+    )
+    try:
+        obs, _ = e.reset(seed=seed)
+        pol = AccLcPolicy()
+        events: dict[str, int] = {}
+        decisions = np.zeros(3, np.int64)
+        while e.agents:
+            act = pol.actions({a: obs[a] for a in e.agents})
+            for a in act.values():
+                decisions[a["decision"]] += 1
+            obs, _, term, _, info = e.step(act)
+            for a, t in term.items():
+                ev = info.get(a, {}).get("event", "")
+                if t and ev and ev != "arrived":
+                    events[ev] = events.get(ev, 0) + 1
+                    if verbose:
+                        print("event", a, ev)
+        m = e.episode_metrics()
+    finally:
+        e.close()
+    return m, events, decisions
+
+
+def safety_matrix(
+    scenarios=(
+        "straight", "straight-eval", "highway", "highway-eval", "bottleneck",
+        "bottleneck-eval", "merge", "merge-eval", "urban", "urban-eval",
+    ),
+    densities=(60, 120, 180),
+    penetrations=(0.2, 0.5, 1.0),
+    seconds: float = 120.0,
+    seed: int = 0,
+    weather: str = "normal",
+) -> list[dict]:  # fmt: skip
+    """Run ACC-LC over scenarios x densities x penetrations and print a safety table."""
+    rows = []
+    hdr = (
+        f"{'scenario':16s} {'dens':>4s} {'pen':>4s} {'coll':>4s} {'events':24s} {'trips':>5s} "
+        f"{'rc':>5s} {'vel_A':>6s} {'vel_C':>6s}"
+    )
+    print(hdr, flush=True)
+    for sc in scenarios:
+        for dn in densities:
+            for p in penetrations:
+                m, ev, _ = _run_episode(sc, dn, p, seconds, seed, weather)
+                row = {"scenario": sc, "density": dn, "penetration": p, "events": ev, **m}
+                rows.append(row)
+                evs = ",".join(f"{k}:{v}" for k, v in sorted(ev.items())) or "-"
+                print(
+                    f"{sc:16s} {dn:4d} {p:4.1f} {int(m.get('collisions') or 0):4d} {evs:24s} "
+                    f"{int(m.get('av_trips') or 0):5d} {_fmt(m.get('route_completion'))} "
+                    f"{_fmt(m.get('avg_vel_a'))} {_fmt(m.get('avg_vel_c'))}",
+                    flush=True,
+                )
+    return rows
+
+
+def _fmt(x) -> str:
+    return f"{x:6.2f}" if isinstance(x, (int, float)) else f"{'-':>6s}"
