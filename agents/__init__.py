@@ -8,9 +8,23 @@
 - ``agents.replay``: ``ReplayBuffer`` (numpy SoA ring, resumable).
 - ``agents.checkpoint``: ``save_checkpoint`` / ``load_checkpoint`` / ``load_policy``.
 - ``agents.bench_inference``: ``avg_inference_us`` (AvgIT per decision).
+- ``agents.workers``: ``RolloutWorker`` (env + local policy + LocalBuffer), ``SharedWeights``.
+- ``agents.trainer``: ``TrainConfig``, ``Trainer`` (learner + GlobalBuffer; process/Ray workers);
+  the CLI is ``python -m mixed_traffic.train``.
 
 Deviations from the paper, and why:
 
+- Training starts from ACC-LC demonstrations (``TrainConfig.demo_steps``, default 20 000
+  transitions, split over the workers, switching to the learned policy mid-episode once met),
+  and a small share of later episodes (``demo_share`` = 5 %) is still driven by ACC-LC. The paper
+  trains from scratch; with the behaviour-cloning term the actor then starts from a safe driver
+  instead of a random one (random driving ends almost every AV trip in a collision), and the
+  replay keeps some safe examples. ``--demo-steps 0 --demo-share 0`` restores the paper.
+- Per-worker exploration follows the Ape-X ladder (ε and σ shrink geometrically over the
+  workers); the paper only says "different random noises".
+- Learner update ratio is fixed (updates per transition received, back-pressure on the workers
+  when the learner lags) rather than "update as fast as possible"; ``--update-ratio 0`` gives
+  the latter.
 - Actor loss: the BC term is *added* (TD3+BC, the paper's cited source); the printed equation
   negates it too, which would push the actor away from the data.
 - A lane whose nodes are all masked contributes a zero vector to the fusion (softmax over an

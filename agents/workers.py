@@ -1,0 +1,349 @@
+"""Rollout workers (paper §IV-F, Algorithm 1: worker with a LocalBuffer) and their transports.
+
+A :class:`RolloutWorker` owns one env (libsumo allows one simulation per process), a local
+copy of the actor/critic wrapped in a single-threaded :class:`agents.rbpdqn.Policy`, and a
+:class:`LocalBuffer`. :meth:`RolloutWorker.collect` drives the env until at least ``n``
+transitions are buffered and returns them as one :data:`Chunk` (the LocalBuffer flush). The
+episode in progress carries over between calls.
+
+Each episode samples its env config (scenario × density × penetration × weather) and its env
+seed from ``np.random.default_rng([seed, worker_id, run, incarnation, episode])``; the same
+generator drives exploration, so a worker's trajectory is a pure function of those numbers and
+the weights it is given.
+
+Transports (the learner side lives in :mod:`agents.trainer`):
+
+- in-process: the learner calls ``collect`` directly (``--workers 1``: deterministic);
+- :func:`process_main`: a spawned process sends chunks through its own pipe and reads weights
+  from :class:`SharedWeights` (a seqlock over shared memory: no lock a dying worker could hold);
+- Ray: the learner wraps :class:`RolloutWorker` in ``ray.remote`` and calls ``collect``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import time
+import traceback
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+import torch
+from torch.nn.utils import parameters_to_vector, vector_to_parameters
+
+from agents.lca import LCAConfig
+from agents.networks import Actor, Critic
+from agents.policies import make_policy, stack_obs, to_actions
+from agents.rbpdqn import Policy
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.env import parallel_env
+
+OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
+TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
+
+Chunk = dict[str, Any]
+"""A LocalBuffer flush: ``obs``/``next_obs`` dicts of float32 (n, ...) arrays, ``decision``
+(n,) int64, ``params`` (n, 3, 2) float32, ``reward`` (n,) float32, ``done`` (n,) float32, plus
+``worker_id``, ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo``
+(transitions in the chunk driven by the demonstrator), ``sim_steps`` (env steps taken) and
+``episodes`` (list of :func:`episode_stats` dicts of the episodes that ended)."""
+
+
+@dataclass(frozen=True)
+class WorkerSpec:
+    """Everything one worker needs (picklable; built by the trainer from its TrainConfig)."""
+
+    worker_id: int
+    env_base: EnvConfig
+    """Env fields not sampled per episode (sensors, reward weights, episode length, ...)."""
+    lca: LCAConfig
+    scenarios: tuple[str, ...]
+    densities: tuple[float, ...]
+    penetrations: tuple[float, ...]
+    weathers: tuple[str, ...]
+    seed: int = 0
+    """Root seed [-]."""
+    run: int = 0
+    """Resume count of the training run (fresh episode seeds after a resume)."""
+    incarnation: int = 0
+    """Restart count of this worker (fresh episode seeds after a crash)."""
+    noise_std: float = 0.1
+    """Gaussian exploration noise on the parameters [action units, -1..1]."""
+    epsilon: float = 0.05
+    """Probability of a random allowed decision per agent and step [-]."""
+    demo_quota: int = 0
+    """Transitions this worker still drives with the demonstrator before its own policy."""
+    demo_share: float = 0.0
+    """Probability that a later episode is driven by the demonstrator [-]."""
+    demo_policy: str = "acc-lc"
+    crash_after_chunks: int = 0
+    """Test hook: SIGKILL itself after sending this many chunks (incarnation 0 only)."""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def exploration_ladder(n_workers: int, base_eps: float, base_noise: float, spread: float) -> list:
+    """Ape-X style per-worker exploration: worker i gets base·base^(spread·i/(N−1)) → [(ε, σ)].
+
+    With one worker it is (base_eps, base_noise); worker N−1 gets base^(1+spread).
+    """
+    out = []
+    for i in range(n_workers):
+        k = 1.0 + (spread * i / (n_workers - 1) if n_workers > 1 else 0.0)
+        out.append((base_eps**k, base_noise**k))
+    return out
+
+
+def weight_vector(actor: Actor, critic: Critic) -> np.ndarray:
+    """Flat float32 copy of all actor then critic parameters (no buffers exist in either)."""
+    with torch.no_grad():
+        params = [*actor.parameters(), *critic.parameters()]
+        return parameters_to_vector(params).detach().numpy().astype(np.float32).copy()
+
+
+def episode_stats(
+    env: Any, reward_sum: float, actions: int, acted: int, demo: bool, cfg: EnvConfig
+) -> dict:
+    """Summary of one finished episode.
+
+    Keys: ``return_per_av`` (summed reward / AVs that acted), ``reward_sum``, ``actions``,
+    ``av_trips``, ``terminals`` (sum of the terminal_* counts), ``collisions`` (AVs terminated
+    by a collision), ``demo`` (some step was driven by the demonstrator) and the env cell.
+    """
+    m = env.episode_metrics()
+    trips = float(m.get("av_trips") or 0.0)
+    terminals = float(sum(m.get(f"terminal_{r}") or 0.0 for r in TERMINAL_REASONS))
+    return {
+        "return_per_av": reward_sum / max(acted, 1),
+        "reward_sum": reward_sum,
+        "actions": actions,
+        "av_trips": trips,
+        "terminals": terminals,
+        "collisions": float(m.get("terminal_collision") or 0.0),
+        "demo": demo,
+        "scenario": cfg.scenario,
+        "density": cfg.density,
+        "penetration": cfg.penetration,
+        "weather": cfg.weather,
+        "seed": cfg.seed,
+    }
+
+
+class LocalBuffer:
+    """Per-step stacked transitions; :meth:`take` concatenates and empties (the B_l flush)."""
+
+    def __init__(self) -> None:
+        self._parts: list[tuple] = []
+        self.size = 0
+
+    def add(self, obs: dict, dec: np.ndarray, par: np.ndarray, rew: np.ndarray,
+            nxt: dict, done: np.ndarray) -> None:  # fmt: skip
+        """One env step's transitions of A agents (arrays with leading dim A)."""
+        self._parts.append((obs, dec, par, rew, nxt, done))
+        self.size += len(dec)
+
+    def take(self) -> Chunk:
+        parts, self._parts, self.size = self._parts, [], 0
+        cat = np.concatenate
+        return {
+            "obs": {k: cat([p[0][k] for p in parts]).astype(np.float32) for k in OBS_KEYS},
+            "decision": cat([p[1] for p in parts]).astype(np.int64),
+            "params": cat([p[2] for p in parts]).astype(np.float32).reshape(-1, 3, 2),
+            "reward": cat([p[3] for p in parts]).astype(np.float32),
+            "next_obs": {k: cat([p[4][k] for p in parts]).astype(np.float32) for k in OBS_KEYS},
+            "done": cat([p[5] for p in parts]).astype(np.float32),
+        }
+
+
+class RolloutWorker:
+    """One env + local policy copy + LocalBuffer (Algorithm 1 of the paper)."""
+
+    def __init__(self, spec: WorkerSpec) -> None:
+        torch.set_num_threads(1)
+        self.spec = spec
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(0)  # overwritten by the first set_weights
+            self.actor, self.critic = Actor(spec.lca).eval(), Critic(spec.lca).eval()
+        self.policy = Policy(self.actor, self.critic, spec.noise_std, spec.epsilon, threads=1)
+        self.has_weights = False
+        self._demo: Any = None
+        self.demo_done = 0
+        self.episode = 0
+        self.seq = 0
+        self.env: Any = None
+        self._buf = LocalBuffer()
+        self._episodes: list[dict] = []
+        self._demo_in_buf = 0
+        self._sim_steps = 0
+
+    # ------------------------------------------------------------------ weights
+    def set_weights(self, vec: np.ndarray) -> None:
+        """Load a :func:`weight_vector` from the learner."""
+        with torch.no_grad():
+            t = torch.from_numpy(np.asarray(vec, dtype=np.float32))
+            vector_to_parameters(t, [*self.actor.parameters(), *self.critic.parameters()])
+        self.policy.sync()
+        self.has_weights = True
+
+    # ------------------------------------------------------------------ episodes
+    def _demonstrator(self) -> Any:
+        if self._demo is None:
+            self._demo = make_policy(self.spec.demo_policy, seed=self.spec.seed)
+        return self._demo
+
+    def _start_episode(self) -> None:
+        s = self.spec
+        self.rng = np.random.default_rng([s.seed, s.worker_id, s.run, s.incarnation, self.episode])
+        self.episode += 1
+        cfg = replace(
+            s.env_base,
+            scenario=str(self.rng.choice(s.scenarios)),
+            density=float(self.rng.choice(s.densities)),
+            penetration=float(self.rng.choice(s.penetrations)),
+            weather=str(self.rng.choice(s.weathers)),
+            seed=int(self.rng.integers(2**31 - 1)),
+            second_instance="error",  # never a silent slow TraCI fallback in a worker
+        )
+        self.demo_episode = bool(self.rng.random() < s.demo_share)
+        self.any_demo = False
+        if self.env is not None:
+            self.env.close()  # frees libsumo for the next simulation in this process
+        self.env_cfg = cfg
+        self.env = parallel_env(config=cfg)
+        self.acted: set[str] = set()
+        self.obs, _ = self.env.reset(seed=cfg.seed)
+        self.ep_reward, self.ep_actions = 0.0, 0
+
+    def _step(self) -> None:
+        """One env step for all current agents; transitions go to the LocalBuffer."""
+        env = self.env
+        agents = list(env.agents)
+        if not agents:  # AVs queued upstream: let the simulation run on
+            self.obs, *_ = env.step({})
+        else:
+            batch = stack_obs(self.obs, agents)
+            # the demonstrator drives until this worker's quota is met (switching mid-episode),
+            # and whole episodes with probability demo_share afterwards
+            is_demo = self.demo_episode or self.demo_done < self.spec.demo_quota
+            self.any_demo |= is_demo
+            if not is_demo and not self.has_weights:
+                raise RuntimeError("worker has no weights from the learner yet")
+            if is_demo:
+                dec, par = self._demonstrator().act(batch)
+            else:
+                dec, par = self.policy.act(batch, explore=True, rng=self.rng)
+            obs2, rew, term, _, _ = env.step(to_actions(agents, dec, par))
+            r = np.array([rew[a] for a in agents], np.float32)
+            done = np.array([bool(term[a]) for a in agents], np.float32)
+            self._buf.add(batch, dec, par, r, stack_obs(obs2, agents), done)
+            self.acted.update(agents)
+            self.ep_reward += float(r.sum())
+            self.ep_actions += len(agents)
+            if is_demo:
+                self.demo_done += len(agents)
+                self._demo_in_buf += len(agents)
+            self.obs = obs2
+        self._sim_steps += 1
+        if not env.agents and env._snap.time >= env.config.episode_length - 1e-6:
+            self._episodes.append(
+                episode_stats(
+                    env,
+                    self.ep_reward,
+                    self.ep_actions,
+                    len(self.acted),
+                    self.any_demo,
+                    self.env_cfg,
+                )
+            )
+            self.env.close()
+            self.env = None
+
+    def collect(self, n: int) -> Chunk:
+        """Step until ≥ n transitions are buffered → the flushed :data:`Chunk`."""
+        s = self.spec
+        if s.crash_after_chunks and s.incarnation == 0 and self.seq >= s.crash_after_chunks:
+            os.kill(os.getpid(), signal.SIGKILL)  # test hook: a hard crash, like a segfault
+        while self._buf.size < n:
+            if self.env is None:
+                self._start_episode()
+            self._step()
+        self.seq += 1
+        chunk = self._buf.take()
+        chunk.update(
+            worker_id=s.worker_id, incarnation=s.incarnation, seq=self.seq,
+            demo=self._demo_in_buf, sim_steps=self._sim_steps, episodes=self._episodes,
+        )  # fmt: skip
+        self._episodes, self._demo_in_buf, self._sim_steps = [], 0, 0
+        return chunk
+
+    def collect_with(self, n: int, weights: np.ndarray | None) -> Chunk:
+        """Ray entry point: optionally load new weights, then :meth:`collect`."""
+        if weights is not None:
+            self.set_weights(weights)
+        return self.collect(n)
+
+    def close(self) -> None:
+        if self.env is not None:
+            self.env.close()
+            self.env = None
+
+
+class SharedWeights:
+    """Latest learner weights in shared memory, published with a seqlock (single writer).
+
+    The version is even when stable and odd while the learner writes; a reader copies and
+    accepts only when the version was even and unchanged across the copy. Nothing is locked, so
+    a worker killed mid-read cannot block anyone.
+    """
+
+    def __init__(self, ctx: Any, n: int) -> None:
+        self.n = n
+        self.buf = ctx.RawArray("f", n)
+        self.version = ctx.RawValue("q", -2)
+
+    def publish(self, vec: np.ndarray) -> None:
+        v = self.version.value
+        self.version.value = v + 1
+        np.frombuffer(self.buf, np.float32)[:] = vec
+        self.version.value = v + 2
+
+    def read(self, last: int) -> tuple[int, np.ndarray] | None:
+        """→ (version, copy) when a stable version newer than ``last`` exists, else None."""
+        for _ in range(100):
+            v1 = self.version.value
+            if v1 == last or v1 < 0:
+                return None
+            if v1 % 2:
+                time.sleep(0.001)
+                continue
+            vec = np.frombuffer(self.buf, np.float32).copy()
+            if self.version.value == v1:
+                return v1, vec
+        return None
+
+
+def process_main(spec: WorkerSpec, conn: Any, weights: SharedWeights, stop: Any, n: int) -> None:
+    """Body of a spawned worker process: collect chunks of ≥ n transitions and send them.
+
+    Sends ``("chunk", Chunk)``; on a Python exception sends ``("error", traceback)`` and exits.
+    ``conn.send`` writes synchronously, so a chunk whose send returned survives a later crash.
+    """
+    worker: RolloutWorker | None = None
+    try:
+        worker = RolloutWorker(spec)
+        version = -2
+        while not stop.is_set():
+            got = weights.read(version)
+            if got is not None:
+                version, vec = got
+                worker.set_weights(vec)
+            conn.send(("chunk", worker.collect(n)))
+    except (BrokenPipeError, EOFError, KeyboardInterrupt):
+        return
+    except BaseException:
+        with contextlib.suppress(OSError):
+            conn.send(("error", traceback.format_exc()))
+    finally:
+        if worker is not None:
+            worker.close()

@@ -1,0 +1,152 @@
+"""``python -m mixed_traffic.train``: multi-worker RBP-DQN training (paper §IV-F, DESIGN §10).
+
+The options are built from :class:`agents.trainer.TrainConfig` (field docstrings carry the
+units). This module composes: it resolves and validates the scenarios (train split only) and
+the density range per scenario before any worker starts, then runs :class:`Trainer`.
+
+Examples::
+
+    python -m mixed_traffic.train --workers 2 --env-steps 2000000 --out runs/auto
+    python -m mixed_traffic.train --workers 2 --minutes 60 --out runs/auto --resume
+    python -m mixed_traffic.train --workers 10 --backend ray --address auto --env-steps 5e6
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shlex
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+from mixed_traffic.config import EnvConfig, field_docs
+
+_SHORT = {"workers", "backend", "address", "scenarios", "densities", "penetrations", "weathers",
+          "env_steps", "minutes", "out", "seed", "demo_steps", "ablation", "bp_dqn"}  # fmt: skip
+
+
+def train_scenarios() -> list[str]:
+    """Every bundled train-split scenario, one name per variant folder (aliases dropped)."""
+    from mixed_traffic.scenario import _registry, load_scenario
+
+    seen, out = set(), []
+    for name, folder in sorted(_registry().items(), key=lambda kv: ("-" not in kv[0], kv[0])):
+        if folder in seen or load_scenario(name).split != "train":
+            continue
+        seen.add(folder)
+        out.append(name)
+    return sorted(out)
+
+
+def _number(text: str) -> int:
+    """Integer that also accepts 2e6 / 2_000_000."""
+    value = float(text.replace("_", ""))
+    if value != int(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number")
+    return int(value)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from agents.trainer import TrainConfig
+
+    p = argparse.ArgumentParser(
+        prog="python -m mixed_traffic.train",
+        description="Train the AUTO agent (LCA + RBP-DQN) with N rollout workers and one learner. "
+        "Writes OUT/curves.csv, OUT/checkpoint.pt, OUT/replay.pt, OUT/state.json and, at the "
+        "end, OUT/auto.pt + OUT/auto.json.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    docs = field_docs(TrainConfig)
+    advanced = p.add_argument_group("advanced")
+    for f in dataclasses.fields(TrainConfig):
+        target = p if f.name in _SHORT else advanced
+        opt = "--" + f.name.replace("_", "-")
+        default = f.default
+        help_text = docs.get(f.name, "").replace("%", "%%")
+        if isinstance(default, bool):
+            target.add_argument(opt, action=argparse.BooleanOptionalAction, default=default,
+                                help=help_text)  # fmt: skip
+        elif isinstance(default, tuple):
+            kind = float if f.name in ("densities", "penetrations") else str
+            target.add_argument(opt, nargs="+", type=kind, default=list(default),
+                                metavar="X", help=help_text)  # fmt: skip
+        else:
+            kind = _number if isinstance(default, int) else type(default)
+            target.add_argument(opt, type=kind, default=default, help=help_text)
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out from its checkpoint, replay and counters",
+    )
+    p.add_argument(
+        "--history",
+        type=int,
+        default=EnvConfig().sensors.history,
+        help="observation history z [steps]",
+    )
+    p.add_argument("--waypoints", type=int, default=EnvConfig().sensors.waypoints,
+                   help="lane waypoints m per lane [count]")  # fmt: skip
+    return p
+
+
+def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Any:
+    """TrainConfig from the options; validates scenarios and densities (parser.error on bad)."""
+    from agents.trainer import TrainConfig
+    from mixed_traffic.scenario import check_density, list_scenarios, load_scenario
+
+    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)}
+    for k, v in values.items():
+        if isinstance(v, list):
+            values[k] = tuple(v)
+    scen = tuple(s for s in values["scenarios"] if s) or tuple(train_scenarios())
+    for s in scen:
+        if s not in list_scenarios():
+            parser.error(
+                f"--scenarios: unknown scenario {s!r}; known: {', '.join(list_scenarios())}"
+            )
+        sc = load_scenario(s)
+        if sc.split != "train":
+            parser.error(f"--scenarios: {s!r} is a held-out {sc.split!r} scenario; train on "
+                         f"train-split ones: {', '.join(train_scenarios())}")  # fmt: skip
+        for d in values["densities"]:
+            try:
+                check_density(sc, d)
+            except ValueError as e:
+                parser.error(f"--densities: {e}")
+    values["scenarios"] = scen
+    try:
+        return TrainConfig(**values)
+    except ValueError as e:
+        parser.error(str(e))
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    cfg = config_from_args(args, parser)
+    base = EnvConfig()
+    try:
+        sensors = dataclasses.replace(base.sensors, history=args.history, waypoints=args.waypoints)
+    except ValueError as e:
+        parser.error(str(e))
+    env_base = dataclasses.replace(base, sensors=sensors)
+    from agents.trainer import Trainer
+
+    argv_list = list(sys.argv[1:] if argv is None else argv)
+    command = shlex.join(["python", "-m", "mixed_traffic.train", *argv_list])
+    try:
+        trainer = Trainer(cfg, env_base=env_base, resume=args.resume, command=command)
+    except (FileExistsError, FileNotFoundError, ValueError) as e:
+        parser.error(str(e))
+    info = trainer.run()
+    print(
+        f"done: {info['env_steps']} env steps, {info['updates']} updates, "
+        f"{info['episodes']} episodes in {info['wall_time_s']:.0f} s; "
+        f"worker restarts {info['worker_restarts']}; wrote {cfg.out}/auto.pt"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
