@@ -45,7 +45,9 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
+import sys
 import tempfile
+import types
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 from pathlib import Path
@@ -559,3 +561,15 @@ def parallel_env(**kwargs: Any) -> MixedTrafficEnv:
 def env(**kwargs: Any):
     """The AEC version of ``parallel_env`` (via ``parallel_to_aec``)."""
     return parallel_to_aec(parallel_env(**kwargs))
+
+
+class _CallableModule(types.ModuleType):
+    """``mixed_traffic.env`` is both this module and, PettingZoo-style, the AEC constructor:
+    importing the submodule rebinds the package attribute to the module, so the module itself
+    forwards calls to ``env()``."""
+
+    def __call__(self, **kwargs: Any):
+        return env(**kwargs)
+
+
+sys.modules[__name__].__class__ = _CallableModule

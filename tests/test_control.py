@@ -19,7 +19,7 @@ from mixed_traffic.scenario import load_scenario, make_demand, sumo_args, write_
 DT = 0.1
 
 
-def start_straight(tmp_path: Path, density: float = 30.0, penetration: float = 0.2):
+def start_straight(tmp_path: Path, density: float = 30.0, penetration: float = 0.6):
     """Real SUMO on the bundled straight scenario; returns (backend, hdmap, config, snapshot)."""
     cfg = EnvConfig(
         scenario="straight", density=density, penetration=penetration, episode_length=60
@@ -54,7 +54,7 @@ def pick_av(snap: TrafficSnapshot, hd: HDMap, lane_index: int) -> str:
             and snap.lane_pos[k] < 600
         ):
             return vid
-    pytest.skip("no AV in the wanted lane with this seed")
+    raise AssertionError(f"the test traffic has no AV in lane {lane_index} of 'meas' before 600 m")
 
 
 @pytest.fixture
