@@ -203,10 +203,11 @@ def run_env_episode(
     agent = make_policy(policy, seed=config.seed, checkpoint=checkpoint,
                         z=config.sensors.history, m=config.sensors.waypoints)  # fmt: skip
     env = MixedTrafficEnv(config=config, warmup=warmup, render_mode="rgb_array" if gif else None)
-    frames = _frames(gif)
+    frames = _Gif(gif)
     infer, decisions = 0.0, 0
     try:
         obs, _ = env.reset(seed=config.seed)
+        frames.add(env)
         for _ in tqdm(
             range(config.steps_per_episode), desc="steps", leave=False, disable=not progress
         ):
@@ -227,7 +228,7 @@ def run_env_episode(
         metrics.update(env.episode_metrics())
     finally:
         env.close()
-    frames.save()
+    frames.save(fps=1.0 / config.step_length)
     metrics["avg_it"] = 1000.0 * infer / decisions if decisions else None
     cell = {k: getattr(config, k) for k in CELL_KEYS if k not in ("policy", "seed")}
     record = {
@@ -244,20 +245,24 @@ def run_env_episode(
     return record
 
 
-class _NoFrames:
+class _Gif:
+    """Collects every 2nd rendered frame of an episode and writes it as a GIF (or does nothing)."""
+
+    def __init__(self, path: str | Path | None) -> None:
+        from mixed_traffic.render import FrameCollector
+
+        self.path = path
+        self.frames = FrameCollector(every=2)
+
     def add(self, env: Any) -> None:
-        pass
+        if self.path is not None:
+            self.frames.add(env.render())
 
-    def save(self) -> None:
-        pass
+    def save(self, fps: float) -> None:
+        if self.path is not None and self.frames.frames:
+            from mixed_traffic.render import record_gif
 
-
-def _frames(gif: str | Path | None) -> Any:
-    if gif is None:
-        return _NoFrames()
-    from mixed_traffic.render import FrameRecorder
-
-    return FrameRecorder(Path(gif))
+            record_gif(self.frames.frames, self.path, fps=fps / self.frames.every)
 
 
 # --------------------------------------------------------------------------- output
