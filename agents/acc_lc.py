@@ -180,8 +180,9 @@ class AccLcPolicy:
         v_curve = np.sqrt(c.curve_accel / np.maximum(kap, 1e-4))
         inside = np.maximum(1.0 - kap * (np.abs(offset)[:, None] + 0.3), 0.3)
         target = np.minimum(c.speed_factor * spd, v_curve) * inside
-        need = np.where(target < v[:, None], (target**2 - v[:, None] ** 2) / (2 * dist_wp), 0.0)
-        a_lim = np.min(need, axis=1) * 1.3
+        need = np.where(target < v[:, None], (target**2 - v[:, None] ** 2) / (2 * dist_wp), np.inf)
+        a_lim = np.min(need, axis=1)
+        a_lim = np.where(a_lim < 0, 1.3 * a_lim, np.inf)
         acc = _idm(v, v0, np.full_like(v, np.inf), np.zeros_like(v), c)
         acc = np.minimum(acc, a_lim)
         # leaders: front vehicle of this lane and overlapping front vehicles of the others
