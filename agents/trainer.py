@@ -66,6 +66,9 @@ CURVE_COLUMNS = (
     "mean_reward_per_action", "terminal_rate", "collision_rate", "critic_loss", "actor_loss",
     "demo_fraction",
 )  # fmt: skip
+"""curves.csv columns: terminal/collision rates are per AV trip ended in the row's window (all
+transitions, demonstrator included: see demo_fraction); mean_episode_reward is the return per
+AV of policy-driven episodes that ended in the window (NaN if none)."""
 
 
 @dataclass(frozen=True)
@@ -237,12 +240,12 @@ class Window:
         self.reward_sum += float(chunk["reward"].sum())
         self.transitions += len(chunk["decision"])
         self.demo += int(chunk["demo"])
+        self.trips += chunk["trips"]
+        self.terminals += chunk["terminals"]
+        self.collisions += chunk["collisions"]
         for ep in chunk["episodes"]:
-            if not ep["demo"]:  # curves show the learning policy, not the demonstrator
+            if not ep["demo"]:  # returns of the learning policy, not of the demonstrator
                 self.ep_returns.append(ep["return_per_av"])
-                self.trips += ep["av_trips"]
-                self.terminals += ep["terminals"]
-                self.collisions += ep["collisions"]
 
     def row(self) -> dict[str, float]:
         def mean(x: list[float]) -> float:
@@ -632,7 +635,7 @@ class Trainer:
         tb = _tensorboard(self.out)
         t0 = time.monotonic()
         wall0 = self.c["wall_time"]
-        last_ckpt = t0
+        last_ckpt = last_bar = t0
         window = Window()
         bar = _progress(cfg, self.c["env_steps"])
         collector = self.make_collector()
@@ -652,6 +655,9 @@ class Trainer:
                     before = self.c["env_steps"]
                     self.ingest(chunk, window)
                     bar.update(self.c["env_steps"] - before)
+                if chunks and time.monotonic() - last_bar >= 1.0:
+                    self._postfix(bar, window)
+                    last_bar = time.monotonic()
                 self.c["worker_restarts"] = self.restart_base + collector.restarts
                 self.c["wall_time"] = wall0 + time.monotonic() - t0
                 if self.c["env_steps"] >= self.c["next_log"]:
@@ -683,10 +689,15 @@ class Trainer:
             for k, v in row.items():
                 if k != "env_steps" and not (isinstance(v, float) and math.isnan(v)):
                     tb.add_scalar(f"train/{k}", v, self.c["env_steps"])
+        self._last_row = row
+
+    def _postfix(self, bar: Any, window: Window) -> None:
+        """Progress bar: updates, and episode reward / collision rate of the last curve row."""
+        row = getattr(self, "_last_row", None) or window.row()
         bar.set_postfix(
             upd=self.c["updates"], ep_rew=f"{row['mean_episode_reward']:.3g}",
             coll=f"{row['collision_rate']:.3f}", demo=f"{row['demo_fraction']:.2f}",
-            refresh=False,
+            restarts=self.c["worker_restarts"], refresh=False,
         )  # fmt: skip
 
 

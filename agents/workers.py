@@ -47,8 +47,9 @@ Chunk = dict[str, Any]
 """A LocalBuffer flush: ``obs``/``next_obs`` dicts of float32 (n, ...) arrays, ``decision``
 (n,) int64, ``params`` (n, 3, 2) float32, ``reward`` (n,) float32, ``done`` (n,) float32, plus
 ``worker_id``, ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo``
-(transitions in the chunk driven by the demonstrator), ``sim_steps`` (env steps taken) and
-``episodes`` (list of :func:`episode_stats` dicts of the episodes that ended)."""
+(transitions in the chunk driven by the demonstrator), ``sim_steps`` (env steps taken),
+``trips``/``terminals``/``collisions`` (AV trips that ended in the chunk: arrived or terminal;
+terminal events; collisions) and ``episodes`` (list of :func:`episode_stats` dicts of the episodes that ended)."""
 
 
 @dataclass(frozen=True)
@@ -176,6 +177,7 @@ class RolloutWorker:
         self._episodes: list[dict] = []
         self._demo_in_buf = 0
         self._sim_steps = 0
+        self._trips = self._terminals = self._collisions = 0
 
     # ------------------------------------------------------------------ weights
     def set_weights(self, vec: np.ndarray) -> None:
@@ -233,7 +235,13 @@ class RolloutWorker:
                 dec, par = self._demonstrator().act(batch)
             else:
                 dec, par = self.policy.act(batch, explore=True, rng=self.rng)
-            obs2, rew, term, _, _ = env.step(to_actions(agents, dec, par))
+            obs2, rew, term, _, info = env.step(to_actions(agents, dec, par))
+            for a in agents:  # trips that ended this step, by reason (curves need no episode end)
+                ev = info.get(a, {}).get("event", "")
+                if ev == "arrived" or ev in TERMINAL_REASONS:
+                    self._trips += 1
+                    self._terminals += ev in TERMINAL_REASONS
+                    self._collisions += ev == "collision"
             r = np.array([rew[a] for a in agents], np.float32)
             done = np.array([bool(term[a]) for a in agents], np.float32)
             self._buf.add(batch, dec, par, r, stack_obs(obs2, agents), done)
@@ -273,8 +281,10 @@ class RolloutWorker:
         chunk.update(
             worker_id=s.worker_id, incarnation=s.incarnation, seq=self.seq,
             demo=self._demo_in_buf, sim_steps=self._sim_steps, episodes=self._episodes,
+            trips=self._trips, terminals=self._terminals, collisions=self._collisions,
         )  # fmt: skip
         self._episodes, self._demo_in_buf, self._sim_steps = [], 0, 0
+        self._trips = self._terminals = self._collisions = 0
         return chunk
 
     def collect_with(self, n: int, weights: np.ndarray | None) -> Chunk:
