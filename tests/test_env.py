@@ -52,18 +52,20 @@ def test_parallel_api(scenario: str) -> None:
         e.close()
 
 
-def test_aec_api() -> None:
-    e = env(**SHORT)
+@pytest.mark.parametrize("scenario", _family_defaults())
+def test_aec_api(scenario: str) -> None:
+    e = env(scenario=scenario, **SHORT)
     try:
         api_test(e, num_cycles=20)
     finally:
         e.close()
 
 
-def test_parallel_seed() -> None:
+@pytest.mark.parametrize("scenario", _family_defaults())
+def test_parallel_seed(scenario: str) -> None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # the 2nd env falls back to TraCI
-        parallel_seed_test(lambda: parallel_env(**SHORT), num_cycles=30)
+        parallel_seed_test(lambda: parallel_env(scenario=scenario, **SHORT), num_cycles=30)
 
 
 def test_same_seed_same_trajectories_across_resets() -> None:
