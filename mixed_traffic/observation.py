@@ -45,7 +45,9 @@ lane from which the route cannot continue, ``follow`` is masked (mandatory lane 
 virtual stopped vehicle (zero length, width of the lane) sits at the lane's end line as the
 front vehicle of the current lane, unless a real vehicle is closer. The mask always allows at
 least one decision: with no continuing lane on either side, follow stays allowed.
-Waypoints follow each lane's primary successor beyond its end; waypoint features come from
+Waypoints follow the route beyond a lane's end (first hop ``hdmap.conn_to[(lane,
+next_route_edge)]`` when that lane continues the route, else the lane's primary successor; later
+hops primary successors); waypoint features come from
 the HD map and are not perturbed by weather.
 """
 
@@ -195,7 +197,7 @@ class ObservationBuilder:
         act, mandatory, end_dist = self.action_mask(snap, rows, lanes, nxt)
 
         ego = np.clip(sensed.ego / EGO_SCALE, -1.0, 1.0)  # (A, 5)
-        wp = self._waypoints(snap, rows, lanes)  # (A, 3, 4m)
+        wp = self._waypoints(snap, rows, lanes, nxt)  # (A, 3, 4m)
         veh, present = self._vehicles(sensed, lanes, mandatory, end_dist, snap.speed[rows])
         light_on = sensed.light_state != NO_LIGHT
         lights = np.zeros((A, 3, 4))
@@ -221,8 +223,18 @@ class ObservationBuilder:
         }  # fmt: skip
 
     # ------------------------------------------------------------------ features
-    def _waypoints(self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray) -> np.ndarray:
-        """(A, 3, 4m) normalised waypoint features of the m waypoints ahead on each lane."""
+    def _waypoints(
+        self,
+        snap: TrafficSnapshot,
+        rows: np.ndarray,
+        lanes: np.ndarray,
+        next_edge: np.ndarray | None = None,
+    ) -> np.ndarray:
+        """(A, 3, 4m) normalised waypoint features of the m waypoints ahead on each lane.
+
+        Beyond a lane's end the first hop follows the agent's route (``hdmap.conn_to[(lane,
+        next_edge)]``) when that lane continues it, else the lane's primary successor; later
+        hops follow primary successors."""
         hd, m = self.hdmap, self.m
         A = len(rows)
         cur = lanes[:, CURRENT]
@@ -231,7 +243,19 @@ class ObservationBuilder:
             hd.lane_length[lsafe] / np.maximum(hd.lane_length[np.maximum(cur, 0)], 1e-9)[:, None]
         )
         pos = snap.lane_pos[rows][:, None] * ratio
-        wp = hd.waypoints_ahead(lsafe.ravel(), pos.ravel(), m).reshape(A, 3, m)
+        w0 = hd.waypoint_at(lsafe.ravel(), pos.ravel()).reshape(A, 3)
+        wp = hd.ahead_table(m)[w0]  # (A, 3, m) along primary successors
+        if next_edge is not None:
+            nxt = np.broadcast_to(np.asarray(next_edge, np.int64)[:, None], lanes.shape)
+            via = self.graph.connection(lsafe, nxt)  # (A, 3) route's first hop, -1 if none
+            use = (via >= 0) & (lanes >= 0)
+            if use.any():
+                left = hd.wp_offset[lsafe] + hd.wp_count[lsafe] - 1 - w0  # wps left on lane
+                j = np.arange(m)
+                k = j[None, None, :] - left[..., None] - 1  # index into the successor's table
+                succ = hd.ahead_table(m)[hd.wp_offset[np.maximum(via, 0)]]  # (A, 3, m)
+                on_succ = np.take_along_axis(succ, np.clip(k, 0, m - 1), axis=2)
+                wp = np.where(use[..., None] & (k >= 0), on_succ, wp)
         ego_lane_idx = hd.lane_index[np.maximum(cur, 0)].astype(np.float64)
         feats = np.empty((A, 3, m, 4))
         feats[..., 0] = hd.wp_xyz[wp, 2] - snap.z[rows][:, None, None]
