@@ -42,6 +42,10 @@ class LearnerConfig:
     regularize: bool = True
     """False → BP-DQN baseline: actor loss −Σ_p Q, no behaviour cloning, no AvgQ scaling."""
     avgq_eps: float = 1e-6
+    demo_margin: float = 0.8
+    """DQfD large-margin l: demonstrated decisions must beat the others by this much [Q units]."""
+    demo_weight: float = 1.0
+    """Weight of the DQfD margin loss on demonstrator transitions (0 = the paper's critic)."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
@@ -84,10 +88,30 @@ class RBPDQN:
             return batch["reward"] + self.cfg.gamma * (1.0 - batch["done"]) * best
 
     def critic_loss(self, batch: dict) -> Tensor:
-        """½·mean (y − Q(s, p_taken, A_taken))²."""
+        """½·mean (y − Q(s, p_taken, A_taken))² + λ·DQfD margin loss on demonstrations."""
         y = self.td_target(batch)
-        q = self.critic(batch["obs"], batch["params"]).gather(1, batch["decision"][:, None])
-        return 0.5 * (y - q[:, 0]).pow(2).mean()
+        q_all = self.critic(batch["obs"], batch["params"])  # (B, 3)
+        q = q_all.gather(1, batch["decision"][:, None])[:, 0]
+        loss = 0.5 * (y - q).pow(2).mean()
+        if self.cfg.demo_weight > 0 and "is_demo" in batch:
+            loss = loss + self.cfg.demo_weight * self.margin_loss(q_all, q, batch)
+        return loss
+
+    def margin_loss(self, q_all: Tensor, q_taken: Tensor, batch: dict) -> Tensor:
+        """DQfD (Hester et al. 2018): max_p [Q(s,p) + l·(p ≠ p_E)] − Q(s,p_E) on demo rows.
+
+        Q of decisions the demonstrator never took is otherwise unconstrained (extrapolation),
+        and the argmax then picks them; the margin ranks the demonstrated decision first.
+        Masked decisions are excluded from the max.
+        """
+        demo = batch["is_demo"]
+        if float(demo.sum()) == 0:
+            return q_all.new_zeros(())
+        margin = torch.full_like(q_all, self.cfg.demo_margin)
+        margin.scatter_(1, batch["decision"][:, None], 0.0)
+        best = masked_q(q_all + margin, batch["obs"]["action_mask"]).max(dim=1).values
+        gap = torch.where(torch.isfinite(best), best - q_taken, torch.zeros_like(best))
+        return (gap * demo).sum() / demo.sum()
 
     def actor_loss(self, batch: dict) -> Tensor:
         """RBP-DQN: −Σ_p α·Q(s,p,u_p)/AvgQ + Σ_p ‖u_p − a_p‖²; BP-DQN: −Σ_p Q (batch mean)."""

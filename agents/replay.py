@@ -28,6 +28,8 @@ class ReplayBuffer:
         self.params = np.zeros((capacity, 3, 2), np.float32)
         self.reward = np.zeros(capacity, np.float32)
         self.done = np.zeros(capacity, np.float32)
+        self.is_demo = np.zeros(capacity, np.float32)
+        """1 where the demonstrator (ACC-LC) chose the action (DQfD margin loss)."""
         self.pos = 0
         """Next write index."""
         self.size = 0
@@ -43,16 +45,19 @@ class ReplayBuffer:
         reward: np.ndarray,
         next_obs: dict[str, np.ndarray],
         done: np.ndarray,
+        is_demo: np.ndarray | None = None,
     ) -> None:
         """Append n transitions (arrays with leading dim n); the oldest are overwritten."""
         n = len(decision)
         if n == 0:
             return
+        is_demo = np.zeros(n, np.float32) if is_demo is None else np.asarray(is_demo, np.float32)
         if n > self.capacity:  # only the newest `capacity` survive anyway
             sl = slice(n - self.capacity, n)
             obs = {k: v[sl] for k, v in obs.items()}
             next_obs = {k: v[sl] for k, v in next_obs.items()}
             decision, params, reward, done = decision[sl], params[sl], reward[sl], done[sl]
+            is_demo = is_demo[sl]
             n = self.capacity
         idx = (self.pos + np.arange(n)) % self.capacity
         for k in OBS_KEYS:
@@ -62,6 +67,7 @@ class ReplayBuffer:
         self.params[idx] = np.reshape(params, (n, 3, 2))
         self.reward[idx] = reward
         self.done[idx] = done
+        self.is_demo[idx] = is_demo
         self.pos = int((self.pos + n) % self.capacity)
         self.size = min(self.size + n, self.capacity)
 
@@ -78,6 +84,7 @@ class ReplayBuffer:
             "params": t(self.params[idx]),
             "reward": t(self.reward[idx]),
             "done": t(self.done[idx]),
+            "is_demo": t(self.is_demo[idx]),
         }
 
     def state_dict(self) -> dict:
@@ -98,6 +105,7 @@ class ReplayBuffer:
             "params": t(self.params),
             "reward": t(self.reward),
             "done": t(self.done),
+            "is_demo": t(self.is_demo),
         }
 
     def load_state_dict(self, sd: dict) -> None:
@@ -110,6 +118,6 @@ class ReplayBuffer:
                 raise ValueError(f"replay obs '{k}' shape {got} != {self.obs[k].shape[1:]}")
             self.obs[k][:n] = np.asarray(sd["obs"][k])
             self.next_obs[k][:n] = np.asarray(sd["next_obs"][k])
-        for name in ("decision", "params", "reward", "done"):
+        for name in ("decision", "params", "reward", "done", "is_demo"):
             getattr(self, name)[:n] = np.asarray(sd[name])
         self.pos, self.size = int(sd["pos"]), n

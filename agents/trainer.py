@@ -103,6 +103,9 @@ class TrainConfig:
     """Transitions first driven by the demonstrator (ACC-LC) to seed the replay (0 = off)."""
     demo_share: float = 0.05
     """Probability that a later episode is also driven by the demonstrator [0-1]."""
+    pretrain_updates: int = 0
+    """Learner updates on the demonstrations alone, once ``demo_steps`` have arrived, before
+    the workers get weights good enough to drive (0 = none)."""
     demo_policy: str = "acc-lc"
     """Demonstrator policy name for agents.policies.make_policy."""
     ablation: str = "none"
@@ -172,6 +175,8 @@ class TrainConfig:
             bad("demo_share", "must be in [0, 1]")
         if self.demo_steps < 0:
             bad("demo_steps", "must be >= 0")
+        if self.pretrain_updates < 0:
+            bad("pretrain_updates", "must be >= 0")
         for name in ("local_buffer", "replay_capacity", "batch_size", "sync_every", "log_every"):
             if getattr(self, name) < 1:
                 bad(name, "must be >= 1")
@@ -590,7 +595,7 @@ class Trainer:
     def ingest(self, chunk: Chunk, window: Window) -> None:
         """Chunk → replay, counters, curve window."""
         self.replay.add_batch(chunk["obs"], chunk["decision"], chunk["params"], chunk["reward"],
-                              chunk["next_obs"], chunk["done"])  # fmt: skip
+                              chunk["next_obs"], chunk["done"], chunk.get("is_demo"))  # fmt: skip
         n = len(chunk["decision"])
         key = (self.c["run"], chunk["worker_id"], chunk["incarnation"])
         if chunk["seq"] != self.received.get(key, 0) + 1:
@@ -611,7 +616,24 @@ class Trainer:
         if cfg.update_ratio == 0:
             return 1
         target = math.floor(cfg.update_ratio * (self.c["env_steps"] - cfg.learning_starts))
-        return max(0, target - self.c["updates"])
+        return max(0, target - (self.c["updates"] - self.c.get("pretrain_done", 0)))
+
+    def pretrain_due(self) -> bool:
+        """All demonstrations have arrived and the demo-only updates have not run yet."""
+        cfg = self.cfg
+        demos = sum(self.c["demo_received"])
+        return (
+            bool(cfg.pretrain_updates)
+            and not self.c.get("pretrain_done")
+            and demos >= cfg.demo_steps
+        )
+
+    def pretrain(self, window: Window, collector: Any) -> None:
+        """Updates on the replay as it is (the demonstrations), then publish the weights."""
+        for _ in range(self.cfg.pretrain_updates):
+            self.update_once(window, collector)
+        self.c["pretrain_done"] = self.cfg.pretrain_updates
+        collector.publish(self.weights())
 
     def update_once(self, window: Window, collector: Any) -> None:
         batch = self.replay.sample(self.cfg.batch_size, self.rng)
@@ -642,6 +664,8 @@ class Trainer:
         self.collector = collector
         try:
             while self.budget_left(t0):
+                if self.pretrain_due():
+                    self.pretrain(window, collector)
                 owed = self.owed_updates()
                 if collector.synchronous:
                     for _ in range(owed):

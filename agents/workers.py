@@ -139,9 +139,10 @@ class LocalBuffer:
         self.size = 0
 
     def add(self, obs: dict, dec: np.ndarray, par: np.ndarray, rew: np.ndarray,
-            nxt: dict, done: np.ndarray) -> None:  # fmt: skip
-        """One env step's transitions of A agents (arrays with leading dim A)."""
-        self._parts.append((obs, dec, par, rew, nxt, done))
+            nxt: dict, done: np.ndarray, demo: bool = False) -> None:  # fmt: skip
+        """One env step's transitions of A agents (arrays with leading dim A); ``demo``: the
+        demonstrator chose these actions."""
+        self._parts.append((obs, dec, par, rew, nxt, done, np.full(len(dec), demo, np.float32)))
         self.size += len(dec)
 
     def take(self) -> Chunk:
@@ -154,6 +155,7 @@ class LocalBuffer:
             "reward": cat([p[3] for p in parts]).astype(np.float32),
             "next_obs": {k: cat([p[4][k] for p in parts]).astype(np.float32) for k in OBS_KEYS},
             "done": cat([p[5] for p in parts]).astype(np.float32),
+            "is_demo": cat([p[6] for p in parts]).astype(np.float32),
         }
 
 
@@ -244,7 +246,7 @@ class RolloutWorker:
                     self._collisions += ev == "collision"
             r = np.array([rew[a] for a in agents], np.float32)
             done = np.array([bool(term[a]) for a in agents], np.float32)
-            self._buf.add(batch, dec, par, r, stack_obs(obs2, agents), done)
+            self._buf.add(batch, dec, par, r, stack_obs(obs2, agents), done, is_demo)
             self.acted.update(agents)
             self.ep_reward += float(r.sum())
             self.ep_actions += len(agents)
