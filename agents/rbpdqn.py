@@ -176,6 +176,9 @@ class RBPDQN:
 
 
 OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
+#: Steering ±1 is ±60°, so the same noise as on accel_brake (±1 = +3/−6 m/s²) would swerve the
+#: car off the road within a second; lane keeping needs about a degree of steering.
+STEER_NOISE_FACTOR = 0.05
 
 
 def obs_to_torch(obs: dict[str, np.ndarray]) -> dict[str, Tensor]:
@@ -231,7 +234,8 @@ class Policy:
     ) -> tuple[np.ndarray, np.ndarray]:
         """obs numpy (A, ...) → (decision (A,) int64, params (A, 3, 2) float32 in [-1, 1]).
 
-        Exploration: Gaussian noise (std ``noise_std``) on all params, clipped to [-1, 1], and
+        Exploration: Gaussian noise (std ``noise_std``, times ``STEER_NOISE_FACTOR`` for the
+        steering column) on all params, clipped to [-1, 1], and
         the critic scores the *noisy* params (they are what gets executed and stored); then with
         probability ``epsilon`` a uniformly random unmasked decision replaces the argmax.
         """
@@ -243,7 +247,8 @@ class Policy:
         if rng is None:
             raise ValueError("explore=True needs an rng")
         shape = (t["ego"].shape[0], 3, 2)
-        noise = torch.from_numpy(rng.normal(0.0, self.noise_std, size=shape).astype(np.float32))
+        std = self.noise_std * np.array([STEER_NOISE_FACTOR, 1.0], np.float32)  # per param
+        noise = torch.from_numpy((rng.normal(0.0, 1.0, size=shape) * std).astype(np.float32))
         if self._fused is not None:
             params, q = self._fused(t, noise=noise)
         else:
