@@ -48,8 +48,10 @@ import shutil
 import sys
 import tempfile
 import types
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
+from itertools import repeat
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -72,7 +74,6 @@ from mixed_traffic.perception import (
     Perception,
     PerceptionFrame,
     bumper_gap,
-    next_route_edge,
     ttc,
 )
 from mixed_traffic.scenario import (
@@ -92,6 +93,8 @@ class _AgentState:
     """Ground truth of the live agents kept from one step to the next, aligned with ``ids``."""
 
     ids: list[str] = field(default_factory=list)
+    slots: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    """(A,) agent number of each id (``av_i`` -> i)."""
     accel: np.ndarray = field(default_factory=lambda: np.zeros(0))
     lane: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     edge: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -99,6 +102,27 @@ class _AgentState:
     front_gap: np.ndarray = field(default_factory=lambda: np.zeros(0))
     rear_ids: list[str] = field(default_factory=list)
     rear_speed: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+class _Rows(dict):
+    """Agent -> snapshot row of the live agents (in agent order), with the same as arrays.
+
+    Built once per (snapshot, agent set) so the stages index arrays instead of looping over ids.
+    """
+
+    def __init__(self, items: dict[str, int], slot: dict[str, int], pos: list[int]) -> None:
+        super().__init__(items)
+        n = len(items)
+        self.ids: list[str] = list(items)
+        self.r = np.fromiter(items.values(), np.int64, n)
+        """(A,) snapshot rows."""
+        self.slots = np.fromiter(map(slot.__getitem__, self.ids), np.int64, n)
+        """(A,) agent numbers."""
+        self.pos = np.asarray(pos, np.int64)
+        """(A,) position of each agent in ``env.agents`` (the order of stacked actions)."""
+
+    def subset(self, ids: list[str], slot: dict[str, int]) -> _Rows:
+        return _Rows({a: self[a] for a in ids}, slot, [])
 
 
 class MixedTrafficEnv(ParallelEnv):
@@ -134,6 +158,8 @@ class MixedTrafficEnv(ParallelEnv):
         self.warmup = warmup
         demand = make_demand(self.scenario, cfg, np.random.default_rng(cfg.seed))
         self.possible_agents = sorted(demand.av_ids, key=lambda a: int(a[3:]))
+        # agent number: index into the per-agent tables (route table, per-slot scratch arrays)
+        self._slot = {a: i for i, a in enumerate(self.possible_agents)}
         self._obs_space = observation_space(cfg)
         self._act_space = action_space()
         self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
@@ -180,9 +206,15 @@ class MixedTrafficEnv(ParallelEnv):
         )
         self._av = AVMetrics(cfg.step_length, cfg.reward.rear_speed_drop)
         self._routes: dict[str, np.ndarray] = {}
+        # routes by agent number, -1 padded (filled on admission, so no per-step padding)
+        n = len(self.possible_agents)
+        self._route_table = np.full((n, 1), -1, dtype=np.int64)
+        self._route_len = np.zeros(n, dtype=np.int64)
+        self._rows_key: tuple = ()
+        self._rows_cache: _Rows | None = None
+        self._decision_by_slot = np.full(n, FOLLOW, dtype=np.int64)
         self._finished: set[str] = set()
         self._last_obs: dict[str, dict] = {}
-        self._decision: dict[str, int] = {}
         self._state = _AgentState()
         self.agents = list(self.possible_agents) if cfg.fixed_fleet else []
         snap = self._advance()
@@ -213,10 +245,12 @@ class MixedTrafficEnv(ParallelEnv):
     def _control(self, steer: np.ndarray, accel: np.ndarray, decision: np.ndarray):
         """Bicycle model -> SUMO for every agent present in the simulation."""
         rows = self._live_rows(self._snap)
-        acting = [i for i, a in enumerate(self.agents) if a in rows]
-        ids = [self.agents[i] for i in acting]
-        self._decision = dict(zip(ids, decision[acting].tolist()))
-        return self._controller.step(self._backend, self._snap, ids, steer[acting], accel[acting])
+        acting = rows.pos  # agents in the simulation, in agent order
+        self._decision_by_slot.fill(FOLLOW)  # agents that did not act count as following
+        self._decision_by_slot[rows.slots] = decision[acting]
+        return self._controller.step(
+            self._backend, self._snap, rows.ids, steer[acting], accel[acting]
+        )
 
     def _advance(self) -> TrafficSnapshot:
         """One SUMO step; the boundary replaces vehicles that left; flow metrics."""
@@ -240,32 +274,57 @@ class MixedTrafficEnv(ParallelEnv):
         self._controller.add_from_snapshot(snap, new, self._backend)
         for a in new:
             edges = self._backend.vehicle_route(a)
-            self._routes[a] = np.array(
-                [self.hdmap.edge_row.get(e, -1) for e in edges], dtype=np.int64
-            )
+            route = np.array([self.hdmap.edge_row.get(e, -1) for e in edges], dtype=np.int64)
+            self._routes[a] = route
+            self._set_route(self._slot[a], route)
         self._builder.drop(new)
         if not self.config.fixed_fleet:
             self.agents += new
         return new
 
-    def _live_rows(self, snap: TrafficSnapshot) -> dict[str, int]:
+    def _set_route(self, slot: int, route: np.ndarray) -> None:
+        """Store an admitted agent's route in the table (widened when a route is longer)."""
+        table = self._route_table
+        if len(route) > table.shape[1]:
+            wider = np.full((len(table), len(route)), -1, dtype=np.int64)
+            wider[:, : table.shape[1]] = table
+            self._route_table = table = wider
+        table[slot] = -1
+        table[slot, : len(route)] = route
+        self._route_len[slot] = len(route)
+
+    def _next_edge(self, slots: np.ndarray, route_index: np.ndarray) -> np.ndarray:
+        """``next_route_edge`` from the route table: (A,) next edge row, -1 on the last edge."""
+        k = np.asarray(route_index, np.int64) + 1
+        ok = (k >= 0) & (k < self._route_len[slots])
+        width = self._route_table.shape[1]
+        return np.where(ok, self._route_table[slots, np.clip(k, 0, width - 1)], -1)
+
+    def _live_rows(self, snap: TrafficSnapshot) -> _Rows:
         """Snapshot row of every admitted agent present in the simulation, in agent order.
 
         With ``fixed_fleet`` an AV that was still waiting to enter at reset is an agent before
-        ``_admit`` has seen it: it only counts once admitted (its route is known).
+        ``_admit`` has seen it: it only counts once admitted (its route is known). Cached until
+        the snapshot, the agent list or the admitted set changes (several stages ask per step).
         """
-        index, routes = snap.index_of(), self._routes
-        return {a: index[a] for a in self.agents if a in index and a in routes}
+        agents, routes = self.agents, self._routes
+        key = (snap, agents, len(agents), len(routes))
+        old = self._rows_key
+        if len(old) == 4 and old[0] is snap and old[1] is agents and old[2:] == key[2:]:
+            return self._rows_cache
+        index = snap.index_of()
+        pos = [i for i, a in enumerate(agents) if a in index and a in routes]
+        rows = _Rows({agents[i]: index[agents[i]] for i in pos}, self._slot, pos)
+        self._rows_key, self._rows_cache = key, rows
+        return rows
 
-    def _sense(
-        self, snap: TrafficSnapshot, rows: dict[str, int]
-    ) -> tuple[PerceptionFrame, PerceptionFrame]:
-        r = np.fromiter(rows.values(), np.int64, len(rows))
-        nxt = next_route_edge([self._routes[a] for a in rows], snap.route_index[r])
+    def _sense(self, snap: TrafficSnapshot, rows: _Rows) -> tuple[PerceptionFrame, PerceptionFrame]:
+        r = rows.r
+        nxt = self._next_edge(rows.slots, snap.route_index[r])
         tls = [self._tls[t] for t in self._perception.tls_ids]
         return self._perception.sense(snap, r, nxt, tls, self._noise_rng)
 
-    def _events(self, snap: TrafficSnapshot, rows: dict[str, int], cmd) -> dict[str, str]:
+    def _events(self, snap: TrafficSnapshot, rows: _Rows, cmd) -> dict[str, str]:
         """'arrived', a terminal reason, or '' for every agent that acted."""
         prev, hd = self._state, self.hdmap
         crashed = rw.collided_mask(prev.ids, snap.collisions)
@@ -274,52 +333,76 @@ class MixedTrafficEnv(ParallelEnv):
             a: "collision" if c else "arrived" if a in arrived else ""
             for a, c in zip(prev.ids, crashed)
         }
-        here = [i for i, a in enumerate(prev.ids) if a in rows and not events[a]]
-        if not here:
+        if not events:
             return events
-        ids = [prev.ids[i] for i in here]
-        p = np.array(here, dtype=np.int64)
-        r = np.array([rows[a] for a in ids], dtype=np.int64)
+        now = self._by_slot(rows.slots, rows.r)[prev.slots]  # row now, -1 if gone
+        fine = np.fromiter(map(events.__getitem__, prev.ids), object, len(prev.ids)) == ""
+        p = np.flatnonzero((now >= 0) & fine)
+        if not len(p):
+            return events
+        ids = [prev.ids[i] for i in p.tolist()]
+        r = now[p]
         # SUMO clamps lateral moves to the road: judge off-road by the commanded position
-        lateral = _aligned(cmd.ids, cmd.intended_lateral, ids, snap.lateral[r])
+        lateral = self._aligned(cmd.ids, cmd.intended_lateral, prev.slots[p], snap.lateral[r])
         reasons = rw.terminal_events(
             collision=np.zeros(len(r), bool),
             off_road=rw.off_road_mask(hd, prev.lane[p], lateral),
             route_deviation=rw.route_deviation_mask(hd, snap.edge[r], snap.lane[r], snap.lane_pos[r],
-                                                    _padded([self._routes[a] for a in ids]), snap.route_index[r]),
+                                                    self._route_table[prev.slots[p]], snap.route_index[r]),
             red_light=rw.red_light_mask(hd, prev.lane[p], snap.lane[r], prev.next_edge[p], self._tls_prev),
             speed_limit=rw.speed_limit_mask(snap.speed[r], hd.lane_speed[snap.lane[r]], self.config.speed_tolerance),
         )  # fmt: skip
         events.update(zip(ids, reasons.tolist()))
         return events
 
+    def _by_slot(self, slots: np.ndarray, values: np.ndarray, fill: Any = -1) -> np.ndarray:
+        """(n_agents,) table with ``values`` at ``slots`` and ``fill`` elsewhere (id lookups
+        become array indexing)."""
+        values = np.asarray(values)
+        out = np.full(len(self.possible_agents), fill, dtype=values.dtype)
+        out[slots] = values
+        return out
+
+    def _aligned(
+        self, cmd_ids: list[str], values: np.ndarray, slots: np.ndarray, default: np.ndarray
+    ) -> np.ndarray:
+        """``values`` (ordered as ``cmd_ids``) at the agents ``slots``; ``default`` where absent."""
+        cmd = np.fromiter(map(self._slot.__getitem__, cmd_ids), np.int64, len(cmd_ids))
+        at = self._by_slot(cmd, np.arange(len(cmd)))[slots]
+        vals = np.asarray(values, np.float64)
+        out = np.array(default, dtype=np.float64, copy=True)
+        out[at >= 0] = vals[at[at >= 0]]
+        return out
+
     def _rewards(
         self,
         snap: TrafficSnapshot,
-        rows: dict[str, int],
+        rows: _Rows,
         truth: PerceptionFrame,
         events: dict[str, str],
     ):
-        """Reward, named terms and completed lane changes of every agent that acted."""
+        """Reward, named terms and completed lane changes (bool per agent number) of every
+        agent that acted."""
         prev, cfg, hd = self._state, self.config, self.hdmap
         rewards: dict[str, float] = {}
         terms_out: dict[str, dict[str, float]] = {}
         failed = {a for a, e in events.items() if e not in ("", "arrived")}
-        for a in prev.ids:
-            if a not in rows:  # left the network this step: only the terminal penalty applies
-                t = dict.fromkeys(rw.TERM_NAMES, 0.0)
-                t["r1_terminal"] = cfg.reward.terminal_penalty if a in failed else 0.0
-                terms_out[a], rewards[a] = t, cfg.reward.w_safety * t["r1_terminal"]
-        here = [i for i, a in enumerate(prev.ids) if a in rows]
-        if not here:
-            return rewards, terms_out, {}
-        ids = [prev.ids[i] for i in here]
-        p = np.array(here, dtype=np.int64)
-        r = np.array([rows[a] for a in ids], dtype=np.int64)
-        order = {a: j for j, a in enumerate(rows)}  # truth was sensed in the order of rows
-        k = np.array([order[a] for a in ids], dtype=np.int64)
+        now = self._by_slot(rows.slots, rows.r)[prev.slots]  # row now, -1 if gone
+        for i in np.flatnonzero(now < 0).tolist():
+            # left the network this step: only the terminal penalty applies
+            a = prev.ids[i]
+            t = dict.fromkeys(rw.TERM_NAMES, 0.0)
+            t["r1_terminal"] = cfg.reward.terminal_penalty if a in failed else 0.0
+            terms_out[a], rewards[a] = t, cfg.reward.w_safety * t["r1_terminal"]
+        p = np.flatnonzero(now >= 0)
+        if not len(p):
+            return rewards, terms_out, self._by_slot(p, np.zeros(0, bool), False)
+        ids = [prev.ids[i] for i in p.tolist()]
+        r = now[p]
+        # truth was sensed in the order of rows
+        k = self._by_slot(rows.slots, np.arange(len(rows.r)))[prev.slots[p]]
         front = _FrontView(snap, truth, k, r)
-        rear_now = _speeds_of(snap, [prev.rear_ids[i] for i in here])
+        rear_now = _speeds_of(snap, [prev.rear_ids[i] for i in p.tolist()])
         lane = snap.lane[r]
         changed = rw.lane_change_completed(prev.lane[p], lane, prev.edge[p], snap.edge[r])
         terms = rw.reward_terms(
@@ -327,7 +410,7 @@ class MixedTrafficEnv(ParallelEnv):
             front_distance=front.distance, closing_speed=front.closing, length=snap.length[r],
             front_length=front.length,
             centre_distance=rw.centreline_distance(hd, lane, snap.lane_pos[r], snap.x[r], snap.y[r]),
-            lane_width=hd.lane_width[lane], terminal=np.array([a in failed for a in ids]),
+            lane_width=hd.lane_width[lane], terminal=np.fromiter(map(failed.__contains__, ids), bool, len(ids)),
             speed=snap.speed[r], speed_limit=hd.lane_speed[lane],
             lane_changed=changed, gap_new=front.gap, gap_old=prev.front_gap[p],
             lidar_range=cfg.sensors.lidar_range, accel=snap.accel[r], prev_accel=prev.accel[p],
@@ -338,55 +421,50 @@ class MixedTrafficEnv(ParallelEnv):
         columns = [np.asarray(v, np.float64).tolist() for v in terms.values()]
         terms_out.update((a, dict(zip(names, row))) for a, *row in zip(ids, *columns))
         rewards.update(zip(ids, np.asarray(total, np.float64).tolist()))
-        return rewards, terms_out, dict(zip(ids, changed.tolist()))
+        return rewards, terms_out, self._by_slot(prev.slots[p], np.asarray(changed, bool), False)
 
-    def _record(self, snap, rows: dict[str, int], truth: PerceptionFrame, rewards: dict[str, float],
-                changed: dict[str, bool]) -> None:  # fmt: skip
+    def _record(self, snap, rows: _Rows, truth: PerceptionFrame, rewards: dict[str, float],
+                changed: np.ndarray) -> None:  # fmt: skip
         """Per-AV metrics of this step (flow metrics are recorded in ``_advance``)."""
-        ids = list(rows)
-        r = np.fromiter(rows.values(), np.int64, len(rows))
+        ids, r, n = rows.ids, rows.r, len(rows.ids)
         front = _FrontView(snap, truth, np.arange(len(r)), r)
         rear_ids, rear_speed = _rear_conventional(snap, truth)
         prev = self._state
-        pos = {a: i for i, a in enumerate(prev.ids)}
-        pi = np.array([pos.get(a, -1) for a in ids], dtype=np.int64)
+        pi = self._by_slot(prev.slots, np.arange(len(prev.ids)))[rows.slots]  # -1: new agent
         prev_accel = np.where(pi >= 0, _take(prev.accel, pi), snap.accel[r])
-        same = np.array([pi[j] >= 0 and rear_ids[j] != "" and prev.rear_ids[pi[j]] == rear_ids[j]
-                         for j in range(len(ids))], bool)  # fmt: skip
+        # the same conventional vehicle C behind the agent as at the previous step
+        rear_now = np.array(rear_ids, dtype=object)
+        rear_before = np.array([*prev.rear_ids, ""], dtype=object)[pi]  # pi = -1 -> ""
+        same = (pi >= 0) & (rear_now != "") & (rear_before == rear_now)
         self._av.step(
             AVStep(ids=ids, speed=snap.speed[r], accel=snap.accel[r], prev_accel=prev_accel,
                    lateral=snap.lateral[r],
-                   following=np.array([self._decision.get(a, FOLLOW) == FOLLOW for a in ids], bool),
-                   lane_changed=np.array([changed.get(a, False) for a in ids], bool),
+                   following=self._decision_by_slot[rows.slots] == FOLLOW,
+                   lane_changed=changed[rows.slots],
                    ttc=np.where(front.exists, ttc(front.gap, front.closing), np.inf),
                    rear_ids=rear_ids, rear_speed=np.nan_to_num(rear_speed),
                    rear_prev_speed=np.where(same, _take(prev.rear_speed, pi), np.nan),
-                   reward=np.array([rewards.get(a, 0.0) for a in ids])),
+                   reward=np.fromiter(map(rewards.get, ids, repeat(0.0)), np.float64, n)),
             snap.time,
-            dict(zip(snap.ids, snap.speed.tolist())),
+            _SpeedView(snap),
         )  # fmt: skip
 
-    def _remember(
-        self, snap: TrafficSnapshot, rows: dict[str, int], truth: PerceptionFrame
-    ) -> None:
+    def _remember(self, snap: TrafficSnapshot, rows: _Rows, truth: PerceptionFrame) -> None:
         """Ground truth of this step that the next step's events and rewards compare against."""
-        ids = list(rows)
-        r = np.fromiter(rows.values(), np.int64, len(rows))
+        r = rows.r
         rear_ids, rear_speed = _rear_conventional(snap, truth)
         self._state = _AgentState(
-            ids=ids, accel=snap.accel[r].copy(), lane=snap.lane[r].astype(np.int64),
+            ids=rows.ids, slots=rows.slots, accel=snap.accel[r].copy(), lane=snap.lane[r].astype(np.int64),
             edge=snap.edge[r].astype(np.int64),
-            next_edge=next_route_edge([self._routes[a] for a in ids], snap.route_index[r]),
+            next_edge=self._next_edge(rows.slots, snap.route_index[r]),
             front_gap=_FrontView(snap, truth, np.arange(len(r)), r).gap, rear_ids=rear_ids, rear_speed=rear_speed,
         )  # fmt: skip
         self._tls_prev = dict(self._tls)
 
-    def _observe(self, snap, rows: dict[str, int], sensed: PerceptionFrame) -> dict[str, dict]:
-        ids = list(rows)
-        r = np.fromiter(rows.values(), np.int64, len(rows))
-        obs = (
-            self._builder.build(snap, ids, r, sensed, [self._routes[a] for a in ids]) if ids else {}
-        )
+    def _observe(self, snap, rows: _Rows, sensed: PerceptionFrame) -> dict[str, dict]:
+        ids = rows.ids
+        routes = list(map(self._routes.__getitem__, ids))
+        obs = self._builder.build(snap, ids, rows.r, sensed, routes) if ids else {}
         self._last_obs.update(obs)
         return obs
 
@@ -413,8 +491,7 @@ class MixedTrafficEnv(ParallelEnv):
             self.agents = [a for a in agents if not terminated[a]]
         new = [] if truncate else self._admit(snap)  # nobody enters at the time limit
         if new:
-            rows = self._live_rows(snap)
-            rows = {a: rows[a] for a in new}
+            rows = self._live_rows(snap).subset(new, self._slot)
             new_obs = self._observe(snap, rows, self._sense(snap, rows)[1])
             self._remember_new(snap, rows)
             for a in new:
@@ -511,8 +588,27 @@ def _rear_conventional(
 
 def _speeds_of(snap: TrafficSnapshot, ids: list[str]) -> np.ndarray:
     """Speed of each vehicle id now, nan if it is not in the network (or '')."""
-    index = snap.index_of()
-    return np.array([snap.speed[index[v]] if v in index else np.nan for v in ids], dtype=np.float64)
+    k = np.fromiter(map(snap.index_of().get, ids, repeat(-1)), np.int64, len(ids))
+    return np.where(k >= 0, snap.speed[np.maximum(k, 0)], np.nan) if len(k) else np.zeros(0)
+
+
+class _SpeedView(Mapping):
+    """Vehicle id -> speed now [m/s], read from the snapshot on demand (no per-step dict)."""
+
+    def __init__(self, snap: TrafficSnapshot) -> None:
+        self._index, self._speed = snap.index_of(), snap.speed
+
+    def __getitem__(self, vid: str) -> float:
+        return float(self._speed[self._index[vid]])
+
+    def __contains__(self, vid: object) -> bool:
+        return vid in self._index
+
+    def __iter__(self):
+        return iter(self._index)
+
+    def __len__(self) -> int:
+        return len(self._index)
 
 
 def _take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
@@ -520,27 +616,6 @@ def _take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
     out = np.full(len(idx), np.nan)
     ok = idx >= 0
     out[ok] = values[idx[ok]]
-    return out
-
-
-def _aligned(
-    cmd_ids: list[str], values: np.ndarray, ids: list[str], default: np.ndarray
-) -> np.ndarray:
-    """``values`` (ordered as ``cmd_ids``) reordered to ``ids``; ``default`` where absent."""
-    pos = {a: i for i, a in enumerate(cmd_ids)}
-    out = np.array(default, dtype=np.float64, copy=True)
-    for j, a in enumerate(ids):
-        if a in pos:
-            out[j] = values[pos[a]]
-    return out
-
-
-def _padded(routes: list[np.ndarray]) -> np.ndarray:
-    """(A, R) edge rows, -1 padded."""
-    width = max((len(r) for r in routes), default=1)
-    out = np.full((len(routes), width), -1, dtype=np.int64)
-    for i, r in enumerate(routes):
-        out[i, : len(r)] = r
     return out
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -83,7 +84,12 @@ class TrafficSnapshot:
         return self.route_index / np.maximum(self.route_length - 1, 1)
 
     def index_of(self) -> dict[str, int]:
-        """Vehicle id -> row."""
+        """Vehicle id -> row (built once per snapshot; do not mutate the returned dict)."""
+        return self._index
+
+    @cached_property
+    def _index(self) -> dict[str, int]:
+        # several stages look vehicles up by id every step: build the map once per snapshot
         return {vid: i for i, vid in enumerate(self.ids)}
 
 
