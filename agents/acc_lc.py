@@ -80,6 +80,17 @@ class AccLcConfig:
     rear_headway: float = 0.6
     rear_decel: float = 2.0
     lc_start_offset: float = 0.3
+    # forced merge (mandatory change): the rear vehicle of the target lane, assumed to follow
+    # IDM (hv parameters), may need to brake at most ``force_rear_decel`` for the ego
+    force_rear_decel: float = 3.0
+    force_front_decel: float = 3.0
+    hv_a: float = 1.5
+    hv_b: float = 2.0
+    hv_T: float = 1.2
+    hv_s0: float = 2.0
+    # lateral envelope: clearance kept to vehicles alongside (longitudinal overlap)
+    side_margin: float = 0.4
+    side_long_margin: float = 2.0
     # lateral
     lat_accel: float = 2.0
     lat_speed: float = 1.0
@@ -275,6 +286,82 @@ class AccLcPolicy:
         front_ok = ~np.isfinite(fd) | (fgap > req_f)
         return f["exists"][:, side] & rear_ok & front_ok
 
+    def _forced_ok(self, f, side: int) -> np.ndarray:
+        """(A,) a forced (cooperative) merge into ``side`` is acceptable: the target lane's rear
+        vehicle, following IDM with the ego as its leader, brakes at most ``force_rear_decel``,
+        and the ego can follow the target lane's front vehicle braking at most
+        ``force_front_decel``; both bumper gaps stay positive with a margin."""
+        c = self.c
+        v = f["v"]
+        rd = -f["vdist"][:, side, 1]
+        rgap = rd - f["len"]
+        v_r = np.maximum(v + f["vrel"][:, side, 1], 0.0)
+        s_star = c.hv_s0 + v_r * c.hv_T + v_r * (v_r - v) / (2 * np.sqrt(c.hv_a * c.hv_b))
+        s_star = np.maximum(s_star, c.hv_s0)
+        acc_r = c.hv_a * (1.0 - (s_star / np.maximum(rgap, 0.1)) ** 2)
+        # (kinematic alternative: the rear vehicle can stop behind the ego at that rate)
+        kin = (v_r - v) ** 2 / (2 * np.maximum(rgap - c.hv_s0, 0.1)) <= c.force_rear_decel
+        rear_ok = ~np.isfinite(rd) | (
+            ((acc_r >= -c.force_rear_decel) | kin) & (rgap > c.hv_s0 + 0.3 * v_r)
+        )
+        fd = f["vdist"][:, side, 0]
+        fgap = fd - f["vlen"][:, side, 0]
+        fclose = np.maximum(-f["vrel"][:, side, 0], 0.0)
+        front_ok = ~np.isfinite(fd) | (
+            (fgap > 1.5 + 0.3 * v)
+            & (fclose**2 / (2 * np.maximum(fgap - 1.0, 0.1)) <= c.force_front_decel)
+        )
+        return f["exists"][:, side] & rear_ok & front_ok
+
+    def _wait_accel(self, f, side: int, acc_cur) -> np.ndarray:
+        """(A,) acceleration of a mandatory change waiting for (or forcing into) a gap: aim at
+        the slot between the target lane's front and rear vehicles when it is long enough
+        (match their speed, centre the slack), else let the rear vehicle pass; never beyond the
+        current lane's own limits (``acc_cur``: its leaders and the lane's end)."""
+        c = self.c
+        v = f["v"]
+        fd, rd = f["vdist"][:, side, 0], -f["vdist"][:, side, 1]
+        has_f, has_r = np.isfinite(fd), np.isfinite(rd)
+        fgap = np.where(has_f, fd - f["vlen"][:, side, 0], 1e3)
+        rgap = np.where(has_r, rd - f["len"], 1e3)
+        v_f = np.maximum(v + f["vrel"][:, side, 0], 0.0)
+        v_r = np.maximum(v + f["vrel"][:, side, 1], 0.0)
+        need_r = (c.hv_s0 + c.hv_T * v_r) / np.sqrt(1.0 + c.force_rear_decel / c.hv_a) + 0.5
+        need_f = 1.5 + 0.3 * v
+        slack = fgap + rgap - need_r - need_f
+        fits = slack > 0
+        e = fgap - (need_f + 0.5 * np.minimum(slack, 20.0))  # > 0: too far back
+        v_ref = np.where(has_f, v_f, np.where(has_r, v_r + 1.0, v))
+        acc_gap = 0.4 * e + 1.0 * (v_ref - v)
+        acc_pass = 1.0 * (np.maximum(v_r - 2.0, 0.0) - v)
+        acc = np.clip(np.where(fits, acc_gap, acc_pass), -c.force_front_decel, c.a)
+        return np.minimum(acc, acc_cur)
+
+    def _lateral_bounds(self, f) -> tuple[np.ndarray, np.ndarray]:
+        """(A,) lowest / highest allowed lateral target (current-lane frame): a vehicle
+        alongside (longitudinal overlap plus a margin) in any lane column, e.g. one straddling
+        into the lane we change to from the other side, bounds the lateral motion towards it."""
+        c = self.c
+        d = f["d"][:, None, None]
+        shift = np.array([1.0, 0.0, -1.0])[None, :, None] * c.lane_width_min
+        y = f["vlat"] + shift  # (A, 3, 2) relative to the current lane centre
+        dist = f["vdist"]
+        close_f = np.maximum(-f["vrel"][:, :, 0], 0.0)
+        close_r = np.maximum(f["vrel"][:, :, 1], 0.0)
+        lm = c.side_long_margin
+        ahead = (dist[:, :, 0] - f["vlen"][:, :, 0]) < lm + close_f
+        behind = (-dist[:, :, 1] - f["len"][:, None]) < lm + close_r
+        along = np.stack([ahead, behind], axis=2) & f["present"] & (f["vlen"] > 0.1)
+        half = 0.5 * (f["wid"][:, None, None] + f["vwid"])
+        # only vehicles beside us (already overlapping laterally is the longitudinal case)
+        beside = along & (np.abs(y - d) > half - 0.2)
+        H = half + c.side_margin
+        hi = np.where(beside & (y > d), y - H, np.inf).min(axis=(1, 2))
+        lo = np.where(beside & (y <= d), y + H, -np.inf).max(axis=(1, 2))
+        squeezed = lo > hi
+        mid = 0.5 * (np.where(squeezed, lo, 0.0) + np.where(squeezed, hi, 0.0))
+        return np.where(squeezed, mid, lo), np.where(squeezed, mid, hi)
+
     def act(self, obs_batch: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Decisions (A,) int64 and params (A, 3, 2) float32 for stacked observations."""
         c = self.c
@@ -320,15 +407,29 @@ class AccLcPolicy:
             decision = np.where(bad & mask[:, FOLLOW], FOLLOW, np.where(bad, first, decision))
         # params per decision: a change row shifts the lateral target only while it is safe
         # (a mandatory change that is not safe yet holds the lane and waits)
-        go_l = np.where(going_l, cont_l, safe_l)
-        go_r = np.where(going_r, cont_r, safe_r)
+        # a mandatory change also accepts a forced (cooperative) gap
+        forced_l = mand & self._forced_ok(f, _L) & mask[:, LEFT]
+        forced_r = mand & self._forced_ok(f, _R) & mask[:, RIGHT]
+        go_l = np.where(going_l, cont_l, safe_l) | forced_l
+        go_r = np.where(going_r, cont_r, safe_r) | forced_r
         t_l = np.where(go_l, c.lane_shift, 0.0)
         t_r = np.where(go_r, -c.lane_shift, 0.0)
         # while changing, the current lane's leaders still count (min of both lanes)
-        acc_l = np.where(go_l, np.minimum(acc_l, acc_f), acc_f)
-        acc_r = np.where(go_r, np.minimum(acc_r, acc_f), acc_f)
+        # mandatory change waiting for a gap: match the target lane (stay behind its front
+        # vehicle) and let a rear vehicle that is about alongside pass
+        wait_l = self._wait_accel(f, _L, acc_f)
+        wait_r = self._wait_accel(f, _R, acc_f)
+        norm_l = np.where(go_l, np.minimum(acc_l, acc_f), acc_f)
+        norm_r = np.where(go_r, np.minimum(acc_r, acc_f), acc_f)
+        acc_l = np.where(mand & ~(go_l & (safe_l | going_l & cont_l)), wait_l, norm_l)
+        acc_r = np.where(mand & ~(go_r & (safe_r | going_r & cont_r)), wait_r, norm_r)
+        # keep clear laterally of vehicles alongside (simultaneous changes into one lane)
+        lo, hi = self._lateral_bounds(f)
+        t_f = np.clip(np.zeros(A), lo, hi)
+        t_l = np.clip(t_l, lo, hi)
+        t_r = np.clip(t_r, lo, hi)
         params = np.empty((A, 3, 2), dtype=np.float32)
-        params[:, FOLLOW, 0] = self._steer(f, np.zeros(A))
+        params[:, FOLLOW, 0] = self._steer(f, t_f)
         params[:, LEFT, 0] = self._steer(f, t_l)
         params[:, RIGHT, 0] = self._steer(f, t_r)
         params[:, FOLLOW, 1] = self._to_ab(acc_f)

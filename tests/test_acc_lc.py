@@ -74,6 +74,30 @@ def test_actions_dict_round_trip() -> None:
     assert AccLcPolicy().actions({}) == {}
 
 
+def test_keeps_clear_of_a_vehicle_straddling_in_from_the_far_side() -> None:
+    """An AV just arrived in the middle lane (offset -1.6 m) must not centre towards a
+    vehicle alongside in the left lane that is straddling towards it (offset -1.5 m)."""
+    z, m = 5, 10
+    ego = np.zeros((1, z, 5), np.float32)
+    ego[..., 0] = 8 / 40
+    ego[..., 2] = 0.5
+    ego[..., 3] = 1.8 / 5
+    ego[..., 4] = -1.6 / 2
+    lanes = np.zeros((1, 3, z, 4 * m), np.float32)
+    lanes[..., 3::4] = 25 / 40
+    veh = np.zeros((1, 3, z, 12), np.float32)
+    veh[0, 0, :, 6:] = [-1.6 / 90, 0.0, 0.0, 0.5, 1.8 / 5, -1.5 / 2]  # left lane, rear slot
+    batch = dict(ego=ego, lanes=lanes, vehicles=veh, lights=np.zeros((1, 3, z, 4), np.float32),
+                 node_mask=np.ones((1, 3, 3), np.int8),
+                 action_mask=np.ones((1, 3), np.int8))  # fmt: skip
+    pol = AccLcPolicy()
+    lo, hi = pol._lateral_bounds(pol._features(batch))
+    # centring (target 0) is clamped to keep side_margin: hi = -1.5 + 3.2 - 1.8 - 0.4
+    assert hi[0] == pytest.approx(-0.5, abs=0.05) and lo[0] == -np.inf
+    decision, _ = pol.act(batch)
+    assert decision[0] != 0
+
+
 def _drive(scenario: str, density: float, penetration: float, seconds: float = 45.0):
     from mixed_traffic.env import parallel_env
 
@@ -115,12 +139,14 @@ def _drive(scenario: str, density: float, penetration: float, seconds: float = 4
     "scenario,density,penetration",
     [
         ("straight", 180, 1.0),
-        ("highway-eval", 60, 0.2),
+        ("highway", 60, 1.0),  # two AVs changing into the middle lane from both sides
+        ("highway-eval", 180, 0.2),
         ("bottleneck", 180, 1.0),
         ("bottleneck", 60, 1.0),
         ("merge", 180, 1.0),
         ("merge-eval", 60, 0.2),
         ("urban", 120, 1.0),
+        ("urban-eval", 60, 0.2),
     ],
 )
 def test_drives_safely(scenario: str, density: float, penetration: float) -> None:
