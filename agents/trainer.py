@@ -629,9 +629,18 @@ class Trainer:
         )
 
     def pretrain(self, window: Window, collector: Any) -> None:
-        """Updates on the replay as it is (the demonstrations), then publish the weights."""
-        for _ in range(self.cfg.pretrain_updates):
-            self.update_once(window, collector)
+        """Updates on the replay as it is (the demonstrations), then publish the weights.
+
+        The actor learns by behaviour cloning alone here (α = 0): early on the critic's Q is
+        noise, and its gradient would pull the actor away from the demonstrations.
+        """
+        rl_cfg = self.learner.cfg
+        self.learner.cfg = replace(rl_cfg, alpha=0.0)
+        try:
+            for _ in range(self.cfg.pretrain_updates):
+                self.update_once(window, collector)
+        finally:
+            self.learner.cfg = rl_cfg
         self.c["pretrain_done"] = self.cfg.pretrain_updates
         collector.publish(self.weights())
 
