@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections import defaultdict
 from dataclasses import dataclass, field
+from itertools import repeat
 
 import numpy as np
 
@@ -62,7 +63,7 @@ class AVMetrics:
 
     dt: float
     rear_speed_drop: float = 0.1
-    _trips: dict[str, _Trip] = field(default_factory=lambda: defaultdict(_Trip))
+    _trips: _LiveTrips = field(default_factory=lambda: _LiveTrips())
     _ended: list[_Trip] = field(default_factory=list)
     _sums: dict[str, float] = field(default_factory=lambda: defaultdict(float))
     _rear_seen: set[str] = field(default_factory=set)
@@ -79,12 +80,8 @@ class AVMetrics:
             return
         dt = self.dt
         affected = np.nan_to_num(s.rear_prev_speed - s.rear_speed, nan=0.0) > self.rear_speed_drop
-        for i, vid in enumerate(s.ids):
-            trip = self._trips[vid]
-            trip.time += dt
-            trip.distance += float(s.speed[i]) * dt
-            trip.min_ttc = min(trip.min_ttc, float(s.ttc[i]))
-            trip.affected_time += dt * bool(affected[i])
+        self._trips.add(s.ids, dt, np.asarray(s.speed, np.float64), np.asarray(s.ttc, np.float64),
+                        affected)  # fmt: skip
         sums = self._sums
         sums["steps"] += n
         sums["speed"] += float(s.speed.sum())
@@ -119,7 +116,7 @@ class AVMetrics:
             self.arrived += 1
         elif reason in self.events:
             self.events[reason] += 1
-        trip = self._trips.pop(vid, None)
+        trip = self._trips.pop(vid)
         if trip is not None:
             self._ended.append(trip)
 
@@ -130,7 +127,7 @@ class AVMetrics:
 
     def summary(self) -> dict[str, float]:
         """Metric values keyed as in ``schema.METRICS`` (nan where nothing was observed)."""
-        trips = [*self._ended, *self._trips.values()]
+        trips = [*self._ended, *self._trips.trips()]
         driven = [t for t in trips if t.distance > 50.0]  # DT-A needs a meaningful distance
         s = self._sums
         steps = max(s["steps"], 1.0)
@@ -150,6 +147,65 @@ class AVMetrics:
         }
         out.update({f"terminal_{k}": float(v) for k, v in self.events.items()})
         return out
+
+
+class _LiveTrips:
+    """Running trips of the AVs in the network, as arrays indexed by a slot per AV.
+
+    Same sums as one ``_Trip`` per AV updated in a loop (each slot adds the same float64 terms
+    in the same order), without per-agent Python work each step. Slots are listed in the order
+    the trips started, as the ``_Trip`` dict was.
+    """
+
+    def __init__(self) -> None:
+        self._slot: dict[str, int] = {}  # vid -> slot, in trip start order
+        self._free: list[int] = []
+        self._time = np.zeros(0)
+        self._distance = np.zeros(0)
+        self._min_ttc = np.zeros(0)
+        self._affected = np.zeros(0)
+
+    def add(self, ids: list[str], dt: float, speed: np.ndarray, ttc: np.ndarray,
+            affected: np.ndarray) -> None:  # fmt: skip
+        """One step of the AVs ``ids`` (a trip starts at an AV's first step)."""
+        idx = np.fromiter(map(self._slot.get, ids, repeat(-1)), np.int64, len(ids))
+        for j in np.flatnonzero(idx < 0).tolist():
+            idx[j] = self._open(ids[j])
+        self._time[idx] += dt
+        self._distance[idx] += speed * dt
+        self._min_ttc[idx] = np.fmin(self._min_ttc[idx], ttc)  # the ttc unless it is nan
+        self._affected[idx] += np.where(affected, dt, 0.0)
+
+    def _open(self, vid: str) -> int:
+        if not self._free:
+            n = len(self._time)
+            grow = max(n, 16)
+            self._time = np.concatenate([self._time, np.zeros(grow)])
+            self._distance = np.concatenate([self._distance, np.zeros(grow)])
+            self._min_ttc = np.concatenate([self._min_ttc, np.full(grow, np.inf)])
+            self._affected = np.concatenate([self._affected, np.zeros(grow)])
+            self._free = list(range(n + grow - 1, n - 1, -1))
+        k = self._free.pop()
+        self._slot[vid] = k
+        return k
+
+    def _trip(self, k: int) -> _Trip:
+        return _Trip(float(self._time[k]), float(self._distance[k]), float(self._min_ttc[k]),
+                     float(self._affected[k]))  # fmt: skip
+
+    def pop(self, vid: str) -> _Trip | None:
+        """The trip of ``vid``, closed (None if it has none)."""
+        k = self._slot.pop(vid, None)
+        if k is None:
+            return None
+        trip = self._trip(k)
+        self._time[k] = self._distance[k] = self._affected[k] = 0.0
+        self._min_ttc[k] = np.inf
+        self._free.append(k)
+        return trip
+
+    def trips(self) -> list[_Trip]:
+        return [self._trip(k) for k in self._slot.values()]
 
 
 def _mean(values: list[float]) -> float:
