@@ -51,7 +51,7 @@ import types
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
-from itertools import repeat
+from itertools import compress, repeat
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -263,14 +263,11 @@ class MixedTrafficEnv(ParallelEnv):
 
     def _admit(self, snap: TrafficSnapshot) -> list[str]:
         """Start controlling AVs that (re-)entered the network; returns their ids."""
-        known = self._controller.tracked
-        new = [
-            v
-            for v, av in zip(snap.ids, snap.is_av.tolist())
-            if av and v not in known and v not in self._finished
-        ]
-        if not new:
+        avs = list(compress(snap.ids, snap.is_av.tolist()))
+        fresh = set(avs).difference(self._controller.tracked, self._finished)
+        if not fresh:  # the usual step: set operations only, no per-vehicle Python loop
             return []
+        new = [v for v in avs if v in fresh]  # in snapshot order
         self._controller.add_from_snapshot(snap, new, self._backend)
         for a in new:
             edges = self._backend.vehicle_route(a)
@@ -308,14 +305,14 @@ class MixedTrafficEnv(ParallelEnv):
         the snapshot, the agent list or the admitted set changes (several stages ask per step).
         """
         agents, routes = self.agents, self._routes
-        key = (snap, agents, len(agents), len(routes))
-        old = self._rows_key
-        if len(old) == 4 and old[0] is snap and old[1] is agents and old[2:] == key[2:]:
+        # by content: _finish rebuilds the agent list every step, usually with the same agents
+        key = (tuple(agents), len(routes))
+        if self._rows_key and self._rows_key[0] is snap and self._rows_key[1:] == key:
             return self._rows_cache
         index = snap.index_of()
         pos = [i for i, a in enumerate(agents) if a in index and a in routes]
         rows = _Rows({agents[i]: index[agents[i]] for i in pos}, self._slot, pos)
-        self._rows_key, self._rows_cache = key, rows
+        self._rows_key, self._rows_cache = (snap, *key), rows
         return rows
 
     def _sense(self, snap: TrafficSnapshot, rows: _Rows) -> tuple[PerceptionFrame, PerceptionFrame]:
@@ -327,7 +324,11 @@ class MixedTrafficEnv(ParallelEnv):
     def _events(self, snap: TrafficSnapshot, rows: _Rows, cmd) -> dict[str, str]:
         """'arrived', a terminal reason, or '' for every agent that acted."""
         prev, hd = self._state, self.hdmap
-        crashed = rw.collided_mask(prev.ids, snap.collisions)
+        crashed = (
+            rw.collided_mask(prev.ids, snap.collisions)
+            if snap.collisions
+            else repeat(False, len(prev.ids))
+        )
         arrived = set(snap.arrived)
         events = {
             a: "collision" if c else "arrived" if a in arrived else ""
@@ -419,7 +420,8 @@ class MixedTrafficEnv(ParallelEnv):
         total = rw.total_reward(terms, cfg.reward)
         names = list(terms)
         columns = [np.asarray(v, np.float64).tolist() for v in terms.values()]
-        terms_out.update((a, dict(zip(names, row))) for a, *row in zip(ids, *columns))
+        # one {term: value} dict per agent, built by C-level maps (hundreds of agents per step)
+        terms_out.update(zip(ids, map(dict, map(zip, repeat(names), zip(*columns)))))
         rewards.update(zip(ids, np.asarray(total, np.float64).tolist()))
         return rewards, terms_out, self._by_slot(prev.slots[p], np.asarray(changed, bool), False)
 
@@ -481,11 +483,18 @@ class MixedTrafficEnv(ParallelEnv):
         self._controller.remove(done)
         truncate = snap.time >= cfg.episode_length - 1e-9
         agents = list(self.agents)
-        terminated = {a: a in events and bool(events[a]) and not cfg.fixed_fleet for a in agents}
-        truncated = {a: truncate and not terminated[a] for a in agents}
-        infos = {a: {"reward_terms": terms.get(a, {}), "event": events.get(a, "")} for a in agents}
-        obs_out = {a: obs.get(a, self._last_obs.get(a, self._empty_obs)) for a in agents}
-        rew_out = {a: rewards.get(a, 0.0) for a in agents}
+        # per-agent dicts of the API, filled by C-level maps and patched where an event happened
+        ended = [] if cfg.fixed_fleet else list(set(done).intersection(agents))
+        terminated = dict.fromkeys(agents, False)
+        terminated.update(dict.fromkeys(ended, True))
+        truncated = dict.fromkeys(agents, truncate)
+        truncated.update(dict.fromkeys(ended, False))
+        infos = {a: {"reward_terms": t if t is not None else {}, "event": e}
+                 for a, t, e in zip(agents, map(terms.get, agents), map(events.get, agents, repeat("")))}  # fmt: skip
+        obs_out = dict(zip(agents, map(obs.get, agents)))
+        for a in [a for a, o in obs_out.items() if o is None]:  # not observed this step
+            obs_out[a] = self._last_obs.get(a, self._empty_obs)
+        rew_out = dict(zip(agents, map(rewards.get, agents, repeat(0.0))))
         if not cfg.fixed_fleet:
             self._finished.update(done)
             self.agents = [a for a in agents if not terminated[a]]
@@ -582,7 +591,9 @@ def _rear_conventional(
     """C, the conventional vehicle behind each agent in its lane ('' if none or an AV), and its speed."""
     rear = truth.neighbours.rear[:, CURRENT]
     ok = (rear >= 0) & ~snap.is_av[np.maximum(rear, 0)]
-    ids = [snap.ids[j] if c else "" for j, c in zip(rear.tolist(), ok.tolist())]
+    ids = [""] * len(rear)
+    for k in np.flatnonzero(ok).tolist():
+        ids[k] = snap.ids[rear[k]]
     return ids, np.where(ok, snap.speed[np.maximum(rear, 0)], np.nan)
 
 
