@@ -151,6 +151,20 @@ class AccLcPolicy:
         f["vlen"] = vv[..., 3]
         f["vwid"] = vv[..., 4]
         f["vlat"] = vv[..., 5]
+        # front vehicles of the last K frames (object permanence: a leader hidden behind a
+        # nearer vehicle of the same lane, or gone into a junction lane the ego does not
+        # follow, is extrapolated from its last sighting), only since the last lane switch
+        K = min(5, veh.shape[2])
+        hv = veh[:, :, -K:, :6] * scale  # (A, 3, K, 6)
+        age = (K - 1 - np.arange(K)) * 0.1
+        hp = hv[..., 4] > 0
+        jump = np.abs(np.diff(dh[:, -K:], axis=1)) >= 1.5  # (A, K-1)
+        since = np.flip(np.cumsum(np.flip(jump, 1), axis=1), 1) == 0  # no switch after k
+        hvalid = np.concatenate([since, np.ones((A, 1), bool)], axis=1) & valid[:, -K:]
+        hp &= hvalid[:, None, :]
+        f["h_dist"] = np.where(hp, hv[..., 0] + hv[..., 1] * age, np.inf)
+        f["h_rel"], f["h_len"] = hv[..., 1], hv[..., 3]
+        f["h_wid"], f["h_lat"] = hv[..., 4], hv[..., 5]
         nm = np.asarray(ob["node_mask"])
         f["exists"] = nm[:, :, 0] > 0
         f["mask"] = np.asarray(ob["action_mask"]) > 0
@@ -186,8 +200,13 @@ class AccLcPolicy:
         # curves: lateral acceleration bound, and the along-lane speed SUMO reports grows by
         # 1 / (1 - kappa * d) on the inside of a curve
         o = f["wp_orient"][ar, ln]
-        kap = np.abs((np.diff(o, axis=1) + np.pi) % (2 * np.pi) - np.pi)  # per metre
-        kap = np.concatenate([kap[:, :1], kap], axis=1)
+        # curvature over a 5 m window: internal (junction) lanes are coarse polylines whose
+        # orientation jumps by ~0.5 rad at a vertex, which per metre would read as a sharp bend
+        mw = o.shape[1]
+        w = min(5, mw - 1) if mw > 1 else 1
+        j0 = np.clip(np.arange(mw) - w // 2, 0, max(mw - 1 - w, 0))
+        j1 = np.minimum(j0 + w, mw - 1)
+        kap = np.abs((o[:, j1] - o[:, j0] + np.pi) % (2 * np.pi) - np.pi) / w
         v_curve = np.sqrt(c.curve_accel / np.maximum(kap, 1e-4))
         inside = np.maximum(1.0 - kap * (np.abs(offset)[:, None] + 0.3), 0.3)
         target = np.minimum(c.speed_factor * spd, v_curve) * inside
@@ -197,25 +216,27 @@ class AccLcPolicy:
         acc = _idm(v, v0, np.full_like(v, np.inf), np.zeros_like(v), c)
         acc = np.minimum(acc, a_lim)
         # leaders: front vehicle of this lane and overlapping front vehicles of the others
+        # (every history frame, extrapolated to now: shape (A, K))
         for j in (_L, _C, _R):
-            dist = f["vdist"][:, j, 0]
-            gap = dist - f["vlen"][:, j, 0]
+            dist = f["h_dist"][:, j]
+            gap = dist - f["h_len"][:, j]
             # lateral position of the other vehicle relative to the current lane centre
             shift = (j - _C) * -c.lane_width_min  # left column = +width
-            lat_o = f["vlat"][:, j, 0] + shift
-            lat_ego = offset
-            half = 0.5 * (f["wid"] + f["vwid"][:, j, 0]) + 0.4
+            lat_o = f["h_lat"][:, j] + shift
+            lat_ego = offset[:, None]
+            half = 0.5 * (f["wid"][:, None] + f["h_wid"][:, j]) + 0.4
             if j == lane:
                 relevant = np.isfinite(dist)
             else:
                 relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half)
             # own lane of the lane column: the chosen lane; others only on overlap
-            relevant &= f["exists"][:, j] | (j == _C)
+            relevant &= (f["exists"][:, j] | (j == _C))[:, None]
             if j != lane and lane != _C and j == _C:
                 # moving to another lane: the current lane's leader matters while we overlap it
                 relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half + 0.6)
-            a_j = _idm(v, v0, np.where(relevant, gap, np.inf), -f["vrel"][:, j, 0], c)
-            acc = np.minimum(acc, np.where(relevant, a_j, np.inf))
+            vk = v[:, None]
+            a_j = _idm(vk, v0[:, None], np.where(relevant, gap, np.inf), -f["h_rel"][:, j], c)
+            acc = np.minimum(acc, np.where(relevant, a_j, np.inf).min(axis=1))
         # traffic light of the current lane (a change does not escape the light)
         ld = f["light_dist"][:, _C]
         st = f["light"][:, _C]
