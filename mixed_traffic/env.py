@@ -71,6 +71,7 @@ from mixed_traffic.metrics_av import AVMetrics, AVStep
 from mixed_traffic.observation import ObservationBuilder, observation_space
 from mixed_traffic.perception import (
     CURRENT,
+    Neighbours,
     Perception,
     PerceptionFrame,
     bumper_gap,
@@ -239,6 +240,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._record(snap, rows, truth, rewards, changed)  # metrics
         self._remember(snap, rows, truth)
         obs = self._observe(snap, rows, sensed)  # observation
+        self._step_truth = (rows, truth)  # reused if agents enter in _finish
         return self._finish(snap, obs, rewards, terms, events)
 
     # ------------------------------------------------------------------ stages
@@ -501,8 +503,9 @@ class MixedTrafficEnv(ParallelEnv):
         new = [] if truncate else self._admit(snap)  # nobody enters at the time limit
         if new:
             rows = self._live_rows(snap).subset(new, self._slot)
-            new_obs = self._observe(snap, rows, self._sense(snap, rows)[1])
-            self._remember_new(snap, rows)
+            truth, sensed = self._sense(snap, rows)
+            new_obs = self._observe(snap, rows, sensed)
+            self._remember_new(snap, rows, truth)
             for a in new:
                 if a not in obs_out or cfg.fixed_fleet:
                     obs_out[a], rew_out[a] = new_obs[a], rew_out.get(a, 0.0)
@@ -516,11 +519,21 @@ class MixedTrafficEnv(ParallelEnv):
         self._snap = snap
         return obs_out, rew_out, terminated, truncated, infos
 
-    def _remember_new(self, snap: TrafficSnapshot, rows: dict[str, int]) -> None:
-        """Add entering agents to the per-agent memory (they act from the next step on)."""
+    def _remember_new(self, snap: TrafficSnapshot, rows: _Rows, truth: PerceptionFrame) -> None:
+        """Add entering agents (``rows``, their ground truth ``truth``) to the per-agent memory
+        (they act from the next step on).
+
+        Ground truth is per agent (same snapshot, same route), so the other agents' rows come
+        from this step's perception instead of sensing everyone again; the noise generator
+        still advances as that second full ``sense`` did, so later noise is unchanged.
+        """
         all_rows = self._live_rows(snap)
-        truth, _ = self._sense(snap, all_rows)
-        self._remember(snap, all_rows, truth)
+        self._perception.skip_noise(len(all_rows), self._noise_rng)
+        step_rows, step_truth = self._step_truth
+        n_step = len(step_rows.ids)
+        at = self._by_slot(step_rows.slots, np.arange(n_step))
+        at[rows.slots] = n_step + np.arange(len(rows.ids))  # entering: their new route wins
+        self._remember(snap, all_rows, _gather(step_truth, truth, at[all_rows.slots]))
 
     @cached_property
     def _empty_obs(self) -> dict[str, np.ndarray]:
@@ -583,6 +596,22 @@ class _FrontView:
         self.length = np.where(self.exists, snap.length[f], 0.0)
         self.closing = snap.speed[r] - np.where(self.exists, snap.speed[f], 0.0)
         self.gap = bumper_gap(self.distance, snap.length[r], self.length)
+
+
+def _gather(a: PerceptionFrame, b: PerceptionFrame, idx: np.ndarray) -> PerceptionFrame:
+    """Rows ``idx`` of the frames ``a`` and ``b`` stacked (a's agents first)."""
+    if (idx < 0).any():
+        raise RuntimeError("an agent's ground truth is missing")  # would be a bug in _finish
+
+    def cat(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.concatenate([x, y])[idx]
+
+    na, nb = a.neighbours, b.neighbours
+    return PerceptionFrame(
+        Neighbours(cat(na.lane, nb.lane), cat(na.vehicle, nb.vehicle), cat(na.distance, nb.distance)),
+        cat(a.vehicles, b.vehicles), cat(a.ego, b.ego), cat(a.light_state, b.light_state),
+        cat(a.light_dist, b.light_dist),
+    )  # fmt: skip
 
 
 def _rear_conventional(

@@ -54,6 +54,7 @@ the HD map and are not perturbed by weather.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from itertools import repeat
 
 import gymnasium as gym
 import numpy as np
@@ -152,6 +153,10 @@ class ObservationBuilder:
         self._free.extend(range(capacity - 1, n - 1, -1))  # pop() takes the lowest first
 
     def _slots(self, agent_ids: Sequence[str]) -> np.ndarray:
+        # usual step: every agent has a slot, looked up without a Python-level loop
+        known = np.fromiter(map(self._slot.get, agent_ids, repeat(-1)), np.int64, len(agent_ids))
+        if (known >= 0).all():
+            return known
         out = np.empty(len(agent_ids), dtype=np.int64)
         for i, a in enumerate(agent_ids):
             s = self._slot.get(a)

@@ -124,6 +124,9 @@ class LaneGraph:
     """(L,) first normal edge reached by following primary successors (-1 if none)."""
     lane_offset_key: float
     """Multiplier of the lane row in the (lane, position) sort key [m]."""
+    lane3: np.ndarray
+    """(L, 3) (left neighbour, lane, right neighbour) of each lane row, -1 where none (a
+    per-step ``neighbour_lane`` becomes one lookup)."""
 
     def connection(self, lane: np.ndarray, edge: np.ndarray) -> np.ndarray:
         """(...) first lane row of the connection lane -> edge, -1 if there is none."""
@@ -190,7 +193,9 @@ def _build_lane_graph(hd: HDMap) -> LaneGraph:
         pred=pred,
         next_edge=nxt_edge,
         lane_offset_key=float(np.ceil(hd.lane_length.max()) + 10.0),
-    )
+        lane3=np.stack([hd.neighbour_lane(np.arange(L), +1), np.arange(L),
+                        hd.neighbour_lane(np.arange(L), -1)], axis=1).astype(np.int64),
+    )  # fmt: skip
 
 
 def tls_ids(hdmap: HDMap) -> list[str]:
@@ -290,7 +295,7 @@ def find_neighbours(
     ego_lane = vlane[rows]
     ego_pos = snap.lane_pos[rows]
     cur = np.where(ego_lane >= 0, ego_lane, -1)
-    lanes = np.stack([hdmap.neighbour_lane(cur, +1), cur, hdmap.neighbour_lane(cur, -1)], axis=1)
+    lanes = g.lane3[np.maximum(cur, 0)]  # (A, 3) left, current, right
     lanes[cur < 0] = -1
     has = lanes >= 0
     lsafe = np.maximum(lanes, 0)
@@ -483,33 +488,51 @@ class Perception:
         dist = np.where(ok, np.maximum(hd.lane_length[lsafe] - pos, 0.0), np.inf)
         return state.astype(np.int8), dist
 
+    def skip_noise(self, n_agents: int, rng: np.random.Generator) -> None:
+        """Consume exactly the random numbers ``sense`` would draw for ``n_agents`` agents,
+        for a caller that only needs ground truth but must keep the noise stream unchanged."""
+        if self.sensors.noise:
+            _noise_draws(rng, n_agents)
+
     def _degrade(self, truth: PerceptionFrame, rng: np.random.Generator) -> PerceptionFrame:
         w, s = self.weather, self.sensors
         nb = truth.neighbours
+        z_veh, z_ego, u_light, shift, z_ldist = _noise_draws(rng, len(nb.lane))
         # ranges
         lidar = s.lidar_range * w.lidar_range_factor
         seen = (nb.vehicle >= 0) & (np.abs(nb.distance) <= lidar)
         # continuous noise
-        veh = truth.vehicles
-        veh = veh + w.rel_noise * (np.abs(veh) + VEHICLE_NOISE_FLOOR) * rng.standard_normal(
-            veh.shape
-        )
-        veh = np.where(seen[..., None], veh, 0.0)
+        # veh + rel_noise * (|veh| + floor) * N(0, 1), evaluated in place (the same roundings)
+        noise = np.abs(truth.vehicles)
+        noise += VEHICLE_NOISE_FLOOR
+        noise *= w.rel_noise
+        noise *= z_veh
+        noise += truth.vehicles
+        veh = np.where(seen[..., None], noise, 0.0)
         dist = np.where(seen, veh[..., 0], np.where(np.arange(2) == 0, np.inf, -np.inf))
         ego = truth.ego
-        ego = ego + EGO_NOISY * w.rel_noise * (np.abs(ego) + EGO_NOISE_FLOOR) * rng.standard_normal(
-            ego.shape
-        )
+        ego = ego + EGO_NOISY * w.rel_noise * (np.abs(ego) + EGO_NOISE_FLOOR) * z_ego
         # traffic lights: shorter range, wrong states
         cam = s.camera_range * w.camera_range_factor
         state = np.where(truth.light_dist <= cam, truth.light_state, NO_LIGHT)
-        wrong = (state != NO_LIGHT) & (rng.random(state.shape) < w.light_misdetect)
-        shift = rng.integers(1, 3, size=state.shape)
+        wrong = (state != NO_LIGHT) & (u_light < w.light_misdetect)
         state = np.where(wrong, (state + shift) % 3, state).astype(np.int8)
-        ldist = truth.light_dist * (1.0 + w.rel_noise * rng.standard_normal(state.shape))
+        ldist = truth.light_dist * (1.0 + w.rel_noise * z_ldist)
         ldist = np.where(state != NO_LIGHT, np.maximum(ldist, 0.0), np.inf)
         sensed_nb = Neighbours(nb.lane, np.where(seen, nb.vehicle, -1), dist)
         return PerceptionFrame(sensed_nb, veh, ego, state, ldist)
+
+
+def _noise_draws(rng: np.random.Generator, a: int) -> tuple[np.ndarray, ...]:
+    """Every random number ``_degrade`` uses for ``a`` agents, in the order it draws them:
+    vehicle and ego feature noise, light misdetection (uniform, state shift), light distance."""
+    return (
+        rng.standard_normal((a, 3, 2, len(VEHICLE_FEATURES))),
+        rng.standard_normal((a, len(EGO_FEATURES))),
+        rng.random((a, 3)),
+        rng.integers(1, 3, size=(a, 3)),
+        rng.standard_normal((a, 3)),
+    )
 
 
 _CODE = np.full(256, GREEN, dtype=np.int8)  # o/O (off) and unknown: no restriction
