@@ -183,7 +183,7 @@ class AccLcPolicy:
         return f
 
     # ------------------------------------------------------------------ longitudinal
-    def _lane_accel(self, f, lane: int, offset: np.ndarray) -> np.ndarray:
+    def _lane_accel(self, f, lane: int, offset: np.ndarray, memory: bool = True) -> np.ndarray:
         """(A,) acceleration if driving in lane column ``lane`` (with the ego at lateral
         ``offset`` relative to the current lane, for the overlap test of neighbours)."""
         c = self.c
@@ -217,14 +217,15 @@ class AccLcPolicy:
         acc = np.minimum(acc, a_lim)
         # leaders: front vehicle of this lane and overlapping front vehicles of the others
         # (every history frame, extrapolated to now: shape (A, K))
+        kk = slice(None) if memory else slice(-1, None)
         for j in (_L, _C, _R):
-            dist = f["h_dist"][:, j]
-            gap = dist - f["h_len"][:, j]
+            dist = f["h_dist"][:, j, kk]
+            gap = dist - f["h_len"][:, j, kk]
             # lateral position of the other vehicle relative to the current lane centre
             shift = (j - _C) * -c.lane_width_min  # left column = +width
-            lat_o = f["h_lat"][:, j] + shift
+            lat_o = f["h_lat"][:, j, kk] + shift
             lat_ego = offset[:, None]
-            half = 0.5 * (f["wid"][:, None] + f["h_wid"][:, j]) + 0.4
+            half = 0.5 * (f["wid"][:, None] + f["h_wid"][:, j, kk]) + 0.4
             if j == lane:
                 relevant = np.isfinite(dist)
             else:
@@ -235,7 +236,7 @@ class AccLcPolicy:
                 # moving to another lane: the current lane's leader matters while we overlap it
                 relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half + 0.6)
             vk = v[:, None]
-            a_j = _idm(vk, v0[:, None], np.where(relevant, gap, np.inf), -f["h_rel"][:, j], c)
+            a_j = _idm(vk, v0[:, None], np.where(relevant, gap, np.inf), -f["h_rel"][:, j, kk], c)
             acc = np.minimum(acc, np.where(relevant, a_j, np.inf).min(axis=1))
         # traffic light of the current lane (a change does not escape the light)
         ld = f["light_dist"][:, _C]
@@ -403,9 +404,13 @@ class AccLcPolicy:
         going_l = (d > c.lc_start_offset) & (vlat > 0.1)
         going_r = (d < -c.lc_start_offset) & (vlat < -0.1)
         centred = np.abs(d) < c.lc_start_offset
-        # incentive (MOBIL-like, without politeness towards followers beyond the safety test)
-        inc_l = acc_l - acc_f - c.lc_threshold
-        inc_r = acc_r - acc_f - c.lc_threshold + c.keep_right_bias
+        # incentive (MOBIL-like, without politeness towards followers beyond the safety test),
+        # from the latest frame only (remembered leaders cap the executed accelerations but
+        # must not make the current lane look worse and trigger changes)
+        now_f = self._lane_accel(f, _C, d, memory=False)
+        inc_l = self._lane_accel(f, _L, d, memory=False) - now_f - c.lc_threshold
+        inc_r = self._lane_accel(f, _R, d, memory=False) - now_f - c.lc_threshold
+        inc_r = inc_r + c.keep_right_bias
         want_l = safe_l & centred & (inc_l > 0) & (f["v"] > 3.0)
         want_r = safe_r & centred & (inc_r > 0) & (f["v"] > 3.0)
         both = want_l & want_r
