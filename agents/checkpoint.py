@@ -38,17 +38,24 @@ def save_checkpoint(
         obs_shapes={k: list(v) for k, v in learner.lca_cfg.obs_shapes().items()},
     )
     payload = {"format": FORMAT, "learner": learner.state_dict(), "meta": full_meta}
+    atomic_write_bytes(path, lambda f: torch.save(payload, f))
+    return path
+
+
+def atomic_write_bytes(path: Path, writer: Any) -> None:
+    """``writer(file)`` into a temp file beside ``path``, fsync, ``os.replace``: a crash
+    mid-write leaves the previous file intact."""
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
+            writer(f)
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    return path
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:

@@ -32,9 +32,7 @@ import csv
 import json
 import math
 import multiprocessing as mp
-import os
 import sys
-import tempfile
 import time
 from dataclasses import asdict, dataclass, fields, replace
 from multiprocessing.connection import wait as mp_wait
@@ -44,7 +42,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from agents.checkpoint import load_checkpoint, save_checkpoint
+from agents.checkpoint import atomic_write_bytes, load_checkpoint, save_checkpoint
 from agents.lca import LCAConfig
 from agents.rbpdqn import RBPDQN, LearnerConfig
 from agents.replay import ReplayBuffer
@@ -211,21 +209,6 @@ def env_base_config(cfg: TrainConfig, env_base: EnvConfig | None = None) -> EnvC
     return base
 
 
-def atomic_write_bytes(path: Path, writer: Any) -> None:
-    """``writer(file)`` into a temp file beside ``path``, fsync, ``os.replace``."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            writer(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def atomic_write_json(path: Path, data: dict) -> None:
     atomic_write_bytes(path, lambda f: f.write(json.dumps(data, indent=2).encode()))
 
@@ -290,6 +273,17 @@ class InProcessCollector:
         self.worker.close()
 
 
+def _next_incarnation(collector: Any, wid: int, why: str) -> None:
+    """Count a restart of worker ``wid`` (giving up after ``max_restarts``) and give its spec
+    a new incarnation (fresh env seeds)."""
+    collector.slot_restarts[wid] += 1
+    collector.restarts += 1
+    if collector.slot_restarts[wid] > collector.max_restarts:
+        raise RuntimeError(f"worker {wid} restarted {collector.max_restarts} times; last: {why}")
+    spec = collector.specs[wid]
+    collector.specs[wid] = replace(spec, incarnation=spec.incarnation + 1)
+
+
 class ProcessCollector:
     """Spawned worker processes, one pipe each; weights through :class:`SharedWeights`."""
 
@@ -330,12 +324,7 @@ class ProcessCollector:
         if p.is_alive():
             p.kill()
             p.join(timeout=5)
-        self.slot_restarts[wid] += 1
-        self.restarts += 1
-        if self.slot_restarts[wid] > self.max_restarts:
-            raise RuntimeError(f"worker {wid} restarted {self.max_restarts} times; last: {why}")
-        spec = self.specs[wid]
-        self.specs[wid] = replace(spec, incarnation=spec.incarnation + 1)
+        _next_incarnation(self, wid, why)
         self.log(f"worker {wid} died (exit code {p.exitcode}): {why.strip()[-2000:]}; restarting")
         self._spawn(wid)
 
@@ -426,12 +415,7 @@ class RayCollector:
 
     def _restart(self, wid: int, why: str) -> None:
         self.ray.kill(self.actors[wid], no_restart=True)
-        self.slot_restarts[wid] += 1
-        self.restarts += 1
-        if self.slot_restarts[wid] > self.max_restarts:
-            raise RuntimeError(f"worker {wid} restarted {self.max_restarts} times; last: {why}")
-        spec = self.specs[wid]
-        self.specs[wid] = replace(spec, incarnation=spec.incarnation + 1)
+        _next_incarnation(self, wid, why)
         self.log(f"ray worker {wid} failed ({why.strip()[-2000:]}); restarting")
         self.actors[wid] = self.remote_cls.remote(self.specs[wid])
         self.sent_version.pop(wid, None)
@@ -606,6 +590,7 @@ class Trainer:
         self.c["chunks"] += 1
         self.c["episodes"] += len(chunk["episodes"])
         self.c["demo_received"][chunk["worker_id"]] += int(chunk["demo"])
+        self.c["learned_received"] = self.c.get("learned_received", 0) + n - int(chunk["demo"])
         window.add_chunk(chunk)
 
     def owed_updates(self) -> int:
@@ -619,14 +604,13 @@ class Trainer:
         return max(0, target - (self.c["updates"] - self.c.get("pretrain_done", 0)))
 
     def pretrain_due(self) -> bool:
-        """All demonstrations have arrived and the demo-only updates have not run yet."""
+        """The demonstration phase is over (all demonstrations arrived, or a worker has switched
+        to its own policy: quotas are per worker and fill at different rates) and the demo-only
+        updates have not run yet."""
         cfg = self.cfg
         demos = sum(self.c["demo_received"])
-        return (
-            bool(cfg.pretrain_updates)
-            and not self.c.get("pretrain_done")
-            and demos >= cfg.demo_steps
-        )
+        over = demos >= cfg.demo_steps or self.c.get("learned_received", 0) > 0
+        return bool(cfg.pretrain_updates) and not self.c.get("pretrain_done") and over
 
     def pretrain(self, window: Window, collector: Any) -> None:
         """Updates on the replay as it is (the demonstrations), then publish the weights.
@@ -643,6 +627,10 @@ class Trainer:
             self.learner.cfg = rl_cfg
         self.c["pretrain_done"] = self.cfg.pretrain_updates
         collector.publish(self.weights())
+        # kept apart: the policy before any RL update, to compare against the final one
+        save_checkpoint(
+            self.out / "pretrained.pt", self.learner, {**self._meta(), "phase": "pretrained"}
+        )
 
     def update_once(self, window: Window, collector: Any) -> None:
         batch = self.replay.sample(self.cfg.batch_size, self.rng)

@@ -218,13 +218,7 @@ def _resync(env) -> dict:
     env._finished.update(a for a in env.agents if a not in index)
     env._controller.reset()
     env.agents = [] if not env.config.fixed_fleet else env.agents
-    env._admit(snap)
-    rows = env._live_rows(snap)
-    truth, sensed = env._sense(snap, rows)
-    env._remember(snap, rows, truth)
-    obs = env._observe(snap, rows, sensed)
-    env._snap = snap
-    return {a: obs.get(a, env._empty_obs) for a in env.agents}
+    return env._start_from(snap)
 
 
 def _limit_step(env) -> float:

@@ -218,14 +218,17 @@ class MixedTrafficEnv(ParallelEnv):
         self._last_obs: dict[str, dict] = {}
         self._state = _AgentState()
         self.agents = list(self.possible_agents) if cfg.fixed_fleet else []
-        snap = self._advance()
+        return self._start_from(self._advance()), {a: {} for a in self.agents}
+
+    def _start_from(self, snap: TrafficSnapshot) -> dict[str, dict]:
+        """Admit the AVs of ``snap`` and observe them, as at the start of an episode."""
         self._admit(snap)
         rows = self._live_rows(snap)
         truth, sensed = self._sense(snap, rows)
         self._remember(snap, rows, truth)
         obs = self._observe(snap, rows, sensed)
         self._snap = snap
-        return {a: obs.get(a, self._empty_obs) for a in self.agents}, {a: {} for a in self.agents}
+        return {a: obs.get(a, self._empty_obs) for a in self.agents}
 
     # ------------------------------------------------------------------ step
     def step(self, actions: dict[str, Any]):
