@@ -406,10 +406,22 @@ def section_env(args: argparse.Namespace) -> list[EnvResult]:
     return results
 
 
+def section_inference(args: argparse.Namespace) -> float:
+    """AvgIT: AUTO's batched forward (actor + critic + masked selection) per decision, 128
+    agents on one core, observations already built (paper: 8.96 ms per decision on a GPU)."""
+    from agents.bench_inference import avg_inference_us
+
+    us = avg_inference_us(n_agents=128, threads=1)
+    print(f"inference: AUTO batched forward, 128 agents, 1 thread: {us:.1f} us per decision "
+          f"(target <= 20 us; CPU time, best of 7)")  # fmt: skip
+    return us
+
+
 #: Section name -> function(args). Other modules' sections are registered here.
 SECTIONS: dict[str, Callable[[argparse.Namespace], object]] = {
     "snapshot": section_snapshot,
     "env": section_env,
+    "inference": section_inference,
 }
 
 
