@@ -60,6 +60,10 @@ class SweepConfig:
     """Values of the swept axis (default: the paper's, see PENETRATIONS/DENSITIES/WEATHERS)."""
     reference: bool = True
     """Add the all-IDM 0 % reference to a penetration sweep."""
+    backend: str = "process"
+    """process (local worker processes) | ray (Ray tasks, local or on a cluster)."""
+    address: str = ""
+    """Ray cluster address for ray.init(address=...), e.g. 'auto' ('' = start Ray locally)."""
 
     def axis_values(self) -> tuple:
         default = {"penetration": PENETRATIONS, "density": DENSITIES, "weather": WEATHERS}[
@@ -109,19 +113,28 @@ def cell_config(cell: Cell, sweep: SweepConfig) -> EnvConfig:
     )
 
 
-def _run_cell(cell: Cell, sweep: SweepConfig, queue: mp.Queue) -> None:
-    """Worker process: one episode, its record (or its error) onto the queue."""
+def episode_record(cell: Cell, sweep: SweepConfig) -> dict:
+    """One episode of ``cell``: its record, or a failed record carrying the error."""
     try:
         from mixed_traffic.evaluate import run_episode
 
-        record = run_episode(
-            cell_config(cell, sweep), cell.policy, sweep.warmup, checkpoint=sweep.checkpoint
-        )
+        config = cell_config(cell, sweep)
+        record = run_episode(config, cell.policy, sweep.warmup, checkpoint=sweep.checkpoint)
     except Exception as e:  # any failure becomes a failed record; the sweep carries on
-        record = {**record_meta(cell_config(cell, sweep)), "status": "failed", "metrics": {}}
-        record["error"] = f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=3)}"
+        return _failed(cell, sweep, f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=3)}")
     record["cell"] = asdict(cell)
-    queue.put(record)
+    return record
+
+
+def _failed(cell: Cell, sweep: SweepConfig, error: str) -> dict:
+    record = {**record_meta(cell_config(cell, sweep)), "status": "failed", "metrics": {}}
+    record.update(error=error, cell=asdict(cell))
+    return record
+
+
+def _run_cell(cell: Cell, sweep: SweepConfig, queue: mp.Queue) -> None:
+    """Worker process: one episode's record onto the queue."""
+    queue.put(episode_record(cell, sweep))
 
 
 def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
@@ -130,10 +143,20 @@ def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
     records_path = sweep.out / "records.jsonl"
     done = {_cell_key(r) for r in read_records(records_path)}
     todo = [c for c in cells(sweep) if c.key() not in done]
+    bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode", disable=not progress)
+    if sweep.backend == "ray":
+        _run_ray(todo, sweep, records_path, bar)
+    else:
+        _run_processes(todo, sweep, records_path, bar)
+    bar.close()
+    return records_path
+
+
+def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm) -> None:
+    """At most ``workers`` cells at a time, each in its own spawned process."""
     ctx = mp.get_context("spawn")
     queue: mp.Queue = ctx.Queue()
     running: dict[int, tuple[mp.Process, Cell, float]] = {}
-    bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode", disable=not progress)
     pending = list(todo)
     while pending or running:
         while pending and len(running) < sweep.workers:
@@ -142,8 +165,6 @@ def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
             proc.start()
             running[proc.pid] = (proc, cell, time.time())
         _collect(queue, running, records_path, bar, sweep)
-    bar.close()
-    return records_path
 
 
 def _collect(
@@ -161,19 +182,45 @@ def _collect(
             if cell.key() == key:
                 proc.join(timeout=10)
                 del running[pid]
-        bar.update(1)
-        bar.set_postfix_str(
-            f"{record['cell']['policy']} p={record['cell']['penetration']} {record['status']}"
-        )
+        _advance(bar, record)
         return
     for pid, (proc, cell, _) in list(running.items()):
         if not proc.is_alive() and proc.exitcode not in (None, 0) and queue.empty():
-            failed = {**record_meta(cell_config(cell, sweep)), "status": "failed", "metrics": {}}
-            failed["error"] = f"worker process died with exit code {proc.exitcode}"
-            failed["cell"] = asdict(cell)
+            failed = _failed(cell, sweep, f"worker process died with exit code {proc.exitcode}")
             write_record_atomic(records_path, failed)
             del running[pid]
-            bar.update(1)
+            _advance(bar, failed)
+
+
+def _run_ray(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm) -> None:
+    """Each cell a Ray task (one CPU, no retries); a task whose worker dies is a failed record."""
+    import ray
+
+    owns = not ray.is_initialized()
+    if owns:
+        local_cpus = None if sweep.address else sweep.workers
+        ray.init(address=sweep.address or None, num_cpus=local_cpus, log_to_driver=False)
+    task = ray.remote(num_cpus=1, max_retries=0)(episode_record)
+    try:
+        futures = {task.remote(c, sweep): c for c in todo}
+        while futures:
+            ready, _ = ray.wait(list(futures), num_returns=1)
+            cell = futures.pop(ready[0])
+            try:
+                record = ray.get(ready[0])
+            except Exception as e:  # the worker process died (e.g. a SUMO segfault)
+                record = _failed(cell, sweep, f"Ray task failed: {type(e).__name__}: {e}")
+            write_record_atomic(records_path, record)
+            _advance(bar, record)
+    finally:
+        if owns:
+            ray.shutdown()
+
+
+def _advance(bar: tqdm, record: dict) -> None:
+    cell = record["cell"]
+    bar.update(1)
+    bar.set_postfix_str(f"{cell['policy']} p={cell['penetration']} {record['status']}")
 
 
 def _cell_key(record: dict) -> tuple:
@@ -236,6 +283,10 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
     p.add_argument(
         "--checkpoint", type=Path, default=None, help="AUTO checkpoint (default: shipped)"
     )
+    p.add_argument("--backend", choices=("process", "ray"), default=d.backend,
+                   help="run cells in local worker processes or as Ray tasks")  # fmt: skip
+    p.add_argument("--address", default=d.address,
+                   help="with --backend ray: cluster address, e.g. auto (default: start Ray locally)")  # fmt: skip
     p.add_argument("--no-report", action="store_true", help="skip figures and the PDF")
     a = p.parse_args(argv)
     a.axis = a.axis or "penetration"
@@ -245,6 +296,8 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
         p.error(f"unknown policies {bad}; choose from {sorted(known)}")
     if a.workers < 1:
         p.error(f"--workers={a.workers} must be >= 1")
+    if a.address and a.backend != "ray":
+        p.error("--address needs --backend ray")
     try:
         EnvConfig(scenario=a.scenario, density=a.at_density, penetration=a.at_penetration,
                   episode_length=a.episode_length)  # fmt: skip
@@ -275,6 +328,8 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
         checkpoint=a.checkpoint,
         values=values,
         reference=not a.no_reference,
+        backend=a.backend,
+        address=a.address,
     )
     return sweep
 

@@ -112,6 +112,7 @@ def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path: Path) -> None:
         (["--density", "--values", "-3"], "density"),
         (["--warmup", "200", "--episode-length", "100"], "--warmup"),
         (["--at-penetration", "2"], "penetration"),
+        (["--address", "auto"], "--address needs --backend ray"),
     ],
 )
 def test_bad_arguments_exit_with_a_clear_message(argv: list[str], message: str, capsys) -> None:
@@ -131,3 +132,16 @@ def test_default_penetration_sweep_cells() -> None:
     assert len(grid) == 33
     assert {c.policy for c in grid} == {"auto", "acc-lc", "idm"}
     assert {c.penetration for c in grid if c.policy == "idm"} == {0.0}
+
+
+def test_ray_backend_runs_cells_as_tasks(tmp_path: Path) -> None:
+    pytest.importorskip("ray", reason="the ray extra is not installed")
+    out = tmp_path / "res"
+    assert main(["--penetration", "--values", "0.5", "--policies", "random", "--seeds", "0",
+                 "--episode-length", "10", "--warmup", "1", "--no-report", "--backend", "ray",
+                 "--workers", "2", "--out", str(out)]) == 0  # fmt: skip
+    records = read_records(out / "records.jsonl")
+    assert sorted((r["cell"]["policy"], r["status"]) for r in records) == [
+        ("idm", "ok"),
+        ("random", "ok"),
+    ]
