@@ -20,6 +20,14 @@ Deviations from the paper, and why:
   trains from scratch; with the behaviour-cloning term the actor then starts from a safe driver
   instead of a random one (random driving ends almost every AV trip in a collision), and the
   replay keeps some safe examples. ``--demo-steps 0 --demo-share 0`` restores the paper.
+- Learning from the demonstrations (DQfD, Hester et al. 2018): the critic also gets a
+  large-margin loss on demonstrated decisions (``LearnerConfig.demo_margin``/``demo_weight``),
+  because Q of decisions the demonstrator never took is otherwise pure extrapolation and the
+  argmax picks them; and ``--pretrain-updates`` runs updates on the demonstrations alone, with
+  the actor on behaviour cloning only (α = 0), before the learned policy drives.
+- The behaviour-cloning term weights steering errors by ``bc_steer_weight`` = 100: steering
+  ±1 is ±60°, lane keeping needs about 1°, and with equal weights the fit ignores steering.
+  Exploration noise on steering is scaled down by ``STEER_NOISE_FACTOR`` for the same reason.
 - Per-worker exploration follows the Ape-X ladder (ε and σ shrink geometrically over the
   workers); the paper only says "different random noises".
 - Learner update ratio is fixed (updates per transition received, back-pressure on the workers

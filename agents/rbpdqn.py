@@ -46,6 +46,10 @@ class LearnerConfig:
     """DQfD large-margin l: demonstrated decisions must beat the others by this much [Q units]."""
     demo_weight: float = 1.0
     """Weight of the DQfD margin loss on demonstrator transitions (0 = the paper's critic)."""
+    bc_steer_weight: float = 100.0
+    """Weight of steering errors in the behaviour-cloning term (accel_brake: 1). Lane keeping
+    needs steering to about a degree (0.02 of the ±60° range), while accel_brake errors of 0.1
+    are harmless; with equal weights the fit ignores steering (1 = the paper's loss)."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
@@ -114,14 +118,15 @@ class RBPDQN:
         return (gap * demo).sum() / demo.sum()
 
     def actor_loss(self, batch: dict) -> Tensor:
-        """RBP-DQN: −Σ_p α·Q(s,p,u_p)/AvgQ + Σ_p ‖u_p − a_p‖²; BP-DQN: −Σ_p Q (batch mean)."""
+        """RBP-DQN: −Σ_p α·Q(s,p,u_p)/AvgQ + Σ_p w·(u_p − a_p)²; BP-DQN: −Σ_p Q (batch mean)."""
         obs = batch["obs"]
         u = self.actor(obs)  # (B, 3, 2)
         q = self.critic(obs, u)  # (B, 3)
         if not self.cfg.regularize:
             return -q.sum(dim=1).mean()
         avg_q = q.abs().mean().detach() + self.cfg.avgq_eps
-        bc = (u - batch["params"]).pow(2).sum(dim=(1, 2))
+        w = u.new_tensor([self.cfg.bc_steer_weight, 1.0])  # per (steering, accel_brake)
+        bc = ((u - batch["params"]).pow(2) * w).sum(dim=(1, 2))
         return (-(self.cfg.alpha / avg_q) * q.sum(dim=1) + bc).mean()
 
     def update(self, batch: dict) -> dict[str, float]:
