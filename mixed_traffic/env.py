@@ -66,8 +66,7 @@ from mixed_traffic.backend import SumoBackend, TrafficSnapshot
 from mixed_traffic.boundary import PeriodicBoundary
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.control import BicycleController
-from mixed_traffic.metrics import FlowRecorder
-from mixed_traffic.metrics_av import AVMetrics, AVStep
+from mixed_traffic.metrics import AVMetrics, AVStep, FlowRecorder
 from mixed_traffic.observation import ObservationBuilder, observation_space
 from mixed_traffic.perception import (
     CURRENT,
