@@ -41,9 +41,12 @@ class Sim:
         return snap
 
 
-def start_sim(tmp_path: Path, kind: str = "libsumo", **overrides) -> Sim:
-    """Start a real SUMO simulation of ``EnvConfig(**overrides)``."""
-    cfg = EnvConfig(**{"density": 60.0, "penetration": 0.2, "episode_length": 60.0, **overrides})
+def start_sim(
+    tmp_path: Path, kind: str = "libsumo", config: EnvConfig | None = None, **overrides
+) -> Sim:
+    """Start a real SUMO simulation of ``config`` (default ``EnvConfig(**overrides)``)."""
+    defaults = {"density": 60.0, "penetration": 0.2, "episode_length": 60.0}
+    cfg = config if config is not None else EnvConfig(**{**defaults, **overrides})
     sc = load_scenario(cfg.scenario)
     hd = sc.hdmap
     demand = make_demand(sc, cfg, np.random.default_rng(cfg.seed))

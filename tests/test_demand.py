@@ -8,31 +8,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mixed_traffic.backend import SumoBackend, TrafficSnapshot
-from mixed_traffic.boundary import PeriodicBoundary
+from mixed_traffic.backend import TrafficSnapshot
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.scenario import load_scenario, make_demand, sumo_args, write_demand
+from mixed_traffic.scenario import load_scenario, make_demand
+
+from .conftest import start_sim
 
 
 def simulate(config: EnvConfig, seconds: float) -> list[TrafficSnapshot]:
     """Snapshots of every step of a fresh simulation of ``config``."""
-    sc = load_scenario(config.scenario)
-    hd = sc.hdmap
-    demand = make_demand(sc, config, np.random.default_rng(config.seed))
-    route_file = Path(tempfile.mkdtemp()) / "demand.rou.xml"
-    write_demand(demand, config, route_file)
-    backend = SumoBackend(config.backend, config.second_instance)
-    backend.set_lane_table(hd.lane_ids, hd.lane_edge)
-    backend.start(sumo_args(sc, config, route_file, seed=config.seed))
-    boundary = PeriodicBoundary.for_demand(sc, demand, config.vehicle, config.step_length, False)
-    snaps = []
+    sim = start_sim(Path(tempfile.mkdtemp()), config=config)
     try:
-        for _ in range(int(round(seconds / config.step_length))):
-            snaps.append(backend.step())
-            boundary.step(snaps[-1], backend)
+        return [sim.step() for _ in range(round(seconds / config.step_length))]
     finally:
-        backend.close()
-    return snaps
+        sim.backend.close()
 
 
 @pytest.mark.parametrize("density", [60.0, 180.0])

@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from mixed_traffic.backend import SumoBackend, SumoError
-from mixed_traffic.boundary import PeriodicBoundary
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.paths import SCENARIOS_DIR
 from mixed_traffic.scenario import (
@@ -20,31 +19,23 @@ from mixed_traffic.scenario import (
     main,
     make_demand,
     sumo_args,
-    write_demand,
 )
+
+from .conftest import start_sim
 
 FAMILIES = ("straight", "highway", "bottleneck", "merge", "urban")
 
 
 def run_episode(config: EnvConfig, seconds: float) -> tuple[int, int]:
     """Run ``seconds`` of ``config``; returns (vehicles at the end, collisions)."""
-    sc = load_scenario(config.scenario)
-    hd = sc.hdmap
-    demand = make_demand(sc, config, np.random.default_rng(config.seed))
-    route_file = Path(tempfile.mkdtemp()) / "demand.rou.xml"
-    write_demand(demand, config, route_file)
-    backend = SumoBackend(config.backend, config.second_instance)
-    backend.set_lane_table(hd.lane_ids, hd.lane_edge)
-    backend.start(sumo_args(sc, config, route_file, seed=config.seed))
-    boundary = PeriodicBoundary.for_demand(sc, demand, config.vehicle, config.step_length, False)
+    sim = start_sim(Path(tempfile.mkdtemp()), config=config)
     collisions = 0
     try:
-        for _ in range(int(round(seconds / config.step_length))):
-            snap = backend.step()
-            boundary.step(snap, backend)
+        for _ in range(round(seconds / config.step_length)):
+            snap = sim.step()
             collisions += len(snap.collisions)
     finally:
-        backend.close()
+        sim.backend.close()
     return len(snap.ids), collisions
 
 
