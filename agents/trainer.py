@@ -102,8 +102,9 @@ class TrainConfig:
     demo_share: float = 0.05
     """Probability that a later episode is also driven by the demonstrator [0-1]."""
     pretrain_updates: int = 0
-    """Learner updates on the demonstrations alone, once ``demo_steps`` have arrived, before
-    the workers get weights good enough to drive (0 = none)."""
+    """Learner updates on the demonstrations alone, as soon as the demonstration phase ends
+    (all ``demo_steps`` arrived, or a worker switched to its own policy), before the learned
+    weights are published (0 = none)."""
     demo_policy: str = "acc-lc"
     """Demonstrator policy name for agents.policies.make_policy."""
     ablation: str = "none"
@@ -313,9 +314,6 @@ class ProcessCollector:
         p.start()
         writer.close()  # only the child holds the write end: its death → EOF here
         self.procs[wid], self.conns[wid] = p, reader
-
-    def pids(self) -> dict[int, int]:
-        return {wid: p.pid for wid, p in self.procs.items()}
 
     def _restart(self, wid: int, why: str) -> None:
         self.conns.pop(wid).close()

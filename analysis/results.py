@@ -243,11 +243,6 @@ def to_parquet(df: pd.DataFrame, path: str | os.PathLike[str]) -> Path:
     return path
 
 
-def metric_columns(df: pd.DataFrame) -> list[str]:
-    """Metric keys that have at least one finite value in ``df``."""
-    return [k for k in METRIC_KEYS if k in df.columns and df[k].notna().any()]
-
-
 def summarise(
     df: pd.DataFrame, by: Sequence[str], metrics: Sequence[str] | None = None
 ) -> pd.DataFrame:

@@ -445,9 +445,6 @@ class SumoBackend:
         if destination:
             self._api.vehicle.changeTarget(vid, destination)
 
-    def add_route(self, route_id: str, edges: Sequence[str]) -> None:
-        self._api.route.add(route_id, list(edges))
-
     def remove(self, vid: str) -> None:
         """Take a vehicle out of the simulation (no-op if it is already gone)."""
         with contextlib.suppress(Exception):
@@ -458,14 +455,7 @@ class SumoBackend:
     def vehicle_route(self, vid: str) -> tuple[str, ...]:
         return tuple(self._api.vehicle.getRoute(vid))
 
-    def pending_vehicles(self) -> list[str]:
-        """Vehicles whose departure time has passed but that could not be inserted yet."""
-        return list(self._api.simulation.getPendingVehicles())
-
     # ------------------------------------------------------------------ traffic lights
-    def tls_ids(self) -> list[str]:
-        return list(self._api.trafficlight.getIDList())
-
     def tls_states(self, tls_ids: Sequence[str]) -> list[str]:
         """Signal strings (``rRgGyYoO...``), one character per controlled link."""
         get = self._api.trafficlight.getRedYellowGreenState
