@@ -1,7 +1,10 @@
 """Numpy structure-of-arrays replay buffer for dict observations (ring, preallocated).
 
 One array per observation key for ``obs`` and ``next_obs`` (``next_obs`` keeps its
-``action_mask``, needed to mask the TD target), plus decision, params, reward, done.
+``action_mask``, needed to mask the TD target), plus decision, params, reward, done, and the
+expert label of the transition: the demonstrator's decision and params for the same
+observation (``labelled`` = 1; for demonstrator-driven rows they equal the taken action) or, on
+unlabelled rows, a copy of the taken action.
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import torch
 from agents.lca import LCAConfig
 
 OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
+LABEL_KEYS = ("labelled", "label_decision", "label_params")
 
 
 class ReplayBuffer:
@@ -28,8 +32,11 @@ class ReplayBuffer:
         self.params = np.zeros((capacity, 3, 2), np.float32)
         self.reward = np.zeros(capacity, np.float32)
         self.done = np.zeros(capacity, np.float32)
-        self.is_demo = np.zeros(capacity, np.float32)
-        """1 where the demonstrator (ACC-LC) chose the action (DQfD margin loss)."""
+        self.labelled = np.zeros(capacity, np.float32)
+        """1 where the demonstrator (ACC-LC) labelled the observation (DQfD margin loss)."""
+        self.label_decision = np.zeros(capacity, np.int64)
+        self.label_params = np.zeros((capacity, 3, 2), np.float32)
+        """Behaviour-cloning targets: the demonstrator's action, else the taken one."""
         self.pos = 0
         """Next write index."""
         self.size = 0
@@ -45,19 +52,28 @@ class ReplayBuffer:
         reward: np.ndarray,
         next_obs: dict[str, np.ndarray],
         done: np.ndarray,
-        is_demo: np.ndarray | None = None,
+        labelled: np.ndarray | None = None,
+        label_decision: np.ndarray | None = None,
+        label_params: np.ndarray | None = None,
     ) -> None:
-        """Append n transitions (arrays with leading dim n); the oldest are overwritten."""
+        """Append n transitions (arrays with leading dim n); the oldest are overwritten.
+        Without labels the rows are unlabelled and their targets are the taken action."""
         n = len(decision)
         if n == 0:
             return
-        is_demo = np.zeros(n, np.float32) if is_demo is None else np.asarray(is_demo, np.float32)
+        labelled = np.zeros(n, np.float32) if labelled is None else np.asarray(labelled)
+        label_decision = decision if label_decision is None else label_decision
+        label_params = params if label_params is None else label_params
         if n > self.capacity:  # only the newest `capacity` survive anyway
             sl = slice(n - self.capacity, n)
             obs = {k: v[sl] for k, v in obs.items()}
             next_obs = {k: v[sl] for k, v in next_obs.items()}
             decision, params, reward, done = decision[sl], params[sl], reward[sl], done[sl]
-            is_demo = is_demo[sl]
+            labelled, label_decision, label_params = (
+                labelled[sl],
+                label_decision[sl],
+                label_params[sl],
+            )
             n = self.capacity
         idx = (self.pos + np.arange(n)) % self.capacity
         for k in OBS_KEYS:
@@ -67,7 +83,9 @@ class ReplayBuffer:
         self.params[idx] = np.reshape(params, (n, 3, 2))
         self.reward[idx] = reward
         self.done[idx] = done
-        self.is_demo[idx] = is_demo
+        self.labelled[idx] = labelled
+        self.label_decision[idx] = label_decision
+        self.label_params[idx] = np.reshape(label_params, (n, 3, 2))
         self.pos = int((self.pos + n) % self.capacity)
         self.size = min(self.size + n, self.capacity)
 
@@ -84,7 +102,7 @@ class ReplayBuffer:
             "params": t(self.params[idx]),
             "reward": t(self.reward[idx]),
             "done": t(self.done[idx]),
-            "is_demo": t(self.is_demo[idx]),
+            **{k: t(getattr(self, k)[idx]) for k in LABEL_KEYS},
         }
 
     def state_dict(self) -> dict:
@@ -105,7 +123,7 @@ class ReplayBuffer:
             "params": t(self.params),
             "reward": t(self.reward),
             "done": t(self.done),
-            "is_demo": t(self.is_demo),
+            **{k: t(getattr(self, k)) for k in LABEL_KEYS},
         }
 
     def load_state_dict(self, sd: dict) -> None:
@@ -118,6 +136,6 @@ class ReplayBuffer:
                 raise ValueError(f"replay obs '{k}' shape {got} != {self.obs[k].shape[1:]}")
             self.obs[k][:n] = np.asarray(sd["obs"][k])
             self.next_obs[k][:n] = np.asarray(sd["next_obs"][k])
-        for name in ("decision", "params", "reward", "done", "is_demo"):
+        for name in ("decision", "params", "reward", "done", *LABEL_KEYS):
             getattr(self, name)[:n] = np.asarray(sd[name])
         self.pos, self.size = int(sd["pos"]), n

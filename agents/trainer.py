@@ -107,6 +107,12 @@ class TrainConfig:
     weights are published (0 = none)."""
     demo_policy: str = "acc-lc"
     """Demonstrator policy name for agents.policies.make_policy."""
+    expert_labels: bool = True
+    """Label every transition the learning policy drives with the demonstrator's action for
+    the same observation; behaviour cloning and the DQfD margin then target it (DAgger-style
+    deviation from the paper, see agents.rbpdqn; off = BC on the taken action)."""
+    alpha: float = 0.6
+    """Weight α of the normalised Q term in the actor loss after pretraining [-] (paper 0.6)."""
     ablation: str = "none"
     """Paper §V-A variant: none | nohis | nolane | nostar | noimp | nomul | novec."""
     bp_dqn: bool = False
@@ -176,6 +182,8 @@ class TrainConfig:
             bad("demo_steps", "must be >= 0")
         if self.pretrain_updates < 0:
             bad("pretrain_updates", "must be >= 0")
+        if not self.alpha >= 0:
+            bad("alpha", "must be >= 0")
         for name in ("local_buffer", "replay_capacity", "batch_size", "sync_every", "log_every"):
             if getattr(self, name) < 1:
                 bad(name, "must be >= 1")
@@ -440,7 +448,7 @@ class Trainer:
         self.env_base = env_base_config(cfg, env_base)
         self.lca = lca_config(cfg, self.env_base)
         torch.set_num_threads(cfg.learner_threads)
-        lcfg = LearnerConfig(batch_size=cfg.batch_size, regularize=not cfg.bp_dqn)
+        lcfg = LearnerConfig(batch_size=cfg.batch_size, regularize=not cfg.bp_dqn, alpha=cfg.alpha)
         self.learner = RBPDQN(self.lca, lcfg, seed=cfg.seed)
         self.replay = ReplayBuffer(cfg.replay_capacity, self.lca)
         self.rng = np.random.default_rng([cfg.seed, 7])
@@ -552,7 +560,7 @@ class Trainer:
                 densities=cfg.densities, penetrations=cfg.penetrations, weathers=cfg.weathers,
                 seed=cfg.seed, run=self.c["run"], epsilon=ladder[i][0], noise_std=ladder[i][1],
                 demo_quota=max(0, share - self.c["demo_received"][i]), demo_share=cfg.demo_share,
-                demo_policy=cfg.demo_policy,
+                demo_policy=cfg.demo_policy, expert_labels=cfg.expert_labels,
                 crash_after_chunks=cfg.crash_after_chunks if i == 0 and self.c["run"] == 0 else 0,
             )
             for i in range(cfg.workers)
@@ -577,7 +585,8 @@ class Trainer:
     def ingest(self, chunk: Chunk, window: Window) -> None:
         """Chunk → replay, counters, curve window."""
         self.replay.add_batch(chunk["obs"], chunk["decision"], chunk["params"], chunk["reward"],
-                              chunk["next_obs"], chunk["done"], chunk.get("is_demo"))  # fmt: skip
+                              chunk["next_obs"], chunk["done"], chunk["labelled"],
+                              chunk["label_decision"], chunk["label_params"])  # fmt: skip
         n = len(chunk["decision"])
         key = (self.c["run"], chunk["worker_id"], chunk["incarnation"])
         if chunk["seq"] != self.received.get(key, 0) + 1:

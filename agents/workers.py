@@ -45,8 +45,9 @@ TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "sp
 
 Chunk = dict[str, Any]
 """A LocalBuffer flush: ``obs``/``next_obs`` dicts of float32 (n, ...) arrays, ``decision``
-(n,) int64, ``params`` (n, 3, 2) float32, ``reward`` (n,) float32, ``done`` (n,) float32, plus
-``worker_id``, ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo``
+(n,) int64, ``params`` (n, 3, 2) float32, ``reward`` (n,) float32, ``done`` (n,) float32, the
+expert labels ``labelled`` (n,) float32, ``label_decision`` (n,) int64, ``label_params``
+(n, 3, 2) float32 (see :class:`agents.replay.ReplayBuffer`), plus ``worker_id``, ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo``
 (transitions in the chunk driven by the demonstrator), ``sim_steps`` (env steps taken),
 ``trips``/``terminals``/``collisions`` (AV trips that ended in the chunk: arrived or terminal;
 terminal events; collisions) and ``episodes`` (list of :func:`episode_stats` dicts of the episodes that ended)."""
@@ -79,6 +80,8 @@ class WorkerSpec:
     demo_share: float = 0.0
     """Probability that a later episode is driven by the demonstrator [-]."""
     demo_policy: str = "acc-lc"
+    expert_labels: bool = False
+    """Label the transitions the policy drives with the demonstrator's action (DAgger)."""
     crash_after_chunks: int = 0
     """Test hook: SIGKILL itself after sending this many chunks (incarnation 0 only)."""
     extra: dict[str, Any] = field(default_factory=dict)
@@ -138,11 +141,13 @@ class LocalBuffer:
         self._parts: list[tuple] = []
         self.size = 0
 
-    def add(self, obs: dict, dec: np.ndarray, par: np.ndarray, rew: np.ndarray,
-            nxt: dict, done: np.ndarray, demo: bool = False) -> None:  # fmt: skip
-        """One env step's transitions of A agents (arrays with leading dim A); ``demo``: the
-        demonstrator chose these actions."""
-        self._parts.append((obs, dec, par, rew, nxt, done, np.full(len(dec), demo, np.float32)))
+    def add(self, obs: dict, dec: np.ndarray, par: np.ndarray, rew: np.ndarray, nxt: dict,
+            done: np.ndarray, label: tuple[np.ndarray, np.ndarray] | None = None) -> None:  # fmt: skip
+        """One env step's transitions of A agents (arrays with leading dim A); ``label``: the
+        demonstrator's (decision, params) for these observations, if any."""
+        labelled = np.full(len(dec), label is not None, np.float32)
+        ldec, lpar = label if label is not None else (dec, par)
+        self._parts.append((obs, dec, par, rew, nxt, done, labelled, ldec, lpar))
         self.size += len(dec)
 
     def take(self) -> Chunk:
@@ -155,7 +160,9 @@ class LocalBuffer:
             "reward": cat([p[3] for p in parts]).astype(np.float32),
             "next_obs": {k: cat([p[4][k] for p in parts]).astype(np.float32) for k in OBS_KEYS},
             "done": cat([p[5] for p in parts]).astype(np.float32),
-            "is_demo": cat([p[6] for p in parts]).astype(np.float32),
+            "labelled": cat([p[6] for p in parts]),
+            "label_decision": cat([p[7] for p in parts]).astype(np.int64),
+            "label_params": cat([p[8] for p in parts]).astype(np.float32).reshape(-1, 3, 2),
         }
 
 
@@ -235,8 +242,10 @@ class RolloutWorker:
                 raise RuntimeError("worker has no weights from the learner yet")
             if is_demo:
                 dec, par = self._demonstrator().act(batch)
+                label = dec, par
             else:
                 dec, par = self.policy.act(batch, explore=True, rng=self.rng)
+                label = self._demonstrator().act(batch) if self.spec.expert_labels else None
             obs2, rew, term, _, info = env.step(to_actions(agents, dec, par))
             for a in agents:  # trips that ended this step, by reason (curves need no episode end)
                 ev = info.get(a, {}).get("event", "")
@@ -246,7 +255,7 @@ class RolloutWorker:
                     self._collisions += ev == "collision"
             r = np.array([rew[a] for a in agents], np.float32)
             done = np.array([bool(term[a]) for a in agents], np.float32)
-            self._buf.add(batch, dec, par, r, stack_obs(obs2, agents), done, is_demo)
+            self._buf.add(batch, dec, par, r, stack_obs(obs2, agents), done, label)
             self.acted.update(agents)
             self.ep_reward += float(r.sum())
             self.ep_actions += len(agents)

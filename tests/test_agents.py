@@ -147,6 +147,25 @@ def test_learner_lowers_critic_loss(regularize: bool) -> None:
     assert learner.critic_loss(batch).item() < first
 
 
+def test_expert_labels_are_the_cloning_and_margin_targets() -> None:
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg, LearnerConfig(alpha=0.0, lr=3e-3), seed=0)
+    batch = _batch(64, cfg)
+    batch["obs"]["action_mask"][:] = 1.0
+    batch["labelled"][:] = 1.0
+    batch["label_decision"][:] = 2
+    batch["label_params"][:] = torch.tensor([[0.1, -0.5]] * 3)
+    for _ in range(150):
+        learner.update(batch)
+    with torch.no_grad():
+        u = learner.actor(batch["obs"])
+        q = learner.critic(batch["obs"], batch["params"])
+    # the actor clones the labels, not the (random) taken params
+    assert (u - batch["label_params"]).abs().max() < 0.05
+    assert (u - batch["params"]).abs().mean() > 0.3
+    assert (q.argmax(dim=1) == 2).float().mean() > 0.95
+
+
 def test_td_target_ignores_masked_decisions() -> None:
     cfg = LCAConfig()
     learner = RBPDQN(cfg)

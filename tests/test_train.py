@@ -10,18 +10,16 @@ import importlib.util
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
+from agents.acc_lc import AccLcPolicy
 from agents.trainer import TrainConfig, Trainer
+from agents.workers import RolloutWorker
 from mixed_traffic.train import main
 
-try:  # test-only fallback while the ACC-LC baseline is unavailable
-    from agents.acc_lc import AccLcPolicy  # noqa: F401
-
-    DEMO = "acc-lc"
-except ImportError:
-    DEMO = "random"
+DEMO = "acc-lc"
 
 TINY = dict(
     scenarios=("straight-3lane",), densities=(120.0,), penetrations=(0.5,),
@@ -87,6 +85,22 @@ def test_one_worker_is_deterministic(tmp_path: Path) -> None:
     for pa, pb in zip(runs[0].learner.actor.parameters(), runs[1].learner.actor.parameters(),
                       strict=True):  # fmt: skip
         assert torch.equal(pa, pb)
+
+
+def test_policy_transitions_carry_the_demonstrators_labels(tmp_path: Path) -> None:
+    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1, demo_steps=0))
+    worker = RolloutWorker(tr.worker_specs()[0])
+    worker.set_weights(tr.weights())  # an untrained policy drives
+    try:
+        chunk = worker.collect(200)
+    finally:
+        worker.close()
+    assert chunk["demo"] == 0 and chunk["labelled"].min() == 1.0
+    dec, par = AccLcPolicy().act(chunk["obs"])
+    np.testing.assert_array_equal(chunk["label_decision"], dec)
+    np.testing.assert_allclose(chunk["label_params"], par, atol=1e-6)
+    # the labels are the demonstrator's, not copies of what the policy did
+    assert np.abs(chunk["label_params"] - chunk["params"]).max() > 0.1
 
 
 def test_worker_crash_is_recovered(tmp_path: Path) -> None:
