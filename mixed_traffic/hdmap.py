@@ -10,6 +10,7 @@ lane's end along its *primary successor* (straight on, else the first connection
 from __future__ import annotations
 
 import hashlib
+import heapq
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass
 from functools import cached_property
@@ -80,6 +81,36 @@ class HDMap:
     @cached_property
     def edge_row(self) -> dict[str, int]:
         return {eid: i for i, eid in enumerate(self.edge_ids)}
+
+    @cached_property
+    def edge_successors(self) -> dict[int, set[int]]:
+        """Edge row -> edge rows reachable through one junction."""
+        out: dict[int, set[int]] = {}
+        for lane, nxt in self.conn_to:
+            out.setdefault(int(self.lane_edge[lane]), set()).add(nxt)
+        return out
+
+    def fastest_path(self, lane: int, destination: int) -> list[int] | None:
+        """Edge rows from ``lane``'s edge to ``destination`` with the least free-flow travel
+        time whose first junction is one ``lane`` connects through (None: there is none)."""
+        start = int(self.lane_edge[lane])
+        if start == destination:
+            return [start]
+        cost = self.edge_length / np.maximum(self.lane_speed[self.edge_lanes[:, 0]], 0.1)
+        heap = [(float(cost[e]), e, [start, e]) for (ln, e) in self.conn_to if ln == lane]
+        heapq.heapify(heap)
+        done: set[int] = set()
+        while heap:
+            t, e, path = heapq.heappop(heap)
+            if e == destination:
+                return path
+            if e in done:
+                continue
+            done.add(e)
+            for n in self.edge_successors.get(e, ()):
+                if n not in done:
+                    heapq.heappush(heap, (t + float(cost[n]), n, [*path, n]))
+        return None
 
     @cached_property
     def wp_speed(self) -> np.ndarray:

@@ -314,9 +314,14 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
         candidates = [i for i, r in enumerate(base) if edge in r.edges or r.origin == edge]
         if not candidates:
             candidates = list(range(len(base)))
-        cw = weights[candidates] / weights[candidates].sum()
         length = float(hd.edge_length[e])
         for lane in range(int(hd.edge_num_lanes[e])):
+            # routes this lane continues (SUMO refuses a vehicle that must change lanes to
+            # reach its next edge before the edge ends: "too many lane changes required")
+            lane_row = int(hd.edge_lanes[e, lane])
+            paths = {i: _lane_route(hd, lane_row, base[i], edge) for i in candidates}
+            fit = [i for i in candidates if paths[i] is not None] or candidates
+            fw = weights[fit] / weights[fit].sum()
             # a count independent of the seed keeps possible_agents fixed for a config
             n = round(length * per_lane)
             if n == 0:
@@ -324,14 +329,15 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
             spacing = length / n
             # rounding n up makes the spacing tighter than the target: SUMO refuses to insert
             # at a speed above the IDM equilibrium of the actual spacing
-            lane_row = int(hd.edge_lanes[e, lane])
             lane_limit = float(hd.lane_speed[lane_row])  # e.g. a slower on-ramp
             v_lane = min(v_eq, idm_equilibrium_speed(spacing, lane_limit, config.vehicle))
             start = rng.random() * spacing
             for k in range(n):
                 pos = min(start + k * spacing, length - 1.0)  # clip, never drop: fixed count
-                r = int(rng.choice(candidates, p=cw))
-                route_idx = _suffix_route(routes, r, edge)
+                r = int(rng.choice(fit, p=fw))
+                route_idx = (
+                    _route_index(routes, paths[r]) if paths[r] else _suffix_route(routes, r, edge)
+                )
                 # a lane that ends ahead (lane drop, acceleration lane): SUMO only inserts a
                 # vehicle that can still stop before the end (IDM brakes gently: b, not 2b)
                 last = routes[route_idx].edges[-1] if routes[route_idx].edges else ""
@@ -385,6 +391,28 @@ def _own_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
         vehicles.append(PlannedVehicle(vid, v.depart, v.route, bool(av)))
     span = max(1.0, own[-1].depart - own[0].depart)
     return Demand(scenario.routes, tuple(vehicles), (), 0.0, len(own) / span)
+
+
+def _lane_route(hd: HDMap, lane: int, route: Route, edge: str) -> tuple[str, ...] | None:
+    """The edges of ``route`` from ``edge`` on, if a vehicle on ``lane`` can follow them without
+    changing lanes before the junction (SUMO refuses to insert it otherwise: "too many lane
+    changes required"); origin/destination routes take the fastest such path. None: none."""
+    if not route.edges:
+        path = hd.fastest_path(lane, hd.edge_row[route.destination])
+        return None if path is None else tuple(hd.edge_ids[e] for e in path)
+    rest = route.edges[route.edges.index(edge) :] if edge in route.edges else ()
+    if len(rest) == 1 or (len(rest) > 1 and (lane, hd.edge_row[rest[1]]) in hd.conn_to):
+        return rest
+    return None
+
+
+def _route_index(routes: list[Route], edges: tuple[str, ...]) -> int:
+    """Index of the route with exactly these ``edges`` (appended once)."""
+    for i, r in enumerate(routes):
+        if r.edges == edges:
+            return i
+    routes.append(Route(edges=edges, weight=0.0))
+    return len(routes) - 1
 
 
 def _distance_to_lane_end(hd: HDMap, lane: int, pos: float, last_edge: int) -> float:

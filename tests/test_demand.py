@@ -70,3 +70,12 @@ def test_same_seed_same_trajectories_different_seed_differs() -> None:
     a, b, c = trajectories(1), trajectories(1), trajectories(2)
     assert a.shape == b.shape and np.array_equal(a, b)
     assert a.shape != c.shape or not np.allclose(a, c)
+
+
+@pytest.mark.parametrize("scenario", ["urban-grid3x3", "urban-eval"])
+def test_every_vehicle_placed_in_the_grid_departs(scenario: str) -> None:
+    # a vehicle placed in a lane that does not lead to its next edge is refused by SUMO
+    config = EnvConfig(scenario=scenario, density=60, penetration=0.2, episode_length=5)
+    sc = load_scenario(scenario)
+    n_placed = len(make_demand(sc, config, np.random.default_rng(config.seed)).vehicles)
+    assert len(simulate(config, 0.1)[0].ids) == n_placed
