@@ -20,7 +20,12 @@ speed at signalised stop lines (turn lanes behind a stop line are slow and the w
 look 10 m ahead), vehicles of the neighbouring lanes that overlap the ego laterally (cut-ins, or
 the ego straddling during its own change) as leaders too. The virtual stopped vehicle at the end
 of a lane that must be left is a leader like any other. The light state is a majority over the
-last three frames (misdetection filter).
+last three frames (misdetection filter). Cooperation: a vehicle ahead in a neighbouring lane
+whose lateral offset points into our lane by ``signal_min`` (a waiting or starting change) is a
+leader too when we can stop for it braking at most ``yield_decel``. Hidden vehicles: the
+sensors report one front vehicle per lane, so one right ahead of a slower neighbour (e.g. stuck
+half-way in a change into our lane) is invisible; slower neighbours are passed no faster than a
+closing speed we could stop from (``hidden_decel``) before such a vehicle.
 
 Lane change (MOBIL-like): a change is safe if the target lane's rear vehicle keeps a gap of
 ``s0 + 0.6 s * v_rear`` plus a margin for its closing speed, and the front gap is enough for the
@@ -28,13 +33,21 @@ ego to follow without hard braking; discretionary when the IDM acceleration in t
 beats the current lane by a threshold (small keep-right bias), mandatory when the mask forbids
 follow. A change already under way (offset and lateral velocity towards the target) continues
 while it stays safe, otherwise the ego returns to its lane centre (abort). Discretionary
-changes start only near the centre line.
+changes start only near the centre line. A mandatory change that waits for a gap stops
+``end_wait`` before the lane's end (room to swing out), signals with ``signal_offset`` towards
+the target lane (inside its own lane; neighbours yield to it, see above), accepts a forced gap
+(the target lane's rear vehicle, assumed IDM, brakes moderately) and once under way creeps up
+to ``end_s0`` before the end.
 
 Lateral: a target offset (0 for follow, +-LANE_SHIFT for a change, relative to the current
 lane; when the ego crosses into the target lane its offset is measured from the new lane and
 "follow" centres it) -> a lateral velocity (rate-limited by a comfortable lateral acceleration)
--> a course angle -> steering with curvature feed-forward from the waypoint orientations and a
-steering limit that bounds the lateral acceleration.
+-> a course angle (up to 60 deg at walking pace) -> steering with curvature feed-forward from
+the waypoint orientations over the 5 m ahead (the env's bicycle model uses the same window; a
+longer look-ahead averages an S-bend such as the lane-drop junction, which shifts every lane by
+a width within 9 m, to zero) and a steering limit that bounds the lateral acceleration. The
+current course is SUMO's heading, blended below 8 m/s into the measured lateral velocity
+(SUMO's heading trails the path by a body length and lags far behind at walking pace).
 """
 
 from __future__ import annotations
@@ -91,6 +104,20 @@ class AccLcConfig:
     # lateral envelope: clearance kept to vehicles alongside (longitudinal overlap)
     side_margin: float = 0.4
     side_long_margin: float = 2.0
+    # hidden vehicle: one may sit right ahead of a slower visible neighbour (bumper gap
+    # ``hidden_gap``) and pull into our lane; pass slow neighbours only as fast as we could stop
+    hidden_gap: float = 1.0
+    hidden_decel: float = 4.0
+    # cooperation: a waiting mandatory changer signals with a lateral offset towards the target
+    # lane; a vehicle ahead in a neighbouring lane offset towards us by ``signal_min`` is yielded
+    # to (a leader) when we can stop for it braking at most ``yield_decel``
+    signal_offset: float = 0.6
+    signal_min: float = 0.4
+    yield_decel: float = 2.5
+    # a mandatory change waits this far before the end of its lane (room to swing out), and
+    # creeps this close to it once the change is under way
+    end_wait: float = 6.0
+    end_s0: float = 1.0
     # lateral
     lat_accel: float = 2.0
     lat_speed: float = 1.0
@@ -98,16 +125,18 @@ class AccLcConfig:
     heading_gain: float = 1.0
 
 
-def _idm(v, v0, gap, dv, c: AccLcConfig):
-    """IDM acceleration; dv = v - v_leader (closing speed), gap bumper gap [m] (inf = free)."""
+def _idm(v, v0, gap, dv, c: AccLcConfig, s0=None):
+    """IDM acceleration; dv = v - v_leader (closing speed), gap bumper gap [m] (inf = free);
+    ``s0`` standstill gap (default ``c.s0``)."""
+    s0 = c.s0 if s0 is None else s0
     v0 = np.maximum(v0, 0.1)
     free = 1.0 - (np.minimum(v, 2 * v0) / v0) ** 4
-    s_star = c.s0 + np.maximum(0.0, v * c.T + v * dv / (2.0 * np.sqrt(c.a * c.b)))
+    s_star = s0 + np.maximum(0.0, v * c.T + v * dv / (2.0 * np.sqrt(c.a * c.b)))
     inter = np.where(np.isfinite(gap), (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
     acc = c.a * (free - inter)
     # kinematic emergency: brake hard enough to stop behind where the leader could stop
     v_lead = np.maximum(v - dv, 0.0)
-    room = np.maximum(gap - 1.0 + v_lead**2 / (2 * c.max_decel), 0.05)
+    room = np.maximum(gap - np.minimum(1.0, 0.5 * s0) + v_lead**2 / (2 * c.max_decel), 0.05)
     need = np.where(np.isfinite(gap), v**2 / (2 * room), 0.0)
     acc = np.where(need > c.b, np.minimum(acc, -need * 1.2), acc)
     return acc
@@ -183,9 +212,12 @@ class AccLcPolicy:
         return f
 
     # ------------------------------------------------------------------ longitudinal
-    def _lane_accel(self, f, lane: int, offset: np.ndarray, memory: bool = True) -> np.ndarray:
+    def _lane_accel(
+        self, f, lane: int, offset: np.ndarray, memory: bool = True, end_gap=None
+    ) -> np.ndarray:
         """(A,) acceleration if driving in lane column ``lane`` (with the ego at lateral
-        ``offset`` relative to the current lane, for the overlap test of neighbours)."""
+        ``offset`` relative to the current lane, for the overlap test of neighbours);
+        ``end_gap`` (A,) standstill gap to the virtual end-of-lane vehicle (default ``s0``)."""
         c = self.c
         v = f["v"]
         ln = np.where(f["exists"][:, lane], lane, _C)
@@ -235,8 +267,18 @@ class AccLcPolicy:
             if j != lane and lane != _C and j == _C:
                 # moving to another lane: the current lane's leader matters while we overlap it
                 relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half + 0.6)
+            if lane == _C and j != _C:
+                # cooperation: yield to a neighbour ahead signalling a change into our lane
+                towards = f["h_lat"][:, j, kk] * (j - _C) > c.signal_min
+                close = np.maximum(-f["h_rel"][:, j, kk], 0.0)
+                can = close**2 / (2 * np.maximum(gap - 1.0, 0.1)) <= c.yield_decel
+                relevant |= np.isfinite(dist) & towards & (gap > 1.0) & can
             vk = v[:, None]
-            a_j = _idm(vk, v0[:, None], np.where(relevant, gap, np.inf), -f["h_rel"][:, j, kk], c)
+            s0 = c.s0
+            if end_gap is not None and j == _C:
+                s0 = np.where(f["h_len"][:, j, kk] < 0.1, end_gap[:, None], c.s0)
+            rel = -f["h_rel"][:, j, kk]
+            a_j = _idm(vk, v0[:, None], np.where(relevant, gap, np.inf), rel, c, s0)
             acc = np.minimum(acc, np.where(relevant, a_j, np.inf).min(axis=1))
         # traffic light of the current lane (a change does not escape the light)
         ld = f["light_dist"][:, _C]
@@ -258,6 +300,25 @@ class AccLcPolicy:
         acc = np.where(lightish & (lim_now < 20.0), np.minimum(acc, a_j), acc)
         return acc
 
+    def _hidden_cap(self, f) -> np.ndarray:
+        """(A,) acceleration cap for passing slower neighbours: the sensors report one front
+        vehicle per lane, so a vehicle right ahead of it (e.g. stuck half-way in a change into
+        our lane) is hidden; keep the closing speed to it, and to the visible one while its rear
+        is still ahead (its lateral offset may be misread), stoppable at ``hidden_decel``."""
+        c = self.c
+        v = f["v"]
+        cap = np.full_like(v, np.inf)
+        for j in (_L, _R):
+            fd = f["vdist"][:, j, 0]
+            v_o = np.maximum(v + f["vrel"][:, j, 0], 0.0)
+            rear = fd - f["vlen"][:, j, 0]
+            room = np.minimum(fd + c.hidden_gap, np.where(rear > 0, rear, np.inf)) - 0.5
+            v_max = v_o + np.sqrt(2 * c.hidden_decel * np.maximum(room, 0.0))
+            on = f["exists"][:, j] & np.isfinite(fd) & (f["vlen"][:, j, 0] > 0.1)
+            # (tracked within 0.25 s: the bound tightens as fast as we close in)
+            cap = np.where(on, np.minimum(cap, 4.0 * (v_max - v)), cap)
+        return cap
+
     # ------------------------------------------------------------------ lateral
     def _steer(self, f, target: np.ndarray) -> np.ndarray:
         c = self.c
@@ -268,16 +329,27 @@ class AccLcPolicy:
             [np.full_like(err, c.lat_speed), c.lat_gain * np.abs(err), np.sqrt(1.6 * np.abs(err))]
         )
         vl_des = np.sign(err) * mag
-        vl_now = vs * np.sin(f["h"])
+        # current course: SUMO's heading trails the lateral path by a body length, so at low
+        # speed (a lane change from standstill) it lags the course far behind and the ego
+        # overshoots into the next lane; there the measured lateral velocity is used
+        chi_meas = np.arcsin(np.clip(f["vlat_hist"] / vs, -0.9, 0.9))
+        wgt = np.clip((8.0 - v) / 4.0, 0.0, 1.0)
+        h = wgt * chi_meas + (1.0 - wgt) * f["h"]
+        vl_now = vs * np.sin(h)
         vl = np.clip(vl_des, vl_now - c.lat_accel * 0.25, vl_now + c.lat_accel * 0.25)
-        chi = np.arcsin(np.clip(vl / vs, -0.5, 0.5))
-        # lane curvature from the current lane's waypoint orientations (relative to ego heading)
+        # (up to 60 deg at walking pace: a change from standstill at a lane's end has little room)
+        chi = np.arcsin(np.clip(vl / vs, -0.87, 0.87))
+        # lane curvature here, from the current lane's waypoint orientations (relative to ego
+        # heading), over the 5 m window the env's bicycle model uses: a longer look-ahead
+        # averages an S-bend (the lane-drop junction shifts every lane by one width within
+        # 9 m) to zero and the ego lags a whole lane behind its lane
         o = f["wp_orient"][:, _C]
-        kappa = (o[:, -1] - o[:, 2]) / max(o.shape[1] - 3, 1)
+        w = min(5, o.shape[1] - 1)
+        kappa = (o[:, w] - o[:, 0]) / max(w, 1)
         kappa = np.where(f["exists"][:, _C], kappa, 0.0)
         ff = np.arctan(c.wheelbase * kappa)
         lim = np.arctan(c.wheelbase * c.lat_accel / vs**2)
-        fb = np.clip(c.heading_gain * (chi - f["h"]) * np.minimum(1.0, 8.0 / vs), -lim, lim)
+        fb = np.clip(c.heading_gain * (chi - h) * np.minimum(1.0, 8.0 / vs), -lim, lim)
         steer = ff + fb
         return np.clip(steer / np.deg2rad(c.max_steer_deg), -1.0, 1.0)
 
@@ -392,17 +464,21 @@ class AccLcPolicy:
         d = f["d"]
         mask = f["mask"]
         # accelerations and steering per decision
-        acc_f = self._lane_accel(f, _C, d)
-        acc_l = self._lane_accel(f, _L, d)
-        acc_r = self._lane_accel(f, _R, d)
+        mand = ~mask[:, FOLLOW]
+        creep = np.where(mand, c.end_s0, c.s0)
+        acc_f = self._lane_accel(f, _C, d, end_gap=np.where(mand, c.end_wait, c.s0))
+        acc_l = self._lane_accel(f, _L, d, end_gap=creep)
+        acc_r = self._lane_accel(f, _R, d, end_gap=creep)
         safe_l = self._safe(f, _L, relaxed=False) & mask[:, LEFT]
         safe_r = self._safe(f, _R, relaxed=False) & mask[:, RIGHT]
         cont_l = self._safe(f, _L, relaxed=True) & mask[:, LEFT]
         cont_r = self._safe(f, _R, relaxed=True) & mask[:, RIGHT]
         vlat = f["vlat_hist"]
-        # a change under way: offset and lateral motion towards that side
-        going_l = (d > c.lc_start_offset) & (vlat > 0.1)
-        going_r = (d < -c.lc_start_offset) & (vlat < -0.1)
+        # a change under way: offset and lateral motion towards that side (beyond the signal
+        # offset of a waiting mandatory change)
+        start = np.where(mand, c.signal_offset + 0.15, c.lc_start_offset)
+        going_l = (d > start) & (vlat > 0.1)
+        going_r = (d < -start) & (vlat < -0.1)
         centred = np.abs(d) < c.lc_start_offset
         # incentive (MOBIL-like, without politeness towards followers beyond the safety test),
         # from the latest frame only (remembered leaders cap the executed accelerations but
@@ -416,7 +492,6 @@ class AccLcPolicy:
         both = want_l & want_r
         want_l &= ~both | (inc_l > inc_r)
         want_r &= ~(both & (inc_l > inc_r))
-        mand = ~mask[:, FOLLOW]
         decision = np.full(A, FOLLOW, dtype=np.int64)
         decision[want_r] = RIGHT
         decision[want_l] = LEFT
@@ -438,17 +513,22 @@ class AccLcPolicy:
         forced_r = mand & self._forced_ok(f, _R) & mask[:, RIGHT]
         go_l = np.where(going_l, cont_l, safe_l) | forced_l
         go_r = np.where(going_r, cont_r, safe_r) | forced_r
-        t_l = np.where(go_l, c.lane_shift, 0.0)
-        t_r = np.where(go_r, -c.lane_shift, 0.0)
+        # a waiting mandatory change signals (offset towards the target lane, inside its own)
+        t_l = np.where(go_l, c.lane_shift, np.where(mand, c.signal_offset, 0.0))
+        t_r = np.where(go_r, -c.lane_shift, np.where(mand, -c.signal_offset, 0.0))
         # while changing, the current lane's leaders still count (min of both lanes)
         # mandatory change waiting for a gap: match the target lane (stay behind its front
         # vehicle) and let a rear vehicle that is about alongside pass
         wait_l = self._wait_accel(f, _L, acc_f)
         wait_r = self._wait_accel(f, _R, acc_f)
-        norm_l = np.where(go_l, np.minimum(acc_l, acc_f), acc_f)
-        norm_r = np.where(go_r, np.minimum(acc_r, acc_f), acc_f)
+        # (a mandatory change under way may creep towards the end of its lane to swing out)
+        acc_fc = self._lane_accel(f, _C, d, end_gap=creep)
+        norm_l = np.where(go_l, np.minimum(acc_l, acc_fc), acc_f)
+        norm_r = np.where(go_r, np.minimum(acc_r, acc_fc), acc_f)
         acc_l = np.where(mand & ~(go_l & (safe_l | going_l & cont_l)), wait_l, norm_l)
         acc_r = np.where(mand & ~(go_r & (safe_r | going_r & cont_r)), wait_r, norm_r)
+        cap = self._hidden_cap(f)
+        acc_f, acc_l, acc_r = (np.minimum(x, cap) for x in (acc_f, acc_l, acc_r))
         # keep clear laterally of vehicles alongside (simultaneous changes into one lane)
         lo, hi = self._lateral_bounds(f)
         t_f = np.clip(np.zeros(A), lo, hi)

@@ -9,7 +9,11 @@ from agents.acc_lc import AccLcPolicy
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.observation import observation_space
 
-LANE_END_CASES = {("bottleneck", 60, 1.0), ("merge-eval", 120, 0.2)}
+LANE_END_CASES = {
+    ("bottleneck", 60, 1.0),
+    ("merge-eval", 120, 0.2),
+    ("merge", 180, 1.0),  # forced merge from standstill at the end of the acceleration lane
+}
 TERMINAL = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
 
 
@@ -99,6 +103,48 @@ def test_keeps_clear_of_a_vehicle_straddling_in_from_the_far_side() -> None:
     assert decision[0] != 0
 
 
+def _one_vehicle_batch(v: float, right: list[float], lat_ego: float = 0.0):
+    """One ego at speed ``v`` with one front vehicle in the right lane (features in SI)."""
+    z, m = 5, 10
+    ego = np.zeros((1, z, 5), np.float32)
+    ego[..., 0] = v / 40
+    ego[..., 2] = 0.5
+    ego[..., 3] = 1.8 / 5
+    ego[..., 4] = lat_ego / 2
+    lanes = np.zeros((1, 3, z, 4 * m), np.float32)
+    lanes[..., 3::4] = 25 / 40
+    veh = np.zeros((1, 3, z, 12), np.float32)
+    scale = np.array([90, 40, np.pi, 10, 5, 2])
+    veh[0, 2, :, :6] = np.asarray(right) / scale
+    return dict(ego=ego, lanes=lanes, vehicles=veh, lights=np.zeros((1, 3, z, 4), np.float32),
+                node_mask=np.ones((1, 3, 3), np.int8),
+                action_mask=np.ones((1, 3), np.int8))  # fmt: skip
+
+
+def test_yields_to_a_signalling_neighbour_and_passes_slow_ones_slowly() -> None:
+    pol = AccLcPolicy()
+    # stopped car 20 m ahead in the right lane, offset 0.7 m towards us (waiting to merge)
+    _, p = pol.act(_one_vehicle_batch(6.0, [20.0, -6.0, 0.0, 5.0, 1.8, 0.7]))
+    assert p[0, 1, 1] < -0.1  # brakes to let it in
+    # same car centred in its lane: no yielding, but the speed cap for a vehicle hidden right
+    # ahead of it still allows a moderate passing speed
+    _, p = pol.act(_one_vehicle_batch(6.0, [20.0, -6.0, 0.0, 5.0, 1.8, 0.0]))
+    assert p[0, 1, 1] > 0
+    # passing a stopped car alongside at 12 m/s is too fast: a car hidden ahead may pull out
+    _, p = pol.act(_one_vehicle_batch(12.0, [1.0, -12.0, 0.0, 5.0, 1.8, 0.0]))
+    assert p[0, 1, 1] < -0.3
+
+
+def test_follows_an_s_bend_with_local_curvature() -> None:
+    """Feed-forward from the curvature where the ego is: an S-bend whose left and right halves
+    both lie in the waypoint window must still steer left on its first half."""
+    batch = _one_vehicle_batch(5.0, [0.0] * 6)
+    o = np.array([0.0, 0.2, 0.45, 0.64, 0.64, 0.64, 0.45, 0.2, 0.0, 0.0])  # heading [rad]
+    batch["lanes"][:, :, :, 2::4] = o / np.pi
+    _, p = AccLcPolicy().act(batch)
+    assert p[0, 1, 0] > 0.1
+
+
 def _drive(scenario: str, density: float, penetration: float, seconds: float = 45.0):
     from mixed_traffic.env import parallel_env
 
@@ -144,6 +190,8 @@ def _drive(scenario: str, density: float, penetration: float, seconds: float = 4
         ("highway-eval", 180, 0.2),
         ("bottleneck", 180, 1.0),
         ("bottleneck", 60, 1.0),
+        ("bottleneck-eval", 120, 1.0),  # every lane shifts by a width in the drop junction
+        ("bottleneck-eval", 120, 0.2),
         ("merge", 180, 1.0),
         ("merge", 120, 0.2),  # a lane-1 car straddling into the acceleration lane, hidden
         ("merge-eval", 120, 0.2),  # behind a car alongside (leaders kept over the history)
