@@ -469,6 +469,8 @@ class Trainer:
             raise FileExistsError(
                 f"{self.out} already holds a training run; pass --resume or another --out"
             )
+        # every invocation of this run, first to last (auto.json provenance)
+        self.c["commands"] = [*self.c.get("commands", []), self.command]
 
     # -------------------------------------------------------------- persistence
     def _load(self) -> None:
@@ -534,6 +536,7 @@ class Trainer:
 
         return {
             "command": self.command,
+            "commands": self.c["commands"],
             "git_revision": git_revision(),
             "train_config": self.cfg.to_dict(),
             "env_base": self.env_base.to_dict(),

@@ -66,6 +66,7 @@ def test_resume_continues_counters(tmp_path: Path) -> None:
     assert len(tr.replay) == first["env_steps"]
     second = tr.run()
     assert second["env_steps"] >= 3000 and second["updates"] > first["updates"]
+    assert len(second["commands"]) == 2  # provenance keeps every invocation
     steps = [int(r["env_steps"]) for r in _curves(tmp_path)]
     assert steps == sorted(steps) and len(set(steps)) == len(steps)
     with pytest.raises(FileExistsError):
