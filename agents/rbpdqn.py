@@ -192,6 +192,9 @@ class RBPDQN:
         self.critic_targ.load_state_dict(sd["critic_targ"])
         self.actor_opt.load_state_dict(sd["actor_opt"])
         self.critic_opt.load_state_dict(sd["critic_opt"])
+        for opt in (self.actor_opt, self.critic_opt):  # the config's rate, not the saved one
+            for group in opt.param_groups:
+                group["lr"] = self.cfg.lr
         self.steps = int(sd["steps"])
 
 

@@ -113,6 +113,8 @@ class TrainConfig:
     deviation from the paper, see agents.rbpdqn; off = BC on the taken action)."""
     alpha: float = 0.6
     """Weight α of the normalised Q term in the actor loss after pretraining [-] (paper 0.6)."""
+    lr: float = 1e-3
+    """Adam learning rate of actor and critic [-] (paper 1e-3)."""
     ablation: str = "none"
     """Paper §V-A variant: none | nohis | nolane | nostar | noimp | nomul | novec."""
     bp_dqn: bool = False
@@ -184,6 +186,8 @@ class TrainConfig:
             bad("pretrain_updates", "must be >= 0")
         if not self.alpha >= 0:
             bad("alpha", "must be >= 0")
+        if not self.lr > 0:
+            bad("lr", "must be > 0")
         for name in ("local_buffer", "replay_capacity", "batch_size", "sync_every", "log_every"):
             if getattr(self, name) < 1:
                 bad(name, "must be >= 1")
@@ -448,7 +452,8 @@ class Trainer:
         self.env_base = env_base_config(cfg, env_base)
         self.lca = lca_config(cfg, self.env_base)
         torch.set_num_threads(cfg.learner_threads)
-        lcfg = LearnerConfig(batch_size=cfg.batch_size, regularize=not cfg.bp_dqn, alpha=cfg.alpha)
+        lcfg = LearnerConfig(batch_size=cfg.batch_size, regularize=not cfg.bp_dqn, alpha=cfg.alpha,
+                             lr=cfg.lr)  # fmt: skip
         self.learner = RBPDQN(self.lca, lcfg, seed=cfg.seed)
         self.replay = ReplayBuffer(cfg.replay_capacity, self.lca)
         self.rng = np.random.default_rng([cfg.seed, 7])
