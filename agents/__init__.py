@@ -25,6 +25,17 @@ Deviations from the paper, and why:
   because Q of decisions the demonstrator never took is otherwise pure extrapolation and the
   argmax picks them; and ``--pretrain-updates`` runs updates on the demonstrations alone, with
   the actor on behaviour cloning only (α = 0), before the learned policy drives.
+- Expert relabelling (DAgger, Ross et al. 2011; ``TrainConfig.expert_labels``, on by default):
+  every transition the learned policy drives also stores ACC-LC's action for the same
+  observation, and the BC term and the DQfD margin target that label instead of the taken
+  action. Cloning only the demonstrator's states compounds errors: the pretrained actor
+  matched ACC-LC to 0.45° of steering on held-out demonstration states but was off by 3-5°
+  on the states it drove into itself, and 82-100 % of its AV trips ended in a collision or
+  off the road. ``--no-expert-labels`` restores BC on the taken action.
+- The shipped checkpoint was trained with α = 0 (``--alpha 0``): the actor is the relabelled
+  BC fit and RL shapes the decisions through the critic (TD + margin). With α = 0.6 the
+  normalised Q term outweighed the steering precision the BC term asks for, and the RL
+  fine-tune diverged (critic loss 30-300 within ~1000 updates; measured before relabelling).
 - The behaviour-cloning term weights steering errors by ``bc_steer_weight`` = 100: steering
   ±1 is ±60°, lane keeping needs about 1°, and with equal weights the fit ignores steering.
   Exploration noise on steering is scaled down by ``STEER_NOISE_FACTOR`` for the same reason.
