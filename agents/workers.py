@@ -47,8 +47,9 @@ Chunk = dict[str, Any]
 """A LocalBuffer flush: ``obs``/``next_obs`` dicts of float32 (n, ...) arrays, ``decision``
 (n,) int64, ``params`` (n, 3, 2) float32, ``reward`` (n,) float32, ``done`` (n,) float32, the
 expert labels ``labelled`` (n,) float32, ``label_decision`` (n,) int64, ``label_params``
-(n, 3, 2) float32 (see :class:`agents.replay.ReplayBuffer`), plus ``worker_id``, ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo``
-(transitions in the chunk driven by the demonstrator), ``sim_steps`` (env steps taken),
+(n, 3, 2) float32 (see :class:`agents.replay.ReplayBuffer`), plus ``worker_id``,
+``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo`` (transitions in
+the chunk driven by the demonstrator), ``sim_steps`` (env steps taken),
 ``trips``/``terminals``/``collisions`` (AV trips that ended in the chunk: arrived or terminal;
 terminal events; collisions) and ``episodes`` (list of :func:`episode_stats` dicts of the episodes that ended)."""
 
