@@ -57,6 +57,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mixed_traffic.config import SensorConfig, VehicleConfig
 from mixed_traffic.observation import EGO_SCALE, SPEED_SCALE, WAYPOINT_SCALE
 
 LEFT, FOLLOW, RIGHT = 0, 1, 2
@@ -68,12 +69,13 @@ _L, _C, _R = 0, 1, 2
 class AccLcConfig:
     """Parameters of the rule-based driver (SI units)."""
 
-    lidar_range: float = 90.0
-    camera_range: float = 60.0
-    wheelbase: float = 2.8
-    max_steer_deg: float = 60.0
-    max_accel: float = 3.0
-    max_decel: float = 6.0
+    # the env's sensor ranges and vehicle limits (one source: mixed_traffic.config)
+    lidar_range: float = SensorConfig.lidar_range
+    camera_range: float = SensorConfig.camera_range
+    wheelbase: float = VehicleConfig.wheelbase
+    max_steer_deg: float = VehicleConfig.max_steer_deg
+    max_accel: float = VehicleConfig.max_accel
+    max_decel: float = VehicleConfig.max_decel
     # IDM
     a: float = 1.5
     b: float = 2.0
