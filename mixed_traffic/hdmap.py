@@ -83,12 +83,25 @@ class HDMap:
         return {eid: i for i, eid in enumerate(self.edge_ids)}
 
     @cached_property
+    def lane_exits(self) -> dict[int, set[int]]:
+        """Lane row -> edge rows it connects to through the junction at its end."""
+        out: dict[int, set[int]] = {}
+        for lane, nxt in self.conn_to:
+            out.setdefault(lane, set()).add(nxt)
+        return out
+
+    @cached_property
     def edge_successors(self) -> dict[int, set[int]]:
         """Edge row -> edge rows reachable through one junction."""
         out: dict[int, set[int]] = {}
-        for lane, nxt in self.conn_to:
-            out.setdefault(int(self.lane_edge[lane]), set()).add(nxt)
+        for lane, nxt in self.lane_exits.items():
+            out.setdefault(int(self.lane_edge[lane]), set()).update(nxt)
         return out
+
+    @cached_property
+    def edge_free_time(self) -> np.ndarray:
+        """(E,) free-flow travel time of each edge at its rightmost lane's limit [s]."""
+        return self.edge_length / np.maximum(self.lane_speed[self.edge_lanes[:, 0]], 0.1)
 
     def fastest_path(self, lane: int, destination: int) -> list[int] | None:
         """Edge rows from ``lane``'s edge to ``destination`` with the least free-flow travel
@@ -96,8 +109,8 @@ class HDMap:
         start = int(self.lane_edge[lane])
         if start == destination:
             return [start]
-        cost = self.edge_length / np.maximum(self.lane_speed[self.edge_lanes[:, 0]], 0.1)
-        heap = [(float(cost[e]), e, [start, e]) for (ln, e) in self.conn_to if ln == lane]
+        cost = self.edge_free_time
+        heap = [(float(cost[e]), e, [start, e]) for e in self.lane_exits.get(lane, ())]
         heapq.heapify(heap)
         done: set[int] = set()
         while heap:
