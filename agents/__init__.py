@@ -11,6 +11,9 @@
 - ``agents.workers``: ``RolloutWorker`` (env + local policy + LocalBuffer), ``SharedWeights``.
 - ``agents.trainer``: ``TrainConfig``, ``Trainer`` (learner + GlobalBuffer; process/Ray workers);
   the CLI is ``python -m mixed_traffic.train``.
+- ``agents.acc_lc``: the ACC-LC baseline (``AccLcPolicy``; ``plan`` exposes its checks).
+- ``agents.safety``: ``SafetyModule``, the safety module behind the learned policy.
+- ``agents.policies``: policies by name (``auto``, ``auto-raw``, ``acc-lc``, ``random``).
 
 Deviations from the paper, and why:
 
@@ -36,6 +39,13 @@ Deviations from the paper, and why:
   BC fit and RL shapes the decisions through the critic (TD + margin). With α = 0.6 the
   normalised Q term outweighed the steering precision the BC term asks for, and the RL
   fine-tune diverged (critic loss 30-300 within ~1000 updates; measured before relabelling).
+- A safety module (``agents.safety``) sits behind the learned policy at evaluation: the paper
+  names it as standard in industrial stacks (§VI) but evaluates AUTO without one. It hands the
+  step to ACC-LC when the learned steering would leave the lane corridor (or a gap ACC-LC
+  rejects), in a lane that must be left, and caps the acceleration at ACC-LC's when ACC-LC
+  brakes. Without it the shipped policy ended 7-87 % of its AV trips in a terminal event on
+  the bottleneck, merge and urban eval variants. ``auto-raw`` is the policy without it; the
+  ``sm_share`` metric reports how often the module changed an action. Training does not use it.
 - The behaviour-cloning term weights steering errors by ``bc_steer_weight`` = 100: steering
   ±1 is ±60°, lane keeping needs about 1°, and with equal weights the fit ignores steering.
   Exploration noise on steering is scaled down by ``STEER_NOISE_FACTOR`` for the same reason.

@@ -127,6 +127,25 @@ class AccLcConfig:
     heading_gain: float = 1.0
 
 
+@dataclass
+class AccLcPlan:
+    """ACC-LC's action and the checks behind it (A agents)."""
+
+    decision: np.ndarray
+    """(A,) int64 chosen decision."""
+    params: np.ndarray
+    """(A, 3, 2) float32 (steering, accel_brake) of every decision, in [-1, 1]."""
+    features: dict[str, np.ndarray]
+    """Decoded observation (SI units), see ``AccLcPolicy._features``."""
+    lateral_ok: np.ndarray
+    """(A, 3) bool: moving towards the decision's lane is acceptable now (gap accepted;
+    follow is always acceptable)."""
+    lo: np.ndarray
+    """(A,) lowest lateral target [m, current-lane frame] clear of vehicles alongside."""
+    hi: np.ndarray
+    """(A,) highest lateral target [m]."""
+
+
 def _idm(v, v0, gap, dv, c: AccLcConfig, s0=None):
     """IDM acceleration; dv = v - v_leader (closing speed), gap bumper gap [m] (inf = free);
     ``s0`` standstill gap (default ``c.s0``)."""
@@ -460,6 +479,11 @@ class AccLcPolicy:
 
     def act(self, obs_batch: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Decisions (A,) int64 and params (A, 3, 2) float32 for stacked observations."""
+        plan = self.plan(obs_batch)
+        return plan.decision, plan.params
+
+    def plan(self, obs_batch: Mapping[str, np.ndarray]) -> AccLcPlan:
+        """The action of :meth:`act` with the checks behind it (for the safety module)."""
         c = self.c
         f = self._features(obs_batch)
         A = len(f["v"])
@@ -543,7 +567,8 @@ class AccLcPolicy:
         params[:, FOLLOW, 1] = self._to_ab(acc_f)
         params[:, LEFT, 1] = self._to_ab(acc_l)
         params[:, RIGHT, 1] = self._to_ab(acc_r)
-        return decision, params
+        lateral_ok = np.stack([go_l, np.ones(A, bool), go_r], axis=1)
+        return AccLcPlan(decision, params, f, lateral_ok, lo, hi)
 
     def actions(self, obs: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, dict]:
         """``{agent: obs}`` -> ``{agent: {"decision": int, "params": (3, 2)}}``."""

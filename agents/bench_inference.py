@@ -39,8 +39,12 @@ def avg_inference_us(
     threads: int = 1,
     repeats: int = 7,
     iters: int = 50,
+    safety: bool = False,
 ) -> float:
-    """µs per decision (per agent) of a batched forward for ``n_agents`` agents."""
+    """µs per decision (per agent) of a batched forward for ``n_agents`` agents; with
+    ``safety`` the safety module's filter (``agents.safety``) is timed after it."""
+    from agents.safety import SafetyModule
+
     prev = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
@@ -48,13 +52,20 @@ def avg_inference_us(
         cfg = LCAConfig(z=z, m=m)
         policy = Policy(Actor(cfg).eval(), Critic(cfg).eval())
         obs = random_obs(n_agents, cfg, np.random.default_rng(0))
+        module = SafetyModule() if safety else None
+
+        def act() -> None:
+            decision, params = policy.act(obs, explore=False)
+            if module is not None:
+                module.filter(obs, decision, params)
+
         for _ in range(10):  # warm-up: buffers, allocator, caches
-            policy.act(obs, explore=False)
+            act()
         best = float("inf")
         for _ in range(repeats):
             t0 = time.thread_time()
             for _ in range(iters):
-                policy.act(obs, explore=False)
+                act()
             best = min(best, (time.thread_time() - t0) / iters)
         return best / n_agents * 1e6
     finally:

@@ -1,4 +1,5 @@
-"""Policies that drive the env's agents from observations, by name: auto, acc-lc, random.
+"""Policies that drive the env's agents from observations, by name: auto, auto-raw, acc-lc,
+random.
 
 Every policy maps a *batch* of observations (each key stacked over the A agents of a step) to
 ``(decision (A,), params (A, 3, 2))`` in one call, so inference is one batched pass per step.
@@ -54,21 +55,30 @@ class RandomPolicy:
 
 
 class AutoPolicy:
-    """The AUTO agent (LCA + RBP-DQN actor/critic) from a checkpoint, greedy."""
-
-    name = "auto"
+    """The AUTO agent (LCA + RBP-DQN actor/critic) from a checkpoint, greedy, behind the safety
+    module (``agents.safety``) unless ``safety=False`` (name ``auto-raw``)."""
 
     def __init__(
-        self, checkpoint: str | Path | None = None, z: int | None = None, m: int | None = None
+        self,
+        checkpoint: str | Path | None = None,
+        z: int | None = None,
+        m: int | None = None,
+        safety: bool = True,
     ) -> None:
         from agents.checkpoint import load_policy
+        from agents.safety import SafetyModule
 
         path = Path(checkpoint) if checkpoint is not None else SHIPPED_CHECKPOINT
         self.checkpoint = path
+        self.name = "auto" if safety else "auto-raw"
         self._policy = load_policy(path, z=z, m=m, threads=1)
+        self.safety = SafetyModule() if safety else None
 
     def act(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        return self._policy.act(obs, explore=False)
+        decision, params = self._policy.act(obs, explore=False)
+        if self.safety is not None:
+            decision, params, _ = self.safety.filter(obs, decision, params)
+        return decision, params
 
 
 def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = None, z: int | None = None,
@@ -80,6 +90,6 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
         from agents.acc_lc import AccLcPolicy
 
         return AccLcPolicy()
-    if name == "auto":
-        return AutoPolicy(checkpoint, z=z, m=m)
-    raise ValueError(f"unknown policy {name!r}; choose from auto, acc-lc, random")
+    if name in ("auto", "auto-raw"):
+        return AutoPolicy(checkpoint, z=z, m=m, safety=name == "auto")
+    raise ValueError(f"unknown policy {name!r}; choose from auto, auto-raw, acc-lc, random")

@@ -11,11 +11,12 @@ from mixed_traffic.schema import METRICS, POLICIES
 #: One fixed colour per known policy (colour-blind-safe tab10 entries), used by every figure.
 POLICY_COLORS: dict[str, str] = {
     "auto": "#1f77b4",
+    "auto-raw": "#9467bd",
     "acc-lc": "#ff7f0e",
     "idm": "#7f7f7f",
     "random": "#2ca02c",
 }
-_EXTRA_COLORS = ("#d62728", "#9467bd", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
+_EXTRA_COLORS = ("#d62728", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
 REFERENCE_COLOR = "#333333"
 """Colour of the 0 % all-IDM reference."""
 

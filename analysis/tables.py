@@ -30,13 +30,16 @@ from mixed_traffic.schema import MACRO, METRICS, MICRO, TERMINAL_REASONS, label
 
 TERMINAL_KEYS = tuple(f"terminal_{r}" for r in TERMINAL_REASONS)
 #: Safety columns placed beside every results table.
-SAFETY_COLUMNS = ("av_trips", "collisions", "terminal_events", "teleports", "route_completion")
+SAFETY_COLUMNS = (
+    "av_trips", "collisions", "terminal_events", "teleports", "route_completion", "sm_share",
+)  # fmt: skip
 SAFETY_HEADERS = {
     "av_trips": "AV trips",
     "collisions": "collisions",
     "terminal_events": "terminal events",
     "teleports": "teleports",
     "route_completion": "completion (%)",
+    "sm_share": "safety module (%)",
 }
 #: Metrics of the per-cell sweep table.
 CELL_METRICS = ("dt_tf", *MACRO, "pt_rt")
@@ -46,7 +49,8 @@ def safety_counts(df: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
     """Safety counts per group over successful episodes.
 
     Sums of AV trips, collisions, terminal events (every reason, also per reason as
-    ``terminal_<reason>``) and teleports; route completion is the AV-trip-weighted mean (%).
+    ``terminal_<reason>``) and teleports; route completion is the AV-trip-weighted mean (%);
+    ``sm_share`` the episode mean of the AUTO safety module's intervention share (%).
     """
     by = list(by)
     ok = df[df["status"] == "ok"].copy()
@@ -60,9 +64,11 @@ def safety_counts(df: pd.DataFrame, by: Sequence[str]) -> pd.DataFrame:
         for col in ("av_trips", "collisions", "teleports", "terminal_events", *TERMINAL_KEYS):
             row[col] = float(group[col].fillna(0).sum())
         row["route_completion"] = _weighted_completion(group)
+        # share of the AUTO agent's actions its safety module changed (episode mean)
+        row["sm_share"] = group["sm_share"].mean() if "sm_share" in group else float("nan")
         rows.append(row)
     cols = [*by, "episodes", "av_trips", "collisions", "terminal_events", *TERMINAL_KEYS]
-    return pd.DataFrame(rows, columns=[*cols, "teleports", "route_completion"])
+    return pd.DataFrame(rows, columns=[*cols, "teleports", "route_completion", "sm_share"])
 
 
 def _weighted_completion(group: pd.DataFrame) -> float:
@@ -194,6 +200,7 @@ def format_table(table: pd.DataFrame, drop_constant: bool = True) -> pd.DataFram
             *TERMINAL_KEYS,
             "teleports",
             "route_completion",
+            "sm_share",
         ]
     compact = len(by) > 1 and bool(metrics)
     if compact and {"collisions", "terminal_events", "teleports"} <= set(table.columns):
@@ -202,12 +209,12 @@ def format_table(table: pd.DataFrame, drop_constant: bool = True) -> pd.DataFram
             f"{fmt_count(a)} / {fmt_count(b)} / {fmt_count(c)}"
             for a, b, c in zip(table["collisions"], table["terminal_events"], table["teleports"])
         ]
-        safety = ["route_completion"]
+        safety = ["route_completion", "sm_share"]
     for s in safety:
-        if s not in table.columns:
+        if s not in table.columns or (s == "sm_share" and table[s].isna().all()):
             continue
         header = SAFETY_HEADERS.get(s) or METRICS[s].label
-        fmt = fmt_num if s == "route_completion" else fmt_count
+        fmt = fmt_num if s in ("route_completion", "sm_share") else fmt_count
         cols[header] = [fmt(v) for v in table[s]]
     return pd.DataFrame(cols)
 

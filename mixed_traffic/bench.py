@@ -414,6 +414,8 @@ def section_inference(args: argparse.Namespace) -> float:
     us = avg_inference_us(n_agents=128, threads=1)
     print(f"inference: AUTO batched forward, 128 agents, 1 thread: {us:.1f} us per decision "
           f"(target <= 20 us; CPU time, best of 7)")  # fmt: skip
+    sm = avg_inference_us(n_agents=128, threads=1, safety=True)
+    print(f"inference: the same plus the safety module (ACC-LC checks): {sm:.1f} us per decision")
     return us
 
 

@@ -87,7 +87,7 @@ class IdmPolicy:
 
 
 #: Policies that drive the AVs through the env (observations -> parameterized actions).
-ENV_POLICIES = ("auto", "acc-lc", "random")
+ENV_POLICIES = ("auto", "auto-raw", "acc-lc", "random")
 #: Policy name -> factory for the SUMO-only loop (env-driven policies are made by ``agents``).
 POLICIES: dict[str, Any] = {"idm": IdmPolicy}
 
@@ -230,6 +230,8 @@ def run_env_episode(
         env.close()
     frames.save(fps=1.0 / config.step_length)
     metrics["avg_it"] = 1000.0 * infer / decisions if decisions else None
+    if getattr(agent, "safety", None) is not None:
+        metrics["sm_share"] = agent.safety.share
     cell = {k: getattr(config, k) for k in CELL_KEYS if k not in ("policy", "seed")}
     record = {
         "cell": {"policy": policy, **cell, "seed": config.seed},
@@ -240,7 +242,7 @@ def run_env_episode(
         "wall_time": round(time.perf_counter() - t0, 3),
         "metrics": json_safe(metrics),
     }
-    if policy == "auto":
+    if policy.startswith("auto"):
         record["checkpoint"] = str(getattr(agent, "checkpoint", ""))
     return record
 

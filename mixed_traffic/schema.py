@@ -42,6 +42,7 @@ METRICS: dict[str, Metric] = {
         Metric("pt_rt", "PT-RT", "%", "share of AV time with TTC < 4 s", "lower"),
         Metric("avg_r", "AvgR", "-", "mean reward per AV action", "higher"),
         Metric("avg_it", "AvgIT", "ms", "mean policy inference time per decision", "lower"),
+        Metric("sm_share", "SM", "%", "share of AUTO's decisions the safety module changed", "lower"),
         Metric("measured_density", "density", "veh/km", "measured density in the measurement segment after warm-up"),
         Metric("mean_speed", "speed", "m/s", "mean speed of all vehicles in the measurement segment", "higher"),
         Metric("vehicles_crossed", "crossed", "veh", "vehicles that crossed the whole measurement segment"),
@@ -72,7 +73,7 @@ SAFETY = (
 )
 TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
 CELL_KEYS = ("policy", "scenario", "density", "penetration", "weather", "seed")
-POLICIES = ("auto", "acc-lc", "idm", "random")
+POLICIES = ("auto", "auto-raw", "acc-lc", "idm", "random")
 
 
 def label(key: str) -> str:

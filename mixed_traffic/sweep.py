@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.provenance import read_records, record_meta, write_record_atomic
-from mixed_traffic.schema import CELL_KEYS
+from mixed_traffic.schema import CELL_KEYS, POLICIES
 
 PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
 DENSITIES = (60.0, 120.0, 180.0)
@@ -263,7 +263,7 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
         "--no-reference", action="store_true", help="skip the all-IDM 0 %% reference cells"
     )
     p.add_argument(
-        "--policies", nargs="+", default=list(d.policies), help="policies: auto acc-lc idm random"
+        "--policies", nargs="+", default=list(d.policies), help=f"policies: {' '.join(POLICIES)}"
     )
     p.add_argument("--seeds", nargs="+", type=int, default=list(d.seeds), help="root seeds")
     p.add_argument(
@@ -290,10 +290,9 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
     p.add_argument("--no-report", action="store_true", help="skip figures and the PDF")
     a = p.parse_args(argv)
     a.axis = a.axis or "penetration"
-    known = {"auto", "acc-lc", "idm", "random"}
-    bad = [x for x in a.policies if x not in known]
+    bad = [x for x in a.policies if x not in POLICIES]
     if bad:
-        p.error(f"unknown policies {bad}; choose from {sorted(known)}")
+        p.error(f"unknown policies {bad}; choose from {list(POLICIES)}")
     if a.workers < 1:
         p.error(f"--workers={a.workers} must be >= 1")
     if a.address and a.backend != "ray":
