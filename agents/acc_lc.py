@@ -59,6 +59,7 @@ import numpy as np
 
 from mixed_traffic.config import SensorConfig, VehicleConfig
 from mixed_traffic.observation import EGO_SCALE, SPEED_SCALE, WAYPOINT_SCALE
+from mixed_traffic.reward import DEAD_END_DISTANCE
 
 LEFT, FOLLOW, RIGHT = 0, 1, 2
 #: lane columns in the observation (left, current, right)
@@ -119,7 +120,8 @@ class AccLcConfig:
     # a mandatory change waits this far before the end of its lane (room to swing out), and
     # creeps this close to it once the change is under way
     end_wait: float = 6.0
-    end_s0: float = 1.0
+    # (the env ends a trip stuck within DEAD_END_DISTANCE of a dead end as a route deviation)
+    end_s0: float = DEAD_END_DISTANCE + 0.5
     # lateral
     lat_accel: float = 2.0
     lat_speed: float = 1.0
