@@ -5,6 +5,9 @@ Public API (all arrays numpy; A = number of queried agents, N = vehicles in the 
 ``find_neighbours(snap, hdmap, rows, max_range, next_edge=None) -> Neighbours``
     Ground truth. For each agent row and each of its lanes (left, current, right) = columns
     0, 1, 2: the lane row and the front / rear vehicle within ``max_range`` metres along the lane.
+``path_blockers(snap, hdmap, rows, max_range, next_edge=None, limit=None) -> (row, gap, geom)``
+    The nearest vehicle across each agent's path ahead on another (junction) lane;
+    ``find_neighbours`` reports it as the current lane's front vehicle when it is nearer.
 ``bumper_gap(distance, len_ego, len_other) -> gap``   and   ``ttc(gap, closing_speed) -> s``
 ``WEATHER_PRESETS[name] -> WeatherPreset``              noise, misdetection, range factors
 ``tls_ids(hdmap) -> list[str]``                         order of the traffic-light state strings
@@ -29,6 +32,13 @@ Conventions
   up to ``SEARCH_DEPTH`` lanes deep, and behind into one predecessor per lane (the lane whose
   primary successor it is). For the first hop ahead the route is used when ``next_edge`` is
   given (``hdmap.conn_to[(lane, next_edge)]``), else the primary successor ``hdmap.lane_next``.
+* Vehicles across the path: a vehicle on another lane of a junction the ego's path crosses
+  (the current lane and its successors within range) whose body comes within half the ego's
+  width of the path is the current lane's front vehicle when its bumper gap is smaller
+  (``path_blockers``). Its distance is the bumper gap along the path + its body's extent along
+  the path, and its features are measured in the path's frame (``PATH_GEOMETRY``): length and
+  width are its extents along / across the path, the relative velocity is its speed along the
+  path minus the ego's, the lateral offset is its centre's offset from the path.
 * Sublane model: a vehicle straddling two lanes is seen only in the lane SUMO reports for it,
   which is the lane holding its centre; its ``lateral`` offset (feature) shows the overlap.
 * On a neighbour lane the agent's position is projected by the lane-length ratio
@@ -38,13 +48,13 @@ Conventions
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from mixed_traffic.backend.snapshot import TrafficSnapshot
 from mixed_traffic.config import SensorConfig
-from mixed_traffic.hdmap import HDMap
+from mixed_traffic.hdmap import SPACING, HDMap
 
 #: Lanes followed ahead (and behind) of a lane when looking for a leader (follower).
 SEARCH_DEPTH = 4
@@ -56,6 +66,10 @@ NO_LIGHT, RED, YELLOW, GREEN = -1, 0, 1, 2
 #: [m/s], relative heading [rad], length [m], width [m], lateral offset of the other vehicle from
 #: its lane centre, + = left [m].
 VEHICLE_FEATURES = ("distance", "rel_velocity", "rel_heading", "length", "width", "lateral")
+#: Geometry of a vehicle on the ego's path (``path_blockers``), in the path's frame at the point
+#: where the path meets it: speed along the path [m/s], extent of its body along the path [m]
+#: and across it [m], offset of its centre from the path, + = left [m].
+PATH_GEOMETRY = ("speed", "along", "across", "lateral")
 #: Ego feature columns: speed [m/s], heading relative to the lane [rad], length [m], width [m],
 #: lateral offset from the centreline, + = left [m].
 EGO_FEATURES = ("velocity", "heading_rel_lane", "length", "width", "lateral")
@@ -127,6 +141,15 @@ class LaneGraph:
     lane3: np.ndarray
     """(L, 3) (left neighbour, lane, right neighbour) of each lane row, -1 where none (a
     per-step ``neighbour_lane`` becomes one lookup)."""
+    junction: np.ndarray
+    """(L,) junction number of each internal lane, -1 for normal lanes."""
+    entry_junction: np.ndarray
+    """(L,) junction number at the start of each normal lane (the junction its incoming
+    internal lanes belong to), -1 for internal lanes and lanes no junction feeds."""
+    chain: np.ndarray
+    """(L, SEARCH_DEPTH) the lane and its primary successors (``lane_next``), -1 padded."""
+    chain_start: np.ndarray
+    """(L, SEARCH_DEPTH) distance from the lane's start to the start of each of them [m]."""
 
     def connection(self, lane: np.ndarray, edge: np.ndarray) -> np.ndarray:
         """(...) first lane row of the connection lane -> edge, -1 if there is none."""
@@ -195,7 +218,47 @@ def _build_lane_graph(hd: HDMap) -> LaneGraph:
         lane_offset_key=float(np.ceil(hd.lane_length.max()) + 10.0),
         lane3=np.stack([hd.neighbour_lane(np.arange(L), +1), np.arange(L),
                         hd.neighbour_lane(np.arange(L), -1)], axis=1).astype(np.int64),
+        junction=(junction := _lane_junctions(hd)),
+        entry_junction=_entry_junctions(hd, junction),
+        **_successor_chains(hd),
     )  # fmt: skip
+
+
+def _lane_junctions(hd: HDMap) -> np.ndarray:
+    """(L,) junction number of each internal lane (-1 for normal lanes), from SUMO's internal
+    lane ids ``:<junction>_<edge index>_<lane index>``."""
+    names: dict[str, int] = {}
+    out = np.full(hd.n_lanes, -1, dtype=np.int64)
+    for row in np.flatnonzero(hd.lane_edge < 0).tolist():
+        name = hd.lane_ids[row].lstrip(":").rsplit("_", 2)[0]
+        out[row] = names.setdefault(name, len(names))
+    return out
+
+
+def _successor_chains(hd: HDMap) -> dict[str, np.ndarray]:
+    """``chain`` and ``chain_start`` of ``LaneGraph``."""
+    L = hd.n_lanes
+    chain = np.full((L, SEARCH_DEPTH), -1, dtype=np.int64)
+    start = np.full((L, SEARCH_DEPTH), np.inf)
+    chain[:, 0], start[:, 0] = np.arange(L), 0.0
+    for k in range(1, SEARCH_DEPTH):
+        prev = chain[:, k - 1]
+        nxt = np.where(prev >= 0, hd.lane_next[np.maximum(prev, 0)], -1)
+        chain[:, k] = nxt
+        start[:, k] = np.where(
+            nxt >= 0, start[:, k - 1] + hd.lane_length[np.maximum(prev, 0)], np.inf
+        )
+    return {"chain": chain, "chain_start": start}
+
+
+def _entry_junctions(hd: HDMap, junction: np.ndarray) -> np.ndarray:
+    """(L,) junction of the internal lanes leading into each normal lane, -1 if none."""
+    out = np.full(hd.n_lanes, -1, dtype=np.int64)
+    src = np.flatnonzero((junction >= 0) & (hd.lane_next >= 0))
+    dst = hd.lane_next[src].astype(np.int64)
+    normal = hd.lane_edge[dst] >= 0
+    out[dst[normal]] = junction[src[normal]]
+    return out
 
 
 def tls_ids(hdmap: HDMap) -> list[str]:
@@ -231,6 +294,12 @@ class Neighbours:
     """(A, 3, 2) int64 snapshot row of the front / rear vehicle, -1 if none within range."""
     distance: np.ndarray
     """(A, 3, 2) along-lane front-bumper distance [m], + ahead; +inf / -inf when missing."""
+    on_path: np.ndarray | None = None
+    """(A,) bool: the current lane's front vehicle is one on another lane whose body lies on
+    the ego's path ahead (e.g. across a junction), found by ``path_blockers``; its distance
+    and ``path_geometry`` are then measured along the ego's path. None = no such test."""
+    path_geometry: np.ndarray | None = None
+    """(A, 4) ``PATH_GEOMETRY`` of that vehicle where ``on_path`` (undefined elsewhere)."""
 
     @property
     def front(self) -> np.ndarray:
@@ -360,7 +429,173 @@ def find_neighbours(
     r_in = (rear >= 0) & (-rdist <= max_range)
     vehicle = np.stack([np.where(f_in, front, -1), np.where(r_in, rear, -1)], axis=2)
     distance = np.stack([np.where(f_in, fdist, np.inf), np.where(r_in, rdist, -np.inf)], axis=2)
-    return Neighbours(lane=lanes, vehicle=vehicle.astype(np.int64), distance=distance)
+    # ---- a vehicle across the path ahead (another lane of a junction) nearer than the leader
+    lead = vehicle[:, CURRENT, 0]
+    lead_gap = distance[:, CURRENT, 0] - np.where(lead >= 0, snap.length[np.maximum(lead, 0)], 0.0)
+    blocker, gap, geom = path_blockers(snap, hdmap, rows, max_range, next_edge, lead_gap)
+    on_path = (blocker >= 0) & (gap < lead_gap)
+    vehicle[:, CURRENT, 0] = np.where(on_path, blocker, lead)
+    distance[:, CURRENT, 0] = np.where(on_path, gap + geom[:, 1], distance[:, CURRENT, 0])
+    return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom)
+
+
+def _path_lanes(
+    hdmap: HDMap, lane: np.ndarray, pos: np.ndarray, max_range: float,
+    next_edge: np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(A, H) lanes of each ego's path ahead from ``lane`` at ``pos`` (then the successors
+    ``find_neighbours`` follows, while they start within ``max_range``), -1 padded; and (A, H)
+    the distance from the ego's front bumper to each lane's start [m] (+inf where padded)."""
+    g = lane_graph(hdmap)
+    cur = np.asarray(lane, dtype=np.int64)
+    csafe = np.maximum(cur, 0)
+    succ = hdmap.lane_next[csafe].astype(np.int64)
+    if next_edge is not None:
+        via = g.connection(csafe, np.asarray(next_edge))
+        succ = np.where(via >= 0, via, succ)
+    succ = np.where(cur >= 0, succ, -1)
+    ssafe = np.maximum(succ, 0)
+    hops = np.concatenate([cur[:, None], g.chain[ssafe]], axis=1)
+    start = np.concatenate(
+        [-pos[:, None], (hdmap.lane_length[csafe] - pos)[:, None] + g.chain_start[ssafe]], axis=1
+    )
+    start[:, 1:][succ < 0] = np.inf
+    keep = (hops >= 0) & (start <= max_range)
+    keep[:, 1:] &= (succ >= 0)[:, None]
+    keep &= (cur >= 0)[:, None]
+    return np.where(keep, hops, -1), np.where(keep, start, np.inf)
+
+
+def path_blockers(
+    snap: TrafficSnapshot,
+    hdmap: HDMap,
+    rows: np.ndarray,
+    max_range: float,
+    next_edge: np.ndarray | None = None,
+    limit: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The nearest vehicle across each agent's path ahead, on a lane the path does not follow.
+
+    The path is the agent's lane from its front bumper on, then the successors
+    ``find_neighbours`` follows (route-aware first hop), up to ``max_range``. Candidates are the
+    vehicles on internal lanes of the junctions the path crosses, and those that left such a
+    junction by less than their length (a vehicle on a lane of the path is found by the lane
+    search). The path is sampled at the HD map's 1 m waypoints (only around the candidate's
+    junction); a candidate blocks it where its body (a rectangle behind its front bumper) comes
+    within half the agent's width of a sample. Vectorised over (agent, candidate) pairs that
+    share a junction, times samples.
+
+    Args:
+        limit: optional (A,) bumper gap [m] beyond which blockers are not wanted (the lane
+            leader's: ``find_neighbours`` passes it, which spares the test for most agents).
+    Returns:
+        (A,) snapshot row of the nearest blocker (-1 if none); (A,) bumper gap [m] >= 0 along
+        the path from the agent's front bumper to where the path meets its body (+inf if none);
+        (A, 4) its ``PATH_GEOMETRY`` (0 where none).
+    """
+    g = lane_graph(hdmap)
+    rows = np.asarray(rows, dtype=np.int64)
+    A = len(rows)
+    none = (np.full(A, -1, dtype=np.int64), np.full(A, np.inf), np.zeros((A, 4)))
+    vlane = snap.lane.astype(np.int64)
+    cand = np.flatnonzero(vlane >= 0)
+    # vehicles on internal lanes, or leaving a junction with the rear still inside it
+    cl = vlane[cand]
+    cj = np.where(snap.lane_pos[cand] < snap.length[cand], g.entry_junction[cl], g.junction[cl])
+    cj = np.where(g.junction[cl] >= 0, g.junction[cl], cj)
+    cand, cl, cj = cand[cj >= 0], cl[cj >= 0], cj[cj >= 0]
+    if A == 0 or len(cand) == 0:
+        return none
+    # agents whose path reaches a junction before their limit: from a normal lane, the next
+    # junction begins at the lane's end; on an internal lane, here
+    reach_max = 0.5 * (np.hypot(snap.length[cand], snap.width[cand]).max() + snap.width.max())
+    cut = max_range if limit is None else np.minimum(np.asarray(limit, np.float64), max_range)
+    cur = vlane[rows]
+    csafe = np.maximum(cur, 0)
+    to_junction = np.where(
+        g.junction[csafe] >= 0, 0.0, hdmap.lane_length[csafe] - snap.lane_pos[rows]
+    )
+    sub = np.flatnonzero((cur >= 0) & (to_junction - reach_max <= cut + SPACING))
+    if len(sub) == 0:
+        return none
+    nxt = None if next_edge is None else np.asarray(next_edge)[sub]
+    hops, start = _path_lanes(hdmap, cur[sub], snap.lane_pos[rows[sub]], max_range, nxt)
+    hj = np.where(hops >= 0, g.junction[np.maximum(hops, 0)], -1)  # (a, H)
+    match = (hj[:, :, None] == cj[None, None, :]) & (hj >= 0)[:, :, None]  # (a, H, C)
+    pair = match.any(axis=1)
+    pair &= ~(hops[:, :, None] == cl[None, None, :]).any(axis=1)  # not on a lane of the path
+    pair &= cand[None, :] != rows[sub, None]
+    ai, ci = np.nonzero(pair)  # ai: index into sub
+    if len(ai) == 0:
+        return none
+    # ---- window of the path around the junction: its lanes, +- the body's reach
+    m = match[ai, :, ci]  # (P, H)
+    H = m.shape[1]
+    h1 = np.argmax(m, axis=1)
+    h2 = H - 1 - np.argmax(m[:, ::-1], axis=1)
+    v = cand[ci]
+    half_l, half_w = 0.5 * snap.length[v], 0.5 * snap.width[v]
+    r = 0.5 * snap.width[rows[sub[ai]]]  # the agent's half width
+    reach = np.hypot(half_l, half_w) + r
+    st = start[ai]  # (P, H)
+    lo = np.maximum(st[np.arange(len(ai)), h1] - reach, 0.0)
+    hi = st[np.arange(len(ai)), h2] + hdmap.lane_length[hops[ai, h2]] + reach
+    hi = np.minimum(hi, max_range)
+    if limit is not None:  # the first hit is at most SPACING beyond the gap
+        hi = np.minimum(hi, np.asarray(limit, dtype=np.float64)[sub[ai]] + SPACING)
+    near = lo <= hi
+    if not near.all():
+        ai, v, lo, hi, r = ai[near], v[near], lo[near], hi[near], r[near]
+        half_l, half_w, st = half_l[near], half_w[near], st[near]
+        if len(ai) == 0:
+            return none
+    n = int(np.ceil(np.max(hi - lo, initial=0.0) / SPACING)) + 1
+    d = lo[:, None] + SPACING * np.arange(n)[None, :]  # (P, S)
+    h = np.zeros(d.shape, dtype=np.int64)  # hop of each sample
+    for hh in range(1, st.shape[1]):
+        h += d >= st[:, hh, None]
+    lane = np.take_along_axis(hops[ai], h, axis=1)
+    lsafe = np.maximum(lane, 0)
+    q = d - np.take_along_axis(st, h, axis=1)  # position on that lane
+    k = np.clip(np.rint(q / SPACING).astype(np.int64), 0, hdmap.wp_count[lsafe] - 1)
+    wp = hdmap.wp_offset[lsafe] + k
+    ok = (lane >= 0) & (d <= hi[:, None]) & (q <= hdmap.lane_length[lsafe] + 0.5 * SPACING)
+    # ---- the body: rectangle behind the front bumper, in its own frame
+    c, s = np.cos(snap.heading[v]), np.sin(snap.heading[v])
+    cx = snap.x[v] - half_l * c
+    cy = snap.y[v] - half_l * s
+    dx = hdmap.wp_xyz[wp, 0] - cx[:, None]
+    dy = hdmap.wp_xyz[wp, 1] - cy[:, None]
+    out_l = np.maximum(np.abs(dx * c[:, None] + dy * s[:, None]) - half_l[:, None], 0.0)
+    out_w = np.maximum(np.abs(dy * c[:, None] - dx * s[:, None]) - half_w[:, None], 0.0)
+    hit = ok & (out_l**2 + out_w**2 < (r * r)[:, None])
+    found = hit.any(axis=1)
+    if not found.any():
+        return none
+    # ---- where the path meets each blocker: first hit sample, in the path's frame there
+    p = np.flatnonzero(found)
+    j = np.argmax(hit[p], axis=1)
+    ai, v, wj = ai[p], v[p], wp[p, j]
+    dj = np.take_along_axis(st[p], h[p, j][:, None], axis=1)[:, 0] + k[p, j] * SPACING
+    t = hdmap.wp_heading[wj]
+    rel = snap.heading[v] - t
+    ca, sa = np.abs(np.cos(rel)), np.abs(np.sin(rel))
+    along = snap.length[v] * ca + snap.width[v] * sa
+    across = snap.length[v] * sa + snap.width[v] * ca
+    ex, ey = cx[p] - hdmap.wp_xyz[wj, 0], cy[p] - hdmap.wp_xyz[wj, 1]
+    centre = ex * np.cos(t) + ey * np.sin(t)
+    lateral = ey * np.cos(t) - ex * np.sin(t)
+    # the body's near end, between the last sample that missed it and the hit's reach
+    gap = np.maximum(np.clip(dj + centre - 0.5 * along, dj - SPACING, dj + r[p]), 0.0)
+    # ---- nearest blocker per agent
+    order = np.lexsort((gap, ai))
+    first = order[np.r_[True, ai[order][1:] != ai[order][:-1]]]
+    vehicle, best, geom = none
+    a = sub[ai[first]]
+    vehicle[a] = v[first]
+    best[a] = gap[first]
+    geom[a] = np.stack([snap.speed[v] * np.cos(rel), along, across, lateral], axis=1)[first]
+    return vehicle, best, geom
 
 
 def bumper_gap(distance: np.ndarray, len_ego: np.ndarray, len_other: np.ndarray) -> np.ndarray:
@@ -519,7 +754,7 @@ class Perception:
         state = np.where(wrong, (state + shift) % 3, state).astype(np.int8)
         ldist = truth.light_dist * (1.0 + w.rel_noise * z_ldist)
         ldist = np.where(state != NO_LIGHT, np.maximum(ldist, 0.0), np.inf)
-        sensed_nb = Neighbours(nb.lane, np.where(seen, nb.vehicle, -1), dist)
+        sensed_nb = replace(nb, vehicle=np.where(seen, nb.vehicle, -1), distance=dist)
         return PerceptionFrame(sensed_nb, veh, ego, state, ldist)
 
 
@@ -564,6 +799,13 @@ def vehicle_features(snap: TrafficSnapshot, rows: np.ndarray, nb: Neighbours) ->
         ],
         axis=-1,
     )
+    if nb.on_path is not None and nb.on_path.any():
+        # a vehicle across the path: speed along the path, extents along / across it, offset
+        # from it (``PATH_GEOMETRY``)
+        g = nb.path_geometry
+        path = np.stack([g[:, 0] - snap.speed[rows], g[:, 1], g[:, 2], g[:, 3]], axis=1)
+        cols = [1, 3, 4, 5]
+        feats[:, CURRENT, 0, cols] = np.where(nb.on_path[:, None], path, feats[:, CURRENT, 0, cols])
     return np.where(ok[..., None], feats, 0.0)
 
 

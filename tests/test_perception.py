@@ -12,6 +12,7 @@ from mixed_traffic.backend import SumoBackend, TrafficSnapshot
 from mixed_traffic.config import SensorConfig
 from mixed_traffic.hdmap import HDMap, load_hdmap
 from mixed_traffic.perception import (
+    CURRENT,
     GREEN,
     NO_LIGHT,
     RED,
@@ -75,6 +76,47 @@ def start_drop(
                    "--lateral-resolution", "0.8", "--no-step-log", "true", "--no-warnings", "true",
                    "--time-to-teleport", "-1"])  # fmt: skip
     return backend
+
+
+CROSS_NODES = """<nodes>
+    <node id="w" x="-200" y="0"/>
+    <node id="e" x="200" y="0"/>
+    <node id="s" x="0" y="-200"/>
+    <node id="n" x="0" y="200"/>
+    <node id="c" x="0" y="0" type="priority"/>
+</nodes>"""
+# south -> north is the priority road: its traffic crosses the junction without waiting
+CROSS_EDGES = """<edges>
+    <edge id="wc" from="w" to="c" numLanes="1" speed="13.89" priority="1"/>
+    <edge id="ce" from="c" to="e" numLanes="1" speed="13.89" priority="1"/>
+    <edge id="sc" from="s" to="c" numLanes="1" speed="13.89" priority="2"/>
+    <edge id="cn" from="c" to="n" numLanes="1" speed="13.89" priority="2"/>
+</edges>"""
+
+
+def start_cross(tmp_path: Path, standing: bool) -> tuple[HDMap, SumoBackend]:
+    """A priority crossing: ``ego`` drives west -> east, ``hv`` crosses south -> north ahead of
+    it at 13 m/s, or (``standing``) creeps into the junction at 3 m/s, ego departing later."""
+    folder = tmp_path / "cross" / "net"
+    folder.mkdir(parents=True)
+    (folder / "n.nod.xml").write_text(CROSS_NODES)
+    (folder / "e.edg.xml").write_text(CROSS_EDGES)
+    hd = load_hdmap(build_network(folder))
+    rf = tmp_path / "cross.rou.xml"
+    rf.write_text(
+        '<routes><vType id="car" length="5" width="1.8" sigma="0"/>'
+        f'<vType id="hv" length="5" width="1.8" sigma="0" maxSpeed="{3 if standing else 13}"/>'
+        f'<vehicle id="hv" type="hv" depart="0" departPos="{185 if standing else 150}" '
+        'departSpeed="max"><route edges="sc cn"/></vehicle>'
+        f'<vehicle id="ego" type="car" depart="{7 if standing else 0}" departPos="120" '
+        'departSpeed="8"><route edges="wc ce"/></vehicle></routes>'
+    )
+    backend = SumoBackend("libsumo", "traci")
+    backend.set_lane_table(hd.lane_ids, hd.lane_edge)
+    backend.start(["--net-file", hd.net_file, "--route-files", str(rf), "--step-length", "0.1",
+                   "--no-step-log", "true", "--no-warnings", "true", "--time-to-teleport", "-1",
+                   "--collision.action", "none"])  # fmt: skip
+    return hd, backend
 
 
 def routes_of(backend: SumoBackend, hd: HDMap, ids: list[str]) -> list[list[int]]:
@@ -261,3 +303,55 @@ def test_same_seed_same_noise(tmp_path) -> None:
     b = p.sense(snap, np.array([0]), np.array([-1]), [], np.random.default_rng(7))[1]
     np.testing.assert_array_equal(a.vehicles, b.vehicles)
     np.testing.assert_array_equal(a.ego, b.ego)
+
+
+@pytest.mark.parametrize("standing", [False, True], ids=["crossing", "standing"])
+def test_vehicle_across_the_junction_is_the_current_lane_leader(tmp_path, standing) -> None:
+    """hv crosses the junction ahead of ego on the crossing internal lane, at speed or standing
+    in the middle: while its body covers ego's path ahead (brute force: its rectangle
+    within ego's half width of the straight path y = y_ego), it is ego's current-lane front
+    vehicle, at the bumper gap along the path, with its speed along the path (~0), its
+    extents along / across the path and its offset from the path as features."""
+    hd, backend = start_cross(tmp_path, standing)
+    try:
+        p = Perception(SensorConfig(noise=False), hd, "normal")
+        path_y = hd.wp_xyz[hd.wp_offset[hd.lane_row["wc_0"]], 1]
+        seen = 0
+        for _ in range(150):
+            snap = backend.step()
+            ix = snap.index_of()
+            h = ix.get("hv", -1)
+            if standing and h >= 0 and snap.y[h] - 2.5 > path_y - 0.3:
+                backend.set_speeds(["hv"], np.zeros(1))  # stop across ego's path
+            if "ego" not in ix or h < 0:
+                continue
+            a = ix["ego"]
+            rows = np.array([a])
+            nxt = next_route_edge(routes_of(backend, hd, ["ego"]), snap.route_index[rows])
+            truth, _ = p.sense(snap, rows, nxt, [], np.random.default_rng(0))
+            nb, f = truth.neighbours, truth.vehicles[0, CURRENT, 0]
+            # brute force: hv's body (a rectangle behind its front bumper) vs the path band
+            c, s = np.cos(snap.heading[h]), np.sin(snap.heading[h])
+            corners = np.array([[snap.x[h] - u * c - w * s, snap.y[h] - u * s + w * c]
+                                for u in (0.0, 5.0) for w in (-0.9, 0.9)])  # fmt: skip
+            dy = corners[:, 1] - snap.y[a]
+            ahead = corners[:, 0].min() - snap.x[a]
+            if ahead < 0.5:
+                break  # passed (or reached) it
+            if not (dy.min() < 0.9 and dy.max() > -0.9 and ahead < 90):
+                assert nb.front[0, CURRENT] != h
+                continue
+            seen += 1
+            assert nb.front[0, CURRENT] == h and nb.on_path[0]
+            assert abs(np.cos(snap.heading[h])) < 0.1  # at right angles to the path
+            assert hd.lane_edge[snap.lane[h]] < 0
+            assert (snap.speed[h] < 0.1) if standing else (snap.speed[h] > 5.0)
+            gap = f[0] - f[3]  # distance - extent along the path
+            assert gap == pytest.approx(ahead, abs=0.3)
+            # no speed along the path (its full speed would give rel. velocity ~13 - v_ego)
+            assert f[1] == pytest.approx(-snap.speed[a], abs=0.5)
+            assert f[3] == pytest.approx(1.8, abs=0.3) and f[4] == pytest.approx(5.0, abs=0.3)
+            assert f[5] == pytest.approx(snap.y[h] - 2.5 * s - snap.y[a], abs=0.3)
+        assert seen >= 3
+    finally:
+        backend.close()
