@@ -593,10 +593,11 @@ class _FrontView:
         nb = truth.neighbours
         row = nb.front[k, CURRENT]
         self.exists = row >= 0
-        f = np.maximum(row, 0)
         self.distance = nb.front_dist[k, CURRENT]
-        self.length = np.where(self.exists, snap.length[f], 0.0)
-        self.closing = snap.speed[r] - np.where(self.exists, snap.speed[f], 0.0)
+        # from the ground-truth features: a vehicle across the path is measured in its frame
+        feats = truth.vehicles[k, CURRENT, 0]
+        self.length = np.where(self.exists, feats[:, 3], 0.0)
+        self.closing = np.where(self.exists, -feats[:, 1], snap.speed[r])
         self.gap = bumper_gap(self.distance, snap.length[r], self.length)
 
 
