@@ -41,8 +41,9 @@ class SafetyConfig:
     """Time the learned steering and acceleration are held in the lateral prediction [s]."""
     dt: float = 0.1
     """Integration step of the prediction [s]."""
-    lane_margin: float = 0.3
-    """How far the ego's side may pass its lane's edge without a lane change [m]."""
+    lane_margin: float = 0.0
+    """How far the ego's side may pass its lane's edge without a lane change [m] (0: two
+    vehicles in neighbouring lanes, each at its edge, still clear each other)."""
     accel_tolerance: float = 0.1
     """Learned acceleration above ACC-LC's braking that is still accepted [m/s²]."""
 
