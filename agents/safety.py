@@ -9,7 +9,9 @@ ACC-LC (``agents.acc_lc``) as the rule-based method. Per agent and step:
   env's kinematic bicycle model (``mixed_traffic.control``). If the predicted lateral offset
   leaves the corridor of the chosen decision and moves outwards, the agent takes ACC-LC's whole
   action (decision and parameters). The corridor is the current lane, plus the target lane when
-  ACC-LC accepts the gap there, minus room kept clear of vehicles alongside. A mandatory
+  ACC-LC accepts the gap there, minus room kept clear of vehicles alongside. In its lane, the
+  ego may also not drift outwards by more than ``drift_tolerance`` beyond where ACC-LC's
+  steering would take it (the prediction's curvature is crude in S-bends). A mandatory
   change (the lane ends within ``observation.MANDATORY_DISTANCE`` and follow is masked) is
   always driven in safe mode: the learned policy missed such exits (route deviations).
 * **longitudinal** (a cap): when ACC-LC brakes for the chosen decision's lane (a leader, a red
@@ -44,6 +46,9 @@ class SafetyConfig:
     lane_margin: float = 0.0
     """How far the ego's side may pass its lane's edge without a lane change [m] (0: two
     vehicles in neighbouring lanes, each at its edge, still clear each other)."""
+    drift_tolerance: float = 0.3
+    """How much farther from the lane centre than both now and ACC-LC's steering would take it
+    the learned steering may take the ego within the horizon, in its lane [m]."""
     accel_tolerance: float = 0.1
     """Learned acceleration above ACC-LC's braking that is still accepted [m/s²]."""
 
@@ -110,6 +115,13 @@ class SafetyModule:
         d_new = self.predicted_offset(plan, row[:, 0], row[:, 1])
         lo, hi = self.corridor(plan, decision)
         lateral = ((d_new > hi) & (d_new > d_now)) | ((d_new < lo) & (d_new < d_now))
+        # staying in the lane: no drift outwards beyond where ACC-LC's steering would go (the
+        # prediction's curvature is crude, e.g. in the S-bend of a lane drop; both share it)
+        in_lane = (decision == FOLLOW) | ~plan.lateral_ok[ar, decision]
+        rule = plan.params[ar, decision]
+        d_rule = self.predicted_offset(plan, rule[:, 0], rule[:, 1])
+        away = np.abs(d_new) - np.maximum(np.abs(d_rule), np.abs(d_now))
+        lateral |= in_lane & (away > self.config.drift_tolerance)
         # a lane that must be left (follow masked): the learned policy misses the exit
         lateral |= ~plan.features["mask"][:, FOLLOW]
         decision[lateral] = plan.decision[lateral]
