@@ -41,9 +41,9 @@ Deviations from the paper, and why:
   fine-tune diverged (critic loss 30-300 within ~1000 updates; measured before relabelling).
 - A safety module (``agents.safety``) sits behind the learned policy at evaluation: the paper
   names it as standard in industrial stacks (§VI) but evaluates AUTO without one. It hands the
-  step to ACC-LC when the learned steering would leave the lane corridor (or a gap ACC-LC
-  rejects), in a lane that must be left, and caps the acceleration at ACC-LC's when ACC-LC
-  brakes. Without it the shipped policy ended 7-87 % of its AV trips in a terminal event on
+  step to ACC-LC when the learned steering would leave the lane corridor (or enter a gap ACC-LC
+  rejects) or drift off the lane centre beyond ACC-LC's steering, and in a lane that must be
+  left; it caps the acceleration at ACC-LC's when ACC-LC brakes. Without it the shipped policy ended 7-87 % of its AV trips in a terminal event on
   the bottleneck, merge and urban eval variants. ``auto-raw`` is the policy without it; the
   ``sm_share`` metric reports how often the module changed an action. Training does not use it.
 - The behaviour-cloning term weights steering errors by ``bc_steer_weight`` = 100: steering
