@@ -39,8 +39,12 @@ Conventions
   the path, and its features are measured in the path's frame (``PATH_GEOMETRY``): length and
   width are its extents along / across the path, the relative velocity is its speed along the
   path minus the ego's, the lateral offset is its centre's offset from the path.
-* Sublane model: a vehicle straddling two lanes is seen only in the lane SUMO reports for it,
-  which is the lane holding its centre; its ``lateral`` offset (feature) shows the overlap.
+* Sublane model: a vehicle straddling two lanes is in the lane SUMO reports for it, which is
+  the lane holding its centre; its ``lateral`` offset (feature) shows the overlap. A vehicle
+  among the first ``STRADDLE_DEPTH`` ahead on a neighbour lane whose body overlaps the ego's
+  laterally is also the current lane's front vehicle when nearer (two cars can share a lane
+  side by side, and the nearer one would hide it); like a vehicle across the path, its
+  features are then in the ego lane's frame (``path_geometry``).
 * On a neighbour lane the agent's position is projected by the lane-length ratio
   (lanes of one edge have near-equal lengths; curves make them differ slightly).
 """
@@ -58,6 +62,10 @@ from mixed_traffic.hdmap import SPACING, HDMap
 
 #: Lanes followed ahead (and behind) of a lane when looking for a leader (follower).
 SEARCH_DEPTH = 4
+#: Vehicles ahead on each neighbour lane checked for straddling into the ego's way.
+STRADDLE_DEPTH = 3
+#: Lateral clearance below which a straddling vehicle counts as in the ego's way [m].
+STRADDLE_MARGIN = 0.2
 #: Column of each lane in the (A, 3) lane arrays.
 LEFT, CURRENT, RIGHT = 0, 1, 2
 #: Traffic-light state codes.
@@ -296,8 +304,9 @@ class Neighbours:
     """(A, 3, 2) along-lane front-bumper distance [m], + ahead; +inf / -inf when missing."""
     on_path: np.ndarray | None = None
     """(A,) bool: the current lane's front vehicle is one on another lane whose body lies on
-    the ego's path ahead (e.g. across a junction), found by ``path_blockers``; its distance
-    and ``path_geometry`` are then measured along the ego's path. None = no such test."""
+    the ego's path ahead (across a junction, ``path_blockers``, or straddling in from a
+    neighbour lane); its distance and ``path_geometry`` are then measured along the ego's
+    path. None = no such test."""
     path_geometry: np.ndarray | None = None
     """(A, 4) ``PATH_GEOMETRY`` of that vehicle where ``on_path`` (undefined elsewhere)."""
 
@@ -436,7 +445,58 @@ def find_neighbours(
     on_path = (blocker >= 0) & (gap < lead_gap)
     vehicle[:, CURRENT, 0] = np.where(on_path, blocker, lead)
     distance[:, CURRENT, 0] = np.where(on_path, gap + geom[:, 1], distance[:, CURRENT, 0])
+    # ---- a vehicle of a neighbour lane straddling into the ego's way, nearer still
+    if len(order):
+        lead_gap = np.where(on_path, gap, lead_gap)
+        veh_s, dist_s, lat_s = _straddlers(snap, hdmap, rows, lanes, i, pos, order, start, s_pos)
+        s_gap = dist_s - snap.length[np.maximum(veh_s, 0)]
+        take = (veh_s >= 0) & (dist_s <= max_range) & (s_gap < lead_gap)
+        vehicle[:, CURRENT, 0] = np.where(take, veh_s, vehicle[:, CURRENT, 0])
+        distance[:, CURRENT, 0] = np.where(take, dist_s, distance[:, CURRENT, 0])
+        straddle = np.stack(
+            [snap.speed[veh_s], snap.length[veh_s], snap.width[veh_s], lat_s], axis=1
+        )
+        geom = np.where(take[:, None], straddle, geom)
+        on_path |= take
     return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom)
+
+
+def _straddlers(
+    snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np.ndarray, i: np.ndarray,
+    pos: np.ndarray, order: np.ndarray, start: np.ndarray, s_pos: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """The nearest vehicle ahead on the left or right lane whose body overlaps the ego's
+    laterally (SUMO's sublane model lets two vehicles share a lane side by side, so one
+    straddling into ours can hide behind that lane's nearest vehicle).
+
+    Looks at the first ``STRADDLE_DEPTH`` vehicles ahead on each neighbour lane (sorted-order
+    indices ``i`` (A, 3) from ``find_neighbours``). Returns (A,) snapshot row (-1 if none),
+    (A,) front-bumper distance [m] and (A,) its centre's offset from the ego's lane centre [m].
+    """
+    A = len(rows)
+    cur = np.maximum(lanes[:, CURRENT], 0)
+    w_cur = hdmap.lane_width[cur]
+    best = np.full(A, -1, dtype=np.int64)
+    best_d, best_lat = np.full(A, np.inf), np.zeros(A)
+    for col, side in ((LEFT, 1.0), (RIGHT, -1.0)):
+        lane = lanes[:, col]
+        ok_lane = (lane >= 0) & (lanes[:, CURRENT] >= 0)
+        lsafe = np.maximum(lane, 0)
+        shift = side * 0.5 * (w_cur + hdmap.lane_width[lsafe])  # its lane centre in ours
+        for k in range(STRADDLE_DEPTH):
+            idx = i[:, col] + k
+            ok = ok_lane & (idx < start[lsafe + 1])
+            v = order[np.minimum(idx, len(order) - 1)]
+            y = snap.lateral[v] + shift
+            half = 0.5 * (snap.width[v] + snap.width[rows]) + STRADDLE_MARGIN
+            hit = ok & (np.abs(y - snap.lateral[rows]) < half)
+            d = s_pos[np.minimum(idx, len(order) - 1)] - pos[:, col]
+            gap = d - snap.length[v]
+            better = hit & (gap < best_d - np.where(best >= 0, snap.length[best], 0.0))
+            best = np.where(better, v, best)
+            best_d = np.where(better, d, best_d)
+            best_lat = np.where(better, y, best_lat)
+    return best, best_d, best_lat
 
 
 def _path_lanes(

@@ -23,6 +23,7 @@ from mixed_traffic.perception import (
     find_neighbours,
     next_route_edge,
     ttc,
+    vehicle_features,
 )
 from mixed_traffic.scenario import build_network, load_scenario
 
@@ -200,6 +201,25 @@ def test_leader_across_edge_boundary_synthetic() -> None:
     nb = find_neighbours(snap, hd, np.array([0]), 5.0)
     assert nb.front[0, 1] == -1 and nb.front_dist[0, 1] == np.inf
     assert nb.lane[0, 0] == hd.lane_row["warmup_2"] and nb.lane[0, 2] == hd.lane_row["warmup_0"]
+
+
+def test_vehicle_straddling_in_behind_a_neighbour_is_the_current_lane_leader() -> None:
+    """Sublane model: two cars share the right lane side by side; the farther one straddles
+    into the ego's lane and hides behind the nearer one, which keeps to its right edge."""
+    hd = load_scenario("straight").hdmap
+    snap = fake_snapshot(hd, ["meas_1", "meas_0", "meas_0", "meas_1"],
+                         [100.0, 103.0, 108.0, 150.0], [7, 4, 4, 10])  # fmt: skip
+    snap = replace(snap, lateral=np.array([0.0, -0.8, 1.65, 0.0]))
+    nb = find_neighbours(snap, hd, np.array([0]), 90.0)
+    assert nb.front[0, 2] == 1  # the right lane still reports its nearest car
+    assert nb.front[0, CURRENT] == 2 and nb.front_dist[0, CURRENT] == pytest.approx(8.0)
+    feats = vehicle_features(snap, np.array([0]), nb)[0, CURRENT, 0]
+    width = hd.lane_width[hd.lane_row["meas_1"]]
+    assert feats[1] == pytest.approx(-3.0)  # its speed minus ours
+    assert feats[5] == pytest.approx(1.65 - width)  # its offset from our lane centre
+    # keeping to its own lane it is not in our way: the lane leader stays
+    snap = replace(snap, lateral=np.array([0.0, -0.8, 0.0, 0.0]))
+    assert find_neighbours(snap, hd, np.array([0]), 90.0).front[0, CURRENT] == 3
 
 
 # --------------------------------------------------------------------------- real SUMO
