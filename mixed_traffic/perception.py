@@ -308,7 +308,7 @@ class Neighbours:
     neighbour lane); its distance and ``path_geometry`` are then measured along the ego's
     path. None = no such test."""
     path_geometry: np.ndarray | None = None
-    """(A, 4) ``PATH_GEOMETRY`` of that vehicle where ``on_path`` (undefined elsewhere)."""
+    """(A, 4) ``PATH_GEOMETRY`` of that vehicle where ``on_path`` (0 elsewhere)."""
 
     @property
     def front(self) -> np.ndarray:
@@ -438,65 +438,65 @@ def find_neighbours(
     r_in = (rear >= 0) & (-rdist <= max_range)
     vehicle = np.stack([np.where(f_in, front, -1), np.where(r_in, rear, -1)], axis=2)
     distance = np.stack([np.where(f_in, fdist, np.inf), np.where(r_in, rdist, -np.inf)], axis=2)
-    # ---- a vehicle across the path ahead (another lane of a junction) nearer than the leader
+    # ---- a vehicle in the way on another lane, nearer than the lane's leader: across the
+    # path ahead (a junction lane), or straddling in from a neighbour lane
     lead = vehicle[:, CURRENT, 0]
     lead_gap = distance[:, CURRENT, 0] - np.where(lead >= 0, snap.length[np.maximum(lead, 0)], 0.0)
-    blocker, gap, geom = path_blockers(snap, hdmap, rows, max_range, next_edge, lead_gap)
-    on_path = (blocker >= 0) & (gap < lead_gap)
-    vehicle[:, CURRENT, 0] = np.where(on_path, blocker, lead)
-    distance[:, CURRENT, 0] = np.where(on_path, gap + geom[:, 1], distance[:, CURRENT, 0])
-    # ---- a vehicle of a neighbour lane straddling into the ego's way, nearer still
-    if len(order):
-        lead_gap = np.where(on_path, gap, lead_gap)
-        veh_s, dist_s, lat_s = _straddlers(snap, hdmap, rows, lanes, i, pos, order, start, s_pos)
-        s_gap = dist_s - snap.length[np.maximum(veh_s, 0)]
-        take = (veh_s >= 0) & (dist_s <= max_range) & (s_gap < lead_gap)
-        vehicle[:, CURRENT, 0] = np.where(take, veh_s, vehicle[:, CURRENT, 0])
-        distance[:, CURRENT, 0] = np.where(take, dist_s, distance[:, CURRENT, 0])
-        straddle = np.stack(
-            [snap.speed[veh_s], snap.length[veh_s], snap.width[veh_s], lat_s], axis=1
-        )
-        geom = np.where(take[:, None], straddle, geom)
+    on_path, geom = np.zeros(A, bool), np.zeros((A, len(PATH_GEOMETRY)))
+    for other, gap, other_geom in (
+        path_blockers(snap, hdmap, rows, max_range, next_edge, lead_gap),
+        _straddlers(snap, hdmap, rows, lanes, i, pos, order, start, s_pos, max_range),
+    ):
+        take = (other >= 0) & (gap < lead_gap)
+        vehicle[:, CURRENT, 0] = np.where(take, other, vehicle[:, CURRENT, 0])
+        distance[:, CURRENT, 0] = np.where(take, gap + other_geom[:, 1], distance[:, CURRENT, 0])
+        geom = np.where(take[:, None], other_geom, geom)
+        lead_gap = np.where(take, gap, lead_gap)
         on_path |= take
     return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom)
 
 
 def _straddlers(
     snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np.ndarray, i: np.ndarray,
-    pos: np.ndarray, order: np.ndarray, start: np.ndarray, s_pos: np.ndarray,
+    pos: np.ndarray, order: np.ndarray, start: np.ndarray, s_pos: np.ndarray, max_range: float,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
     """The nearest vehicle ahead on the left or right lane whose body overlaps the ego's
     laterally (SUMO's sublane model lets two vehicles share a lane side by side, so one
     straddling into ours can hide behind that lane's nearest vehicle).
 
     Looks at the first ``STRADDLE_DEPTH`` vehicles ahead on each neighbour lane (sorted-order
-    indices ``i`` (A, 3) from ``find_neighbours``). Returns (A,) snapshot row (-1 if none),
-    (A,) front-bumper distance [m] and (A,) its centre's offset from the ego's lane centre [m].
+    indices ``i`` (A, 3) from ``find_neighbours``) within ``max_range``. Returns like
+    ``path_blockers``: (A,) snapshot row (-1 if none), (A,) bumper gap [m] (+inf if none) and
+    (A, 4) ``PATH_GEOMETRY`` in the ego lane's frame (its speed, length, width, and its
+    centre's offset from the ego's lane centre).
     """
     A = len(rows)
-    cur = np.maximum(lanes[:, CURRENT], 0)
-    w_cur = hdmap.lane_width[cur]
     best = np.full(A, -1, dtype=np.int64)
-    best_d, best_lat = np.full(A, np.inf), np.zeros(A)
-    for col, side in ((LEFT, 1.0), (RIGHT, -1.0)):
-        lane = lanes[:, col]
-        ok_lane = (lane >= 0) & (lanes[:, CURRENT] >= 0)
-        lsafe = np.maximum(lane, 0)
-        shift = side * 0.5 * (w_cur + hdmap.lane_width[lsafe])  # its lane centre in ours
-        for k in range(STRADDLE_DEPTH):
-            idx = i[:, col] + k
-            ok = ok_lane & (idx < start[lsafe + 1])
-            v = order[np.minimum(idx, len(order) - 1)]
-            y = snap.lateral[v] + shift
-            half = 0.5 * (snap.width[v] + snap.width[rows]) + STRADDLE_MARGIN
-            hit = ok & (np.abs(y - snap.lateral[rows]) < half)
-            d = s_pos[np.minimum(idx, len(order) - 1)] - pos[:, col]
-            gap = d - snap.length[v]
-            better = hit & (gap < best_d - np.where(best >= 0, snap.length[best], 0.0))
-            best = np.where(better, v, best)
-            best_d = np.where(better, d, best_d)
-            best_lat = np.where(better, y, best_lat)
-    return best, best_d, best_lat
+    best_gap, best_lat = np.full(A, np.inf), np.zeros(A)
+    if len(order):
+        cur = np.maximum(lanes[:, CURRENT], 0)
+        w_cur = hdmap.lane_width[cur]
+        for col, side in ((LEFT, 1.0), (RIGHT, -1.0)):
+            lane = lanes[:, col]
+            ok_lane = (lane >= 0) & (lanes[:, CURRENT] >= 0)
+            lsafe = np.maximum(lane, 0)
+            shift = side * 0.5 * (w_cur + hdmap.lane_width[lsafe])  # its lane centre in ours
+            for k in range(STRADDLE_DEPTH):
+                idx = i[:, col] + k
+                j = np.minimum(idx, len(order) - 1)
+                v = order[j]
+                y = snap.lateral[v] + shift
+                d = s_pos[j] - pos[:, col]
+                half = 0.5 * (snap.width[v] + snap.width[rows]) + STRADDLE_MARGIN
+                gap = d - snap.length[v]
+                better = ok_lane & (idx < start[lsafe + 1]) & (d <= max_range)
+                better &= (np.abs(y - snap.lateral[rows]) < half) & (gap < best_gap)
+                best = np.where(better, v, best)
+                best_gap = np.where(better, gap, best_gap)
+                best_lat = np.where(better, y, best_lat)
+    v = np.maximum(best, 0)
+    geom = np.stack([snap.speed[v], snap.length[v], snap.width[v], best_lat], axis=1)
+    return best, best_gap, np.where((best >= 0)[:, None], geom, 0.0)
 
 
 def _path_lanes(
