@@ -58,6 +58,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from mixed_traffic.config import SensorConfig, VehicleConfig
+from mixed_traffic.control import CURVATURE_WINDOW
 from mixed_traffic.observation import EGO_SCALE, SPEED_SCALE, WAYPOINT_SCALE
 from mixed_traffic.reward import DEAD_END_DISTANCE
 
@@ -146,6 +147,16 @@ class AccLcPlan:
     """(A,) lowest lateral target [m, current-lane frame] clear of vehicles alongside."""
     hi: np.ndarray
     """(A,) highest lateral target [m]."""
+
+
+def lane_curvature(f: Mapping[str, np.ndarray]) -> np.ndarray:
+    """(A,) curvature of the current lane where the ego is [1/m, + = left], from the waypoint
+    orientations (``AccLcPolicy._features``) over the env's ``CURVATURE_WINDOW``; 0 where the
+    lane is missing."""
+    o = f["wp_orient"][:, _C]
+    w = min(CURVATURE_WINDOW, o.shape[1] - 1)
+    kappa = (o[:, w] - o[:, 0]) / max(w, 1)
+    return np.where(f["exists"][:, _C], kappa, 0.0)
 
 
 def _idm(v, v0, gap, dv, c: AccLcConfig, s0=None):
@@ -366,11 +377,7 @@ class AccLcPolicy:
         # heading), over the 5 m window the env's bicycle model uses: a longer look-ahead
         # averages an S-bend (the lane-drop junction shifts every lane by one width within
         # 9 m) to zero and the ego lags a whole lane behind its lane
-        o = f["wp_orient"][:, _C]
-        w = min(5, o.shape[1] - 1)
-        kappa = (o[:, w] - o[:, 0]) / max(w, 1)
-        kappa = np.where(f["exists"][:, _C], kappa, 0.0)
-        ff = np.arctan(c.wheelbase * kappa)
+        ff = np.arctan(c.wheelbase * lane_curvature(f))
         lim = np.arctan(c.wheelbase * c.lat_accel / vs**2)
         fb = np.clip(c.heading_gain * (chi - h) * np.minimum(1.0, 8.0 / vs), -lim, lim)
         steer = ff + fb

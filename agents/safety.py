@@ -30,7 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agents.acc_lc import _C, FOLLOW, LEFT, RIGHT, AccLcPlan, AccLcPolicy
+from agents.acc_lc import FOLLOW, LEFT, RIGHT, AccLcPlan, AccLcPolicy, lane_curvature
+from mixed_traffic.action import to_physical
 from mixed_traffic.config import VehicleConfig
 from mixed_traffic.control import bicycle_frenet_step
 
@@ -68,23 +69,15 @@ class SafetyModule:
         self.interventions = {"lateral": 0, "longitudinal": 0}
         self.decisions = 0
 
-    def _accel(self, ab: np.ndarray) -> np.ndarray:
-        """accel_brake in [-1, 1] -> [m/s²] (as ``mixed_traffic.action``)."""
-        return np.where(ab > 0, ab * self.vehicle.max_accel, ab * self.vehicle.max_decel)
-
-    def predicted_offset(self, plan: AccLcPlan, steer: np.ndarray, ab: np.ndarray) -> np.ndarray:
-        """(A,) lateral offset [m, current-lane frame] after holding ``steer``/``ab`` (A,) in
-        [-1, 1] for ``horizon`` seconds."""
+    def predicted_offset(self, plan: AccLcPlan, steer: np.ndarray, accel: np.ndarray) -> np.ndarray:
+        """(A,) lateral offset [m, current-lane frame] after holding the physical ``steer``
+        [rad] and ``accel`` [m/s²] (A,) for ``horizon`` seconds."""
         c, f = self.config, plan.features
-        o = f["wp_orient"][:, _C]
-        w = min(5, o.shape[1] - 1)
-        kappa = np.where(f["exists"][:, _C], (o[:, w] - o[:, 0]) / max(w, 1), 0.0)
-        delta = steer * np.deg2rad(self.vehicle.max_steer_deg)
-        acc = self._accel(ab)
+        kappa = lane_curvature(f)
         v, psi, d = f["v"], f["h"], f["d"].copy()
         for _ in range(max(1, round(c.horizon / c.dt))):
             v, _, dd, psi, _ = bicycle_frenet_step(
-                v, psi, d, delta, acc, kappa, self.vehicle.wheelbase, c.dt
+                v, psi, d, steer, accel, kappa, self.vehicle.wheelbase, c.dt
             )
             d = d + dd
         return d
@@ -110,27 +103,27 @@ class SafetyModule:
         decision = np.asarray(decision, np.int64).copy()
         params = np.asarray(params, np.float32).copy()
         ar = np.arange(len(decision))
-        row = params[ar, decision]
+        steer, accel = to_physical(decision, params, self.vehicle)
+        steer_rule, accel_rule = to_physical(decision, plan.params, self.vehicle)
         d_now = plan.features["d"]
-        d_new = self.predicted_offset(plan, row[:, 0], row[:, 1])
+        d_new = self.predicted_offset(plan, steer, accel)
         lo, hi = self.corridor(plan, decision)
         lateral = ((d_new > hi) & (d_new > d_now)) | ((d_new < lo) & (d_new < d_now))
         # staying in the lane: no drift outwards beyond where ACC-LC's steering would go (the
         # prediction's curvature is crude, e.g. in the S-bend of a lane drop; both share it)
         in_lane = (decision == FOLLOW) | ~plan.lateral_ok[ar, decision]
-        rule = plan.params[ar, decision]
-        d_rule = self.predicted_offset(plan, rule[:, 0], rule[:, 1])
+        d_rule = self.predicted_offset(plan, steer_rule, accel_rule)
         away = np.abs(d_new) - np.maximum(np.abs(d_rule), np.abs(d_now))
         lateral |= in_lane & (away > self.config.drift_tolerance)
         # a lane that must be left (follow masked): the learned policy misses the exit
         lateral |= ~plan.features["mask"][:, FOLLOW]
         decision[lateral] = plan.decision[lateral]
         params[lateral] = plan.params[lateral]
-        # longitudinal cap for the (possibly replaced) decision
-        ab, ab_rule = params[ar, decision, 1], plan.params[ar, decision, 1]
-        a, a_rule = self._accel(ab), self._accel(ab_rule)
-        longitudinal = ~lateral & (a_rule < 0) & (a > a_rule + self.config.accel_tolerance)
-        params[ar[longitudinal], decision[longitudinal], 1] = ab_rule[longitudinal]
+        # the others keep their decision: cap the acceleration where ACC-LC brakes
+        tol = self.config.accel_tolerance
+        longitudinal = ~lateral & (accel_rule < 0) & (accel > accel_rule + tol)
+        ix = (ar[longitudinal], decision[longitudinal])
+        params[ix + (1,)] = plan.params[ix + (1,)]
         self.decisions += len(decision)
         self.interventions["lateral"] += int(lateral.sum())
         self.interventions["longitudinal"] += int(longitudinal.sum())

@@ -72,6 +72,6 @@ def test_prediction_follows_the_steering() -> None:
     obs["ego"][:, :, 0] = 20.0 / 40.0
     obs["ego"][:, :, 2:4] = [0.45, 0.36]
     plan = AccLcPolicy().plan(obs)
-    d = module.predicted_offset(plan, np.array([0.0, 0.02, -0.02]), np.zeros(a))
+    d = module.predicted_offset(plan, np.deg2rad([0.0, 1.2, -1.2]), np.zeros(a))
     assert abs(d[0]) < 1e-6
     assert d[1] > 0.5 and d[2] < -0.5
