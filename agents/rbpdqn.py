@@ -60,6 +60,8 @@ class LearnerConfig:
     """Weight of steering errors in the behaviour-cloning term (accel_brake: 1). Lane keeping
     needs steering to about a degree (0.02 of the ±60° range), while accel_brake errors of 0.1
     are harmless; with equal weights the fit ignores steering (1 = the paper's loss)."""
+    bc_accel_weight: float = 1.0
+    """Weight of accel_brake errors in the behaviour-cloning term (1 = the paper's loss)."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
@@ -139,7 +141,7 @@ class RBPDQN:
         if not self.cfg.regularize:
             return -q.sum(dim=1).mean()
         avg_q = q.abs().mean().detach() + self.cfg.avgq_eps
-        w = u.new_tensor([self.cfg.bc_steer_weight, 1.0])  # per (steering, accel_brake)
+        w = u.new_tensor([self.cfg.bc_steer_weight, self.cfg.bc_accel_weight])
         target = batch.get("label_params", batch["params"])
         bc = ((u - target).pow(2) * w).sum(dim=(1, 2))
         return (-(self.cfg.alpha / avg_q) * q.sum(dim=1) + bc).mean()

@@ -115,6 +115,12 @@ class TrainConfig:
     """Weight α of the normalised Q term in the actor loss after pretraining [-] (paper 0.6)."""
     lr: float = 1e-3
     """Adam learning rate of actor and critic [-] (paper 1e-3)."""
+    bc_accel_weight: float = 1.0
+    """Weight of accel_brake errors in the behaviour-cloning term, relative to 1 per unit²
+    (steering: ``LearnerConfig.bc_steer_weight``) [-] (1 = the paper's loss)."""
+    init: str = ""
+    """Checkpoint whose networks (and optimiser states) start a new run: fine-tuning with a
+    fresh replay and counters ('' = random init; ignored by --resume)."""
     ablation: str = "none"
     """Paper §V-A variant: none | nohis | nolane | nostar | noimp | nomul | novec."""
     bp_dqn: bool = False
@@ -188,6 +194,8 @@ class TrainConfig:
             bad("alpha", "must be >= 0")
         if not self.lr > 0:
             bad("lr", "must be > 0")
+        if not self.bc_accel_weight >= 0:
+            bad("bc_accel_weight", "must be >= 0")
         for name in ("local_buffer", "replay_capacity", "batch_size", "sync_every", "log_every"):
             if getattr(self, name) < 1:
                 bad(name, "must be >= 1")
@@ -453,7 +461,7 @@ class Trainer:
         self.lca = lca_config(cfg, self.env_base)
         torch.set_num_threads(cfg.learner_threads)
         lcfg = LearnerConfig(batch_size=cfg.batch_size, regularize=not cfg.bp_dqn, alpha=cfg.alpha,
-                             lr=cfg.lr)  # fmt: skip
+                             lr=cfg.lr, bc_accel_weight=cfg.bc_accel_weight)  # fmt: skip
         self.learner = RBPDQN(self.lca, lcfg, seed=cfg.seed)
         self.replay = ReplayBuffer(cfg.replay_capacity, self.lca)
         self.rng = np.random.default_rng([cfg.seed, 7])
@@ -474,6 +482,8 @@ class Trainer:
             raise FileExistsError(
                 f"{self.out} already holds a training run; pass --resume or another --out"
             )
+        elif cfg.init:
+            self._init_from(Path(cfg.init))
         # every invocation of this run, first to last (auto.json provenance)
         self.c["commands"] = [*self.c.get("commands", []), self.command]
 
@@ -505,6 +515,14 @@ class Trainer:
         self._trim_curves()
         self.log(f"resumed {self.out}: {self.c['env_steps']} env steps, "
                  f"{self.c['updates']} updates, replay {len(self.replay)}")  # fmt: skip
+
+    def _init_from(self, path: Path) -> None:
+        """Start from ``path``'s networks; its provenance goes into this run's (``init``)."""
+        _, meta = load_checkpoint(path, learner=self.learner)
+        self.learner.steps = 0  # this run's update counter (resume checks they agree)
+        keys = ("commands", "git_revision", "env_steps", "updates", "wall_time")
+        self.c["init"] = {"path": str(path), **{k: meta.get(k) for k in keys}}
+        self.log(f"initialised from {path} ({meta.get('env_steps')} env steps)")
 
     def _trim_curves(self) -> None:
         """Drop curve rows written after the last checkpoint (they will be redone)."""
@@ -546,6 +564,7 @@ class Trainer:
             "train_config": self.cfg.to_dict(),
             "env_base": self.env_base.to_dict(),
             **{k: self.c[k] for k in ("env_steps", "updates", "episodes", "wall_time")},
+            **({"init": self.c["init"]} if "init" in self.c else {}),
         }
 
     def finish(self) -> dict[str, Any]:
