@@ -581,15 +581,12 @@ class AccLcPolicy:
 
     def actions(self, obs: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, dict]:
         """``{agent: obs}`` -> ``{agent: {"decision": int, "params": (3, 2)}}``."""
+        from agents.policies import stack_obs, to_actions
+
         agents = list(obs)
         if not agents:
             return {}
-        keys = obs[agents[0]].keys()
-        batch = {k: np.stack([obs[a][k] for a in agents]) for k in keys}
-        decision, params = self.act(batch)
-        return {
-            a: {"decision": int(decision[i]), "params": params[i]} for i, a in enumerate(agents)
-        }
+        return to_actions(agents, *self.act(stack_obs(obs, agents)))
 
 
 def _run_episode(scenario, density, penetration, seconds, seed, weather="normal", verbose=False):

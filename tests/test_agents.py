@@ -166,6 +166,22 @@ def test_expert_labels_are_the_cloning_and_margin_targets() -> None:
     assert (q.argmax(dim=1) == 2).float().mean() > 0.95
 
 
+def test_bc_weights_scale_each_parameter_error() -> None:
+    cfg = LCAConfig()
+    batch = _batch(16, cfg)
+    losses = {}
+    for w in (1.0, 10.0):
+        learner = RBPDQN(cfg, LearnerConfig(alpha=0.0, bc_accel_weight=w), seed=0)
+        with torch.no_grad():
+            u = learner.actor(batch["obs"])
+        batch["label_params"] = u.clone()
+        batch["label_params"][..., 1] += 0.2  # an accel_brake error only
+        losses[w] = learner.actor_loss(batch).item()
+    # Σ over 3 decisions of w·0.2²
+    assert losses[1.0] == pytest.approx(3 * 0.04, rel=1e-4)
+    assert losses[10.0] == pytest.approx(10 * losses[1.0], rel=1e-4)
+
+
 def test_td_target_ignores_masked_decisions() -> None:
     cfg = LCAConfig()
     learner = RBPDQN(cfg)

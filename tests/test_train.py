@@ -15,6 +15,7 @@ import pytest
 import torch
 
 from agents.acc_lc import AccLcPolicy
+from agents.checkpoint import load_checkpoint
 from agents.trainer import TrainConfig, Trainer
 from agents.workers import RolloutWorker
 from mixed_traffic.train import main
@@ -71,6 +72,24 @@ def test_resume_continues_counters(tmp_path: Path) -> None:
     assert steps == sorted(steps) and len(set(steps)) == len(steps)
     with pytest.raises(FileExistsError):
         Trainer(_cfg(tmp_path, workers=1, env_steps=3000))
+
+
+def test_init_fine_tunes_from_a_checkpoint(tmp_path: Path) -> None:
+    first = Trainer(_cfg(tmp_path / "a", workers=1, env_steps=1000)).run()
+    src = tmp_path / "a" / "auto.pt"
+    tr = Trainer(_cfg(tmp_path / "b", workers=1, env_steps=800, demo_steps=0, init=str(src)))
+    source, _ = load_checkpoint(src)
+    for pa, pb in zip(tr.learner.actor.parameters(), source.actor.parameters(), strict=True):
+        assert torch.equal(pa, pb)
+    assert tr.c["env_steps"] == 0 and len(tr.replay) == 0 and tr.learner.steps == 0
+    info = tr.run()
+    assert info["init"]["env_steps"] == first["env_steps"] and info["init"]["path"] == str(src)
+    assert info["updates"] > 0 and info["env_steps"] >= 800
+    resumed = Trainer(_cfg(tmp_path / "b", workers=1, env_steps=900), resume=True)
+    assert resumed.c["init"]["path"] == str(src)  # provenance survives a resume
+    src.write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="auto.pt"):
+        Trainer(_cfg(tmp_path / "c", workers=1, env_steps=10, init=str(src)))
 
 
 def test_one_worker_is_deterministic(tmp_path: Path) -> None:
