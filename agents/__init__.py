@@ -39,6 +39,12 @@ Deviations from the paper, and why:
   BC fit and RL shapes the decisions through the critic (TD + margin). With α = 0.6 the
   normalised Q term outweighed the steering precision the BC term asks for, and the RL
   fine-tune diverged (critic loss 30-300 within ~1000 updates; measured before relabelling).
+  It was then fine-tuned from those weights (``--init``) with accel_brake errors weighted 10
+  in the BC term (``--bc-accel-weight 10``; the paper weights both parameters equally). With
+  weight 1, on its own states at p = 1.0, the actor's accel_brake was 0.10-0.15 (0.3-0.45 m/s²)
+  below ACC-LC's label: ACC-LC switches between gentle acceleration and braking on fine gap
+  differences, the fit blurred the switch, and AUTO drove 2-20 % slower than ACC-LC. After the
+  fine-tune the bias was about 0.01 and the gap 1-9 %.
 - A safety module (``agents.safety``) sits behind the learned policy at evaluation: the paper
   names it as standard in industrial stacks (§VI) but evaluates AUTO without one. It hands the
   step to ACC-LC when the learned steering would leave the lane corridor (or enter a gap ACC-LC
