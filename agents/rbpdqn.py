@@ -58,10 +58,12 @@ class LearnerConfig:
     """Weight of the DQfD margin loss on demonstrator transitions (0 = the paper's critic)."""
     bc_steer_weight: float = 100.0
     """Weight of steering errors in the behaviour-cloning term. Lane keeping needs steering to
-    about a degree (0.02 of the ±60° range), while accel_brake errors of 0.1 are harmless; with
-    equal weights the fit ignores steering (1 = the paper's loss)."""
+    about a degree (0.02 of the ±60° range), while a random accel_brake error of 0.1 is
+    harmless; with equal weights the fit ignores steering (1 = the paper's loss)."""
     bc_accel_weight: float = 1.0
-    """Weight of accel_brake errors in the behaviour-cloning term (1 = the paper's loss)."""
+    """Weight of accel_brake errors in the behaviour-cloning term (1 = the paper's loss). A
+    *systematic* accel_brake error of 0.1 costs efficiency (the shipped fine-tune used 10, see
+    ``agents/__init__.py``)."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
