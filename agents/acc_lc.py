@@ -22,7 +22,8 @@ the ego straddling during its own change) as leaders too. The virtual stopped ve
 of a lane that must be left is a leader like any other. The light state is a majority over the
 last three frames (misdetection filter). Cooperation: a vehicle ahead in a neighbouring lane
 whose lateral offset points into our lane by ``signal_min`` (a waiting or starting change) is a
-leader too when we can stop for it braking at most ``yield_decel``. Hidden vehicles: the
+leader too when we can stop for it braking at most ``yield_decel`` and are farther behind it
+than the rear gap its forced merge needs (``hv_s0``; nearer, waiting would deadlock both). Hidden vehicles: the
 sensors report one front vehicle per lane, so one right ahead of a slower neighbour (e.g. stuck
 half-way in a change into our lane) is invisible; slower neighbours are passed no faster than a
 closing speed we could stop from (``hidden_decel``) before such a vehicle.
@@ -302,11 +303,13 @@ class AccLcPolicy:
                 # moving to another lane: the current lane's leader matters while we overlap it
                 relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half + 0.6)
             if lane == _C and j != _C:
-                # cooperation: yield to a neighbour ahead signalling a change into our lane
+                # cooperation: yield to a neighbour ahead signalling a change into our lane,
+                # unless we are already closer than the rear gap its forced merge needs (then
+                # waiting deadlocks both; passing lets it merge behind us)
                 towards = f["h_lat"][:, j, kk] * (j - _C) > c.signal_min
                 close = np.maximum(-f["h_rel"][:, j, kk], 0.0)
                 can = close**2 / (2 * np.maximum(gap - 1.0, 0.1)) <= c.yield_decel
-                relevant |= np.isfinite(dist) & towards & (gap > 1.0) & can
+                relevant |= np.isfinite(dist) & towards & (gap > c.hv_s0) & can
             vk = v[:, None]
             s0 = c.s0
             if end_gap is not None and j == _C:

@@ -135,6 +135,16 @@ def test_yields_to_a_signalling_neighbour_and_passes_slow_ones_slowly() -> None:
     assert p[0, 1, 1] < -0.3
 
 
+def test_drives_off_beside_a_merger_it_is_too_close_to_let_in() -> None:
+    """Standing 1.5 m behind the rear of a car waiting to merge in from the right: that gap is
+    below the rear gap a forced merge needs, so waiting would deadlock both; ACC-LC drives on."""
+    pol = AccLcPolicy()
+    gap = 1.5
+    assert gap < pol.c.hv_s0
+    _, p = pol.act(_one_vehicle_batch(0.0, [gap + 5.0, 0.0, 0.0, 5.0, 1.8, 0.7]))
+    assert p[0, 1, 1] > 0.1
+
+
 def test_follows_an_s_bend_with_local_curvature() -> None:
     """Feed-forward from the curvature where the ego is: an S-bend whose left and right halves
     both lie in the waypoint window must still steer left on its first half."""
