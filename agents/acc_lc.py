@@ -23,10 +23,11 @@ of a lane that must be left is a leader like any other. The light state is a maj
 last three frames (misdetection filter). Cooperation: a vehicle ahead in a neighbouring lane
 whose lateral offset points into our lane by ``signal_min`` (a waiting or starting change) is a
 leader too when we can stop for it braking at most ``yield_decel`` and are farther behind it
-than the rear gap its forced merge needs (``hv_s0``; nearer, waiting would deadlock both). Hidden vehicles: the
-sensors report one front vehicle per lane, so one right ahead of a slower neighbour (e.g. stuck
-half-way in a change into our lane) is invisible; slower neighbours are passed no faster than a
-closing speed we could stop from (``hidden_decel``) before such a vehicle.
+than the rear gap its forced merge needs (``hv_s0``; nearer, waiting would deadlock both).
+Hidden vehicles: the sensors report one front vehicle per lane, so one right ahead of a slower
+neighbour (e.g. stuck half-way in a change into our lane) is invisible; slower neighbours are
+passed no faster than a closing speed we could stop from (``hidden_decel``) before such a
+vehicle.
 
 Lane change (MOBIL-like): a change is safe if the target lane's rear vehicle keeps a gap of
 ``s0 + 0.6 s * v_rear`` plus a margin for its closing speed, and the front gap is enough for the
