@@ -9,7 +9,9 @@ generated) or ``.sumocfg`` (its vehicles are used, a fraction of them become AVs
 Demand: density k [veh/km summed over lanes] fixes the initial placement on every road edge
 and, through the IDM equilibrium speed at that density, the inflow q = k·v_eq at the entries.
 Penetration p makes exactly round(p·N) of the N planned vehicles AVs (``av_0…``), chosen by
-the seed; conventional vehicles are ``hv_0…``.
+the seed; conventional vehicles are ``hv_0…``. SUMO inserts every placed vehicle at t = 0 (the
+spacing continues across junctions, and departure speeds respect each vehicle's speed factor,
+slower lanes ahead and its leader): one it refused would wait and appear mid-road later.
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ from mixed_traffic.hdmap import HDMap, load_hdmap
 from mixed_traffic.paths import SCENARIOS_DIR, cache_dir
 
 SPLITS = ("train", "eval")
+SPEED_FACTOR_RANGE = (0.8, 1.2)
+"""Truncation of conventional vehicles' speed factor (desired speed / speed limit) [-]."""
 
 
 @dataclass(frozen=True)
@@ -237,6 +241,8 @@ class PlannedVehicle:
     """Position on the route's first edge [m]; None = at the entry."""
     depart_lane: int | None = None
     depart_speed: float | None = None
+    speed_factor: float | None = None
+    """Desired speed / speed limit [-]; None = SUMO draws it from the vehicle type."""
 
 
 @dataclass(frozen=True)
@@ -303,11 +309,15 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
     routes = list(scenario.routes)
     weights = np.array([r.weight for r in routes], dtype=float)
     weights /= weights.sum()
-    planned: list[tuple[float, int, float, int, float]] = []
+    # route, pos, lane, speed [m/s], [(distance [m], limit [m/s])] of this lane and slower ones
+    # ahead, lane row
+    planned: list[tuple[int, float, int, float, list[tuple[float, float]], int]] = []
 
     # initial placement: evenly spaced per lane with a random phase, on every road edge
     placement = scenario.placement_edges or tuple(dict.fromkeys(e for r in routes for e in r.edges))
     signalised = {src for src, _ in hd.tls_links}
+    upstream = _upstream_lanes(hd)
+    tail: dict[int, float] = {}  # lane row -> distance [m] from its last placed vehicle to its end
     for edge in placement:
         e = hd.edge_of(edge)
         base = scenario.routes
@@ -331,7 +341,14 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
             # at a speed above the IDM equilibrium of the actual spacing
             lane_limit = float(hd.lane_speed[lane_row])  # e.g. a slower on-ramp
             v_lane = min(v_eq, idm_equilibrium_speed(spacing, lane_limit, config.vehicle))
-            start = rng.random() * spacing
+            # continue the spacing of the lane before this one (SUMO refuses, and keeps
+            # retrying for the rest of the episode, a vehicle too close to the one behind it)
+            prev, junction = upstream.get(lane_row, (-1, 0.0))
+            if prev in tail:
+                start = (spacing - tail[prev] - junction) % spacing
+            else:
+                start = rng.random() * spacing
+            tail[lane_row] = length - min(start + (n - 1) * spacing, length - 1.0)
             for k in range(n):
                 pos = min(start + k * spacing, length - 1.0)  # clip, never drop: fixed count
                 r = int(rng.choice(fit, p=fw))
@@ -341,11 +358,11 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
                 # a lane that ends ahead (lane drop, acceleration lane): SUMO only inserts a
                 # vehicle that can still stop before the end (IDM brakes gently: b, not 2b)
                 last = routes[route_idx].edges[-1] if routes[route_idx].edges else ""
-                d = _distance_to_lane_end(hd, lane_row, pos, hd.edge_row.get(last, -1))
+                d, slower = _lane_ahead(hd, lane_row, pos, hd.edge_row.get(last, -1))
                 if lane_row in signalised:  # the light ahead may be red
                     d = min(d, length - pos)
                 v = min(v_lane, math.sqrt(max(0.0, config.vehicle.idm_decel * (d - 15.0))))
-                planned.append((0.0, route_idx, pos, lane, v))
+                planned.append((route_idx, pos, lane, v, [(0.0, lane_limit), *slower], lane_row))
 
     # the inflow queue: vehicles that replace leaving ones at the entries (PeriodicBoundary)
     inflow = per_lane * scenario.lanes * v_eq if v_eq > 0 else 0.0
@@ -363,17 +380,28 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
         )
     else:
         is_av[rng.choice(n_total, size=n_av, replace=False)] = True
-    order = sorted(range(n_init), key=lambda i: -(planned[i][2] or 0.0))  # downstream first
+    # A vehicle desires speed_factor × limit, and SUMO refuses one that departs faster or could
+    # not slow down to it on a slower lane ahead ("slow lane ahead"): placed conventional
+    # vehicles get their factor here, and every placed vehicle departs within what it allows.
+    dev = config.vehicle.speed_factor_dev
+    factor = np.round(np.clip(rng.normal(1.0, dev, n_init), *SPEED_FACTOR_RANGE), 4)
+    factor[is_av[:n_init]] = 1.0
+    speed = [
+        min(p[3], _departure_cap(float(f), p[4], config.vehicle)) for p, f in zip(planned, factor)
+    ]
+    order = sorted(range(n_init), key=lambda i: -planned[i][1])  # downstream first
+    _cap_followers(planned, speed, upstream, hd, config.vehicle)
     ids = _vehicle_ids(is_av[[*order, *range(n_init, n_total)]])
-    vehicles = tuple(
-        PlannedVehicle(ids[j], 0.0, planned[i][1], bool(is_av[i]), *planned[i][2:])
-        for j, i in enumerate(order)
-    )
+    vehicles = []
+    for j, i in enumerate(order):
+        route, pos, lane = planned[i][:3]
+        sf = None if is_av[i] else float(factor[i])
+        vehicles.append(PlannedVehicle(ids[j], 0.0, route, bool(is_av[i]), pos, lane, speed[i], sf))
     queue = tuple(
         QueuedVehicle(ids[n_init + j], int(r), bool(is_av[n_init + j]))
         for j, r in enumerate(queue_routes)
     )
-    return Demand(tuple(routes), vehicles, queue, v_eq, inflow)
+    return Demand(tuple(routes), tuple(vehicles), queue, v_eq, inflow)
 
 
 def _own_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator) -> Demand:
@@ -415,18 +443,91 @@ def _route_index(routes: list[Route], edges: tuple[str, ...]) -> int:
     return len(routes) - 1
 
 
-def _distance_to_lane_end(hd: HDMap, lane: int, pos: float, last_edge: int) -> float:
-    """Distance [m] from ``pos`` on ``lane`` to where the lane chain ends (inf: it continues)."""
+def _cap_followers(
+    planned: list,
+    speed: list[float],
+    upstream: dict[int, tuple[int, float]],
+    hd: HDMap,
+    veh: VehicleConfig,
+) -> None:
+    """Lower ``speed`` (per planned vehicle, [m/s]) until every vehicle can follow its leader,
+    also across junctions: SUMO refuses a vehicle that would have to brake for its leader, or
+    one whose follower would (speeds fall towards a red light or a lane end)."""
+    lanes: dict[int, list[int]] = {}  # lane row -> its vehicles, downstream first
+    for i in sorted(range(len(planned)), key=lambda i: -planned[i][1]):
+        lanes.setdefault(planned[i][5], []).append(i)
+    pairs = []  # (leader, follower, gap [m])
+    for row, ids in lanes.items():
+        pairs += [(a, b, planned[a][1] - planned[b][1] - veh.length) for a, b in zip(ids, ids[1:])]
+        prev, junction = upstream.get(row, (-1, 0.0))
+        if prev in lanes:  # the last vehicle on the lane before follows the first one here
+            b = lanes[prev][0]
+            tail = float(hd.lane_length[prev]) - planned[b][1] + junction
+            pairs.append((ids[-1], b, tail + planned[ids[-1]][1] - veh.length))
+    changed = True
+    while changed:  # caps only fall: a few sweeps settle chains of slow leaders
+        changed = False
+        for a, b, gap in pairs:
+            cap = _follow_cap(gap, speed[a], veh)
+            if cap < speed[b]:
+                speed[b], changed = cap, True
+
+
+def _follow_cap(gap: float, v_lead: float, veh: VehicleConfig) -> float:
+    """Highest speed [m/s] at which IDM's desired gap s0 + vT + v(v − v_lead)/2√(ab) fits in
+    ``gap`` [m] behind a leader at ``v_lead`` [m/s] (1 cm/s below, see ``_departure_cap``)."""
+    c = 2.0 * math.sqrt(veh.idm_accel * veh.idm_decel)
+    p = veh.idm_headway * c - v_lead  # v² + p·v + c·(s0 − gap) ≤ 0
+    q = c * (veh.idm_min_gap - gap)
+    return max(0.0, 0.5 * (-p + math.sqrt(max(0.0, p * p - 4.0 * q))) - 0.01)
+
+
+def _upstream_lanes(hd: HDMap) -> dict[int, tuple[int, float]]:
+    """Lane row -> (the road lane that leads into it, length [m] of the junction lanes between)."""
+    out: dict[int, tuple[int, float]] = {}
+    for lane in np.flatnonzero(hd.lane_edge >= 0):
+        nxt, junction = int(hd.lane_next[lane]), 0.0
+        while nxt >= 0 and hd.lane_edge[nxt] < 0:  # internal (junction) lanes
+            junction += float(hd.lane_length[nxt])
+            nxt = int(hd.lane_next[nxt])
+        if nxt >= 0:
+            out.setdefault(nxt, (int(lane), junction))
+    return out
+
+
+def _departure_cap(factor: float, limits: list[tuple[float, float]], veh: VehicleConfig) -> float:
+    """Highest departure speed [m/s] SUMO accepts for a vehicle with speed ``factor`` [-] before
+    lanes with lower limits ``limits`` ([(distance [m], limit [m/s])]): factor × limit, unless
+    it could still stop before that lane (measured: SUMO's IDM insertion check asks for the stop
+    distance v²/2b + vT, not just enough room to slow down). 1 cm/s below, as the route file
+    rounds speeds to 2 decimals."""
+    b, t = veh.idm_decel, veh.idm_headway
+
+    def stop_speed(d: float) -> float:  # v with v²/2b + vT + s0 = d
+        return b * (math.sqrt(t * t + 2.0 * max(0.0, d - veh.idm_min_gap) / b) - t)
+
+    return min(max(factor * v, stop_speed(d)) for d, v in limits) - 0.01
+
+
+def _lane_ahead(
+    hd: HDMap, lane: int, pos: float, last_edge: int
+) -> tuple[float, list[tuple[float, float]]]:
+    """From ``pos`` on ``lane``: (distance [m] to where the lane chain ends, inf: it continues
+    into the route's last edge; [(distance [m], speed limit [m/s])] of the lanes ahead that are
+    slower than the one before them)."""
     d = float(hd.lane_length[lane]) - pos
+    slower: list[tuple[float, float]] = []
     for _ in range(6):  # a few hops (normal -> internal -> normal) are enough for placement
         if hd.lane_edge[lane] == last_edge:
-            return math.inf
+            return math.inf, slower
         nxt = int(hd.lane_next[lane])
         if nxt < 0:
-            return d
+            return d, slower
+        if hd.lane_speed[nxt] < hd.lane_speed[lane]:
+            slower.append((d, float(hd.lane_speed[nxt])))
         lane = nxt
         d += float(hd.lane_length[lane])
-    return math.inf
+    return math.inf, slower
 
 
 def _vehicle_ids(is_av: np.ndarray) -> list[str]:
@@ -453,12 +554,13 @@ def _suffix_route(routes: list[Route], r: int, edge: str) -> int:
 def write_demand(demand: Demand, config: EnvConfig, path: Path) -> None:
     """Write vehicle types and the planned vehicles as a SUMO route file."""
     veh = config.vehicle
+    lo, hi = SPEED_FACTOR_RANGE
     root = ET.Element("routes")
     ET.SubElement(
         root, "vType", id="hv", vClass="passenger", carFollowModel="IDM", accel=f"{veh.idm_accel}",
         decel=f"{veh.idm_decel}", emergencyDecel="9.0", tau=f"{veh.idm_headway}",
         minGap=f"{veh.idm_min_gap}", delta=f"{veh.idm_delta}", length=f"{veh.length}",
-        width=f"{veh.width}", speedFactor=f"normc(1,{veh.speed_factor_dev},0.8,1.2)",
+        width=f"{veh.width}", speedFactor=f"normc(1,{veh.speed_factor_dev},{lo},{hi})",
         laneChangeModel="SL2015", latAlignment="center", color="0.6,0.6,0.6",
     )  # fmt: skip
     ET.SubElement(
@@ -476,6 +578,8 @@ def write_demand(demand: Demand, config: EnvConfig, path: Path) -> None:
         attrs["departPos"] = f"{v.depart_pos:.2f}" if v.depart_pos is not None else "base"
         attrs["departLane"] = str(v.depart_lane) if v.depart_lane is not None else "free"
         attrs["departSpeed"] = f"{v.depart_speed:.2f}" if v.depart_speed is not None else "last"
+        if v.speed_factor is not None:
+            attrs["speedFactor"] = f"{v.speed_factor:.4f}"
         if r.edges:
             ET.SubElement(root, "vehicle", route=f"r{v.route}", **attrs)
         else:

@@ -72,10 +72,21 @@ def test_same_seed_same_trajectories_different_seed_differs() -> None:
     assert a.shape != c.shape or not np.allclose(a, c)
 
 
-@pytest.mark.parametrize("scenario", ["urban-grid3x3", "urban-eval"])
-def test_every_vehicle_placed_in_the_grid_departs(scenario: str) -> None:
-    # a vehicle placed in a lane that does not lead to its next edge is refused by SUMO
-    config = EnvConfig(scenario=scenario, density=60, penetration=0.2, episode_length=5)
+@pytest.mark.parametrize(
+    ("scenario", "density"),
+    [
+        ("urban-grid3x3", 60),  # a lane that does not lead to the next edge: refused
+        ("urban-grid3x3", 120),  # speeds falling towards red lights: followers refused
+        ("bottleneck-3to2", 120),
+        ("bottleneck-eval", 60),  # departing above the drawn speed factor
+        ("merge-eval", 60),  # a slower junction lane ahead of the ramp's end
+        ("highway-curves", 180),  # the first vehicle of an edge too close to the last before
+    ],
+)
+def test_every_placed_vehicle_departs_at_once(scenario: str, density: float) -> None:
+    # SUMO refuses a vehicle it cannot insert safely and retries it every step: it would
+    # appear mid-road later (or never), and the cell would start below its density
+    config = EnvConfig(scenario=scenario, density=density, penetration=0.2, episode_length=5)
     sc = load_scenario(scenario)
-    n_placed = len(make_demand(sc, config, np.random.default_rng(config.seed)).vehicles)
-    assert len(simulate(config, 0.1)[0].ids) == n_placed
+    placed = {v.vid for v in make_demand(sc, config, np.random.default_rng(config.seed)).vehicles}
+    assert placed - set(simulate(config, 0.1)[0].ids) == set()
