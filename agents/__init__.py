@@ -46,7 +46,7 @@ Deviations from the paper, and why:
   differences, the fit blurred the switch, and AUTO drove 2-20 % slower than ACC-LC. After the
   fine-tune the mean bias was about 0.01, but the fit still shrinks towards the mean (about -0.10
   where ACC-LC's label accelerates by more than 0.1, +0.13 where it brakes), and the gap is
-  1-14 %.
+  1-8 % on the held-out eval variants (see the README).
 - A safety module (``agents.safety``) sits behind the learned policy at evaluation: the paper
   names it as standard in industrial stacks (§VI) but evaluates AUTO without one. It hands the
   step to ACC-LC when the learned steering would leave the lane corridor (or enter a gap ACC-LC
