@@ -37,6 +37,10 @@ from mixed_traffic.paths import SCENARIOS_DIR, cache_dir
 SPLITS = ("train", "eval")
 SPEED_FACTOR_RANGE = (0.8, 1.2)
 """Truncation of conventional vehicles' speed factor (desired speed / speed limit) [-]."""
+DEPART_SHARE = 0.95
+"""Placed vehicles depart at most at this share of their desired speed [-] (measured: SUMO
+refuses some that depart at their desired speed on a lane they must leave soon, "too many lane
+changes required", but not at 0.95 of it)."""
 
 
 @dataclass(frozen=True)
@@ -506,7 +510,7 @@ def _departure_cap(factor: float, limits: list[tuple[float, float]], veh: Vehicl
     def stop_speed(d: float) -> float:  # v with v²/2b + vT + s0 = d
         return b * (math.sqrt(t * t + 2.0 * max(0.0, d - veh.idm_min_gap) / b) - t)
 
-    return min(max(factor * v, stop_speed(d)) for d, v in limits) - 0.01
+    return min(max(DEPART_SHARE * factor * v, stop_speed(d)) for d, v in limits) - 0.01
 
 
 def _lane_ahead(

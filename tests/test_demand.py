@@ -76,6 +76,7 @@ def test_same_seed_same_trajectories_different_seed_differs() -> None:
     ("scenario", "density"),
     [
         ("urban-grid3x3", 60),  # a lane that does not lead to the next edge: refused
+        ("urban-eval", 60),  # "too many lane changes required" at the desired speed
         ("urban-grid3x3", 120),  # speeds falling towards red lights: followers refused
         ("bottleneck-3to2", 120),
         ("bottleneck-eval", 60),  # departing above the drawn speed factor
