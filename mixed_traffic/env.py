@@ -217,7 +217,10 @@ class MixedTrafficEnv(ParallelEnv):
         self._last_obs: dict[str, dict] = {}
         self._state = _AgentState()
         self.agents = list(self.possible_agents) if cfg.fixed_fleet else []
-        return self._start_from(self._advance()), {a: {} for a in self.agents}
+        snap = self._advance()
+        for vid in self._backend.pending():  # a refused placement would appear mid-road later
+            self._backend.remove(vid)
+        return self._start_from(snap), {a: {} for a in self.agents}
 
     def _start_from(self, snap: TrafficSnapshot) -> dict[str, dict]:
         """Admit the AVs of ``snap`` and observe them, as at the start of an episode."""

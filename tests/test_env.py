@@ -242,3 +242,35 @@ def test_package_level_constructors() -> None:
         assert e.possible_agents[0] == "av_0"
     finally:
         e.close()
+
+
+def test_a_refused_placement_never_appears_mid_road(monkeypatch) -> None:
+    # two vehicles placed on the same spot: SUMO inserts one and keeps retrying the other, which
+    # would appear wherever a gap opens later; reset drops it instead
+    import dataclasses
+
+    import mixed_traffic.env as env_module
+
+    make_demand, refused = env_module.make_demand, []
+
+    def clashing(scenario, config, rng):
+        demand = make_demand(scenario, config, rng)
+        first, second = demand.vehicles[:2]
+        refused.append(second.vid)
+        second = dataclasses.replace(
+            second, depart_pos=first.depart_pos, depart_lane=first.depart_lane
+        )
+        return dataclasses.replace(demand, vehicles=(first, second, *demand.vehicles[2:]))
+
+    monkeypatch.setattr(env_module, "make_demand", clashing)
+    e = parallel_env(**SHORT)
+    try:
+        e.reset(seed=0)
+        seen = set(e._snap.ids)
+        for _ in range(70):  # the vehicle in front of it leaves the spot within a few steps
+            e.step(_follow(e))
+            seen |= set(e._snap.ids)
+        assert refused[-1] not in seen
+        assert e._backend.pending() == ()
+    finally:
+        e.close()

@@ -452,6 +452,10 @@ class SumoBackend:
         self._static.pop(vid, None)
         self._route_pos.pop(vid, None)
 
+    def pending(self) -> tuple[str, ...]:
+        """Vehicles loaded but not inserted yet (SUMO retries them every step)."""
+        return tuple(self._api.simulation.getPendingVehicles())
+
     def vehicle_route(self, vid: str) -> tuple[str, ...]:
         return tuple(self._api.vehicle.getRoute(vid))
 
