@@ -218,8 +218,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._state = _AgentState()
         self.agents = list(self.possible_agents) if cfg.fixed_fleet else []
         snap = self._advance()
-        for vid in self._backend.pending():  # a refused placement would appear mid-road later
-            self._backend.remove(vid)
+        self._backend.drop_pending(demand.placed_ids)
         return self._start_from(snap), {a: {} for a in self.agents}
 
     def _start_from(self, snap: TrafficSnapshot) -> dict[str, dict]:

@@ -158,8 +158,10 @@ def run_episode(
             )
             policy.reset(backend, config)
             steps = range(config.steps_per_episode)
-            for _ in tqdm(steps, desc="steps", leave=False, disable=not progress):
+            for k in tqdm(steps, desc="steps", leave=False, disable=not progress):
                 snap = backend.step()
+                if k == 0:
+                    backend.drop_pending(demand.placed_ids)
                 boundary.step(snap, backend)
                 recorder.update(snap)
                 policy.after_step(snap, backend)

@@ -273,6 +273,11 @@ class Demand:
     """Total inflow [veh/s]."""
 
     @property
+    def placed_ids(self) -> frozenset[str]:
+        """Vehicles placed on the road at reset (a given position, not an entry)."""
+        return frozenset(v.vid for v in self.vehicles if v.depart_pos is not None)
+
+    @property
     def av_ids(self) -> list[str]:
         """All AV ids of the episode (placed and queued), ``av_0 … av_{N-1}``."""
         return [v.vid for v in (*self.vehicles, *self.queue) if v.is_av]

@@ -274,3 +274,30 @@ def test_a_refused_placement_never_appears_mid_road(monkeypatch) -> None:
         assert e._backend.pending() == ()
     finally:
         e.close()
+
+
+def test_vehicles_waiting_at_an_entry_are_not_dropped(tmp_path) -> None:
+    # six of a user's vehicles depart together at a 3-lane entry: the others wait and follow
+    import shutil
+
+    from mixed_traffic.scenario import load_scenario
+
+    shutil.copy(load_scenario("straight").net_file, tmp_path / "road.net.xml")
+    cars = "".join(f'<vehicle id="c{i}" depart="0" route="main"/>' for i in range(6))
+    (tmp_path / "r.rou.xml").write_text(
+        f'<routes><route id="main" edges="warmup meas exit"/>{cars}</routes>'
+    )
+    (tmp_path / "run.sumocfg").write_text(
+        '<configuration><input><net-file value="road.net.xml"/>'
+        '<route-files value="r.rou.xml"/></input></configuration>'
+    )
+    e = parallel_env(scenario=str(tmp_path / "run.sumocfg"), penetration=0.0, episode_length=8.0)
+    try:
+        e.reset(seed=0)
+        seen = set(e._snap.ids)
+        for _ in range(50):
+            e.step({})
+            seen |= set(e._snap.ids)
+        assert seen == {f"c{i}" for i in range(6)}
+    finally:
+        e.close()

@@ -16,7 +16,7 @@ import os
 import shutil
 import subprocess
 import warnings
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from pathlib import Path
 
 import libsumo
@@ -455,6 +455,17 @@ class SumoBackend:
     def pending(self) -> tuple[str, ...]:
         """Vehicles loaded but not inserted yet (SUMO retries them every step)."""
         return tuple(self._api.simulation.getPendingVehicles())
+
+    def drop_pending(self, among: Collection[str]) -> list[str]:
+        """Remove the vehicles of ``among`` that SUMO has not inserted yet; returns their ids.
+
+        For vehicles placed mid-road at t = 0: one SUMO refused would otherwise appear there
+        whenever a gap opens later (a vehicle waiting at an entry is normal and not dropped).
+        """
+        dropped = [vid for vid in self.pending() if vid in among]
+        for vid in dropped:
+            self.remove(vid)
+        return dropped
 
     def vehicle_route(self, vid: str) -> tuple[str, ...]:
         return tuple(self._api.vehicle.getRoute(vid))
