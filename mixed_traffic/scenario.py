@@ -26,6 +26,7 @@ import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -318,9 +319,7 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
     routes = list(scenario.routes)
     weights = np.array([r.weight for r in routes], dtype=float)
     weights /= weights.sum()
-    # route, pos, lane, speed [m/s], [(distance [m], limit [m/s])] of this lane and slower ones
-    # ahead, lane row
-    planned: list[tuple[int, float, int, float, list[tuple[float, float]], int]] = []
+    planned: list[_Placed] = []
 
     # initial placement: evenly spaced per lane with a random phase, on every road edge
     placement = scenario.placement_edges or tuple(dict.fromkeys(e for r in routes for e in r.edges))
@@ -371,7 +370,8 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
                 if lane_row in signalised:  # the light ahead may be red
                     d = min(d, length - pos)
                 v = min(v_lane, math.sqrt(max(0.0, config.vehicle.idm_decel * (d - 15.0))))
-                planned.append((route_idx, pos, lane, v, [(0.0, lane_limit), *slower], lane_row))
+                limits = [(0.0, lane_limit), *slower]
+                planned.append(_Placed(route_idx, pos, lane, lane_row, v, limits))
 
     # the inflow queue: vehicles that replace leaving ones at the entries (PeriodicBoundary)
     inflow = per_lane * scenario.lanes * v_eq if v_eq > 0 else 0.0
@@ -396,16 +396,18 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
     factor = np.round(np.clip(rng.normal(1.0, dev, n_init), *SPEED_FACTOR_RANGE), 4)
     factor[is_av[:n_init]] = 1.0
     speed = [
-        min(p[3], _departure_cap(float(f), p[4], config.vehicle)) for p, f in zip(planned, factor)
+        min(p.speed, _departure_cap(float(f), p.limits, config.vehicle))
+        for p, f in zip(planned, factor)
     ]
-    order = sorted(range(n_init), key=lambda i: -planned[i][1])  # downstream first
-    _cap_followers(planned, speed, upstream, hd, config.vehicle)
+    order = sorted(range(n_init), key=lambda i: -planned[i].pos)  # downstream first
+    _cap_followers(planned, order, speed, upstream, tail, config.vehicle)
     ids = _vehicle_ids(is_av[[*order, *range(n_init, n_total)]])
     vehicles = []
     for j, i in enumerate(order):
-        route, pos, lane = planned[i][:3]
-        sf = None if is_av[i] else float(factor[i])
-        vehicles.append(PlannedVehicle(ids[j], 0.0, route, bool(is_av[i]), pos, lane, speed[i], sf))
+        p, sf = planned[i], None if is_av[i] else float(factor[i])
+        vehicles.append(
+            PlannedVehicle(ids[j], 0.0, p.route, bool(is_av[i]), p.pos, p.lane, speed[i], sf)
+        )
     queue = tuple(
         QueuedVehicle(ids[n_init + j], int(r), bool(is_av[n_init + j]))
         for j, r in enumerate(queue_routes)
@@ -452,27 +454,46 @@ def _route_index(routes: list[Route], edges: tuple[str, ...]) -> int:
     return len(routes) - 1
 
 
+class _Placed(NamedTuple):
+    """A vehicle placed at reset, before its departure speed is capped."""
+
+    route: int
+    pos: float
+    """Position on its edge [m]."""
+    lane: int
+    """Lane index on its edge."""
+    row: int
+    """Lane row in the HD map."""
+    speed: float
+    """Speed its lane end or red light allows [m/s]."""
+    limits: list[tuple[float, float]]
+    """[(distance [m], limit [m/s])] of its lane and of slower lanes ahead."""
+
+
 def _cap_followers(
-    planned: list,
+    planned: list[_Placed],
+    order: list[int],
     speed: list[float],
     upstream: dict[int, tuple[int, float]],
-    hd: HDMap,
+    tail: dict[int, float],
     veh: VehicleConfig,
 ) -> None:
     """Lower ``speed`` (per planned vehicle, [m/s]) until every vehicle can follow its leader,
     also across junctions: SUMO refuses a vehicle that would have to brake for its leader, or
-    one whose follower would (speeds fall towards a red light or a lane end)."""
+    one whose follower would (speeds fall towards a red light or a lane end). ``order``:
+    downstream first; ``tail``: lane row -> distance [m] from its last vehicle to its end."""
     lanes: dict[int, list[int]] = {}  # lane row -> its vehicles, downstream first
-    for i in sorted(range(len(planned)), key=lambda i: -planned[i][1]):
-        lanes.setdefault(planned[i][5], []).append(i)
+    for i in order:
+        lanes.setdefault(planned[i].row, []).append(i)
     pairs = []  # (leader, follower, gap [m])
     for row, ids in lanes.items():
-        pairs += [(a, b, planned[a][1] - planned[b][1] - veh.length) for a, b in zip(ids, ids[1:])]
+        pairs += [
+            (a, b, planned[a].pos - planned[b].pos - veh.length) for a, b in zip(ids, ids[1:])
+        ]
         prev, junction = upstream.get(row, (-1, 0.0))
         if prev in lanes:  # the last vehicle on the lane before follows the first one here
-            b = lanes[prev][0]
-            tail = float(hd.lane_length[prev]) - planned[b][1] + junction
-            pairs.append((ids[-1], b, tail + planned[ids[-1]][1] - veh.length))
+            gap = tail[prev] + junction + planned[ids[-1]].pos - veh.length
+            pairs.append((ids[-1], lanes[prev][0], gap))
     changed = True
     while changed:  # caps only fall: a few sweeps settle chains of slow leaders
         changed = False
