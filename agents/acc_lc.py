@@ -91,6 +91,8 @@ class AccLcConfig:
     stop_margin: float = 1.5
     junction_speed: float = 3.3
     curve_accel: float = 2.0
+    # a target speed ahead this much below the present one is braked for kinematically [m/s]
+    limit_deadband: float = 0.5
     # lane change
     lane_shift: float = 3.4
     lane_width_min: float = 3.2
@@ -174,8 +176,10 @@ def _idm(v, v0, gap, dv, c: AccLcConfig, s0=None):
     v_lead = np.maximum(v - dv, 0.0)
     room = np.maximum(gap - np.minimum(1.0, 0.5 * s0) + v_lead**2 / (2 * c.max_decel), 0.05)
     need = np.where(np.isfinite(gap), v**2 / (2 * room), 0.0)
-    acc = np.where(need > c.b, np.minimum(acc, -need * 1.2), acc)
-    return acc
+    # blended in from the comfortable decel to twice it: a switch at one threshold made
+    # steady following a noise-driven alternation of IDM's acceleration and hard braking
+    r = np.clip((need - c.b) / c.b, 0.0, 1.0)
+    return np.minimum(acc, (1.0 - r) * acc - r * 1.2 * need)
 
 
 class AccLcPolicy:
@@ -278,7 +282,12 @@ class AccLcPolicy:
         v_curve = np.sqrt(c.curve_accel / np.maximum(kap, 1e-4))
         inside = np.maximum(1.0 - kap * (np.abs(offset)[:, None] + 0.3), 0.3)
         target = np.minimum(c.speed_factor * spd, v_curve) * inside
-        need = np.where(target < v[:, None], (target**2 - v[:, None] ** 2) / (2 * dist_wp), np.inf)
+        # the target where the ego is now is IDM's desired speed, whose free-road term is smooth
+        # in the noisy speed reading; braking to it over the 1 m to the first waypoint turned
+        # every reading above it into a hard brake. Kinematic braking only for lower targets.
+        v0 = np.minimum(v0, target[:, 0])
+        lower = (target < target[:, :1] - c.limit_deadband) & (target < v[:, None])
+        need = np.where(lower, (target**2 - v[:, None] ** 2) / (2 * dist_wp), np.inf)
         a_lim = np.min(need, axis=1)
         a_lim = np.where(a_lim < 0, 1.3 * a_lim, np.inf)
         acc = _idm(v, v0, np.full_like(v, np.inf), np.zeros_like(v), c)
