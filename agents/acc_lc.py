@@ -13,8 +13,11 @@ space, from the observation only (DESIGN §6 layout, normalisation constants of
 rule and never a masked one.
 
 Longitudinal (per candidate lane): IDM on the lane's front vehicle (bumper gap = front-bumper
-distance - leader length) with a kinematic emergency term, the desired speed 0.95 x the lowest
-speed limit in the waypoints ahead (braking towards lower limits ahead), red / yellow lights as a
+distance - leader length) with a kinematic emergency term (the deceleration needed to stop behind
+where the leader could stop, blended in as it grows from ``b`` to ``2 b``; a switch at ``b`` made
+steady following alternate between accelerating and braking hard on sensor noise), the desired
+speed 0.95 x the speed limit where the ego is (braking kinematically towards lower limits and
+curves ahead), red / yellow lights as a
 stopped leader at the stop line (yellow only if it can stop comfortably), a junction approach
 speed at signalised stop lines (turn lanes behind a stop line are slow and the waypoints only
 look 10 m ahead), vehicles of the neighbouring lanes that overlap the ego laterally (cut-ins, or

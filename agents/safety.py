@@ -14,9 +14,9 @@ ACC-LC (``agents.acc_lc``) as the rule-based method. Per agent and step:
   steering would take it (the prediction's curvature is crude in S-bends). A mandatory
   change (the lane ends within ``observation.MANDATORY_DISTANCE`` and follow is masked) is
   always driven in safe mode: the learned policy missed such exits (route deviations).
-* **longitudinal** (a cap): when ACC-LC brakes for the chosen decision's lane (a leader, a red
-  light, a lower speed limit or a curve ahead, a lane end), the learned acceleration may not
-  exceed ACC-LC's. Otherwise the learned acceleration stands.
+* **longitudinal** (a clamp): when ACC-LC brakes for the chosen decision's lane (a leader, a red
+  light, a lower speed limit or a curve ahead, a lane end), the learned acceleration is clamped
+  to at most ACC-LC's plus ``accel_tolerance``. Otherwise the learned acceleration stands.
 
 ``AutoPolicy`` (``policies.py``) uses it unless built with ``safety=False`` (policy name
 ``auto-raw``). ``interventions`` counts the agent-steps it changed, which ``evaluate`` reports
@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agents.acc_lc import FOLLOW, LEFT, RIGHT, AccLcPlan, AccLcPolicy, lane_curvature
-from mixed_traffic.action import to_physical
+from mixed_traffic.action import to_accel_brake, to_physical
 from mixed_traffic.config import VehicleConfig
 from mixed_traffic.control import bicycle_frenet_step
 
@@ -50,8 +50,9 @@ class SafetyConfig:
     drift_tolerance: float = 0.3
     """How much farther from the lane centre than both now and ACC-LC's steering would take it
     the learned steering may take the ego within the horizon, in its lane [m]."""
-    accel_tolerance: float = 0.1
-    """Learned acceleration above ACC-LC's braking that is still accepted [m/s²]."""
+    accel_tolerance: float = 0.3
+    """How far the learned acceleration may exceed ACC-LC's when ACC-LC brakes [m/s²] (about
+    the spread of ACC-LC's acceleration from sensor noise in steady following)."""
 
 
 class SafetyModule:
@@ -119,11 +120,13 @@ class SafetyModule:
         lateral |= ~plan.features["mask"][:, FOLLOW]
         decision[lateral] = plan.decision[lateral]
         params[lateral] = plan.params[lateral]
-        # the others keep their decision: cap the acceleration where ACC-LC brakes
-        tol = self.config.accel_tolerance
-        longitudinal = ~lateral & (accel_rule < 0) & (accel > accel_rule + tol)
+        # the others keep their decision: clamp the acceleration where ACC-LC brakes (a clamp,
+        # not a switch to ACC-LC's value: its braking carries sensor noise, and replacing
+        # everything above it by it took speed away on every noisy reading)
+        cap = accel_rule + self.config.accel_tolerance
+        longitudinal = ~lateral & (accel_rule < 0) & (accel > cap)
         ix = (ar[longitudinal], decision[longitudinal])
-        params[ix + (1,)] = plan.params[ix + (1,)]
+        params[ix + (1,)] = to_accel_brake(cap[longitudinal], self.vehicle)
         self.decisions += len(decision)
         self.interventions["lateral"] += int(lateral.sum())
         self.interventions["longitudinal"] += int(longitudinal.sum())

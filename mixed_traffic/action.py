@@ -226,3 +226,10 @@ def to_physical(
     ab = row[:, 1]
     accel = np.where(ab > 0, ab * vehicle.max_accel, ab * vehicle.max_decel)
     return steer, accel
+
+
+def to_accel_brake(accel: np.ndarray, vehicle: VehicleConfig) -> np.ndarray:
+    """Inverse of ``to_physical``'s acceleration: (A,) [m/s²] -> accel_brake in [-1, 1]."""
+    accel = np.asarray(accel, np.float64)
+    ab = np.where(accel > 0, accel / vehicle.max_accel, accel / vehicle.max_decel)
+    return np.clip(ab, -1.0, 1.0)

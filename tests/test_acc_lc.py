@@ -5,8 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agents.acc_lc import AccLcPolicy
-from mixed_traffic.config import EnvConfig
+from agents.acc_lc import AccLcConfig, AccLcPolicy, _idm
+from agents.policies import OBS_KEYS, to_actions
+from mixed_traffic.action import to_physical
+from mixed_traffic.config import EnvConfig, VehicleConfig
 from mixed_traffic.observation import observation_space
 
 LANE_END_CASES = {
@@ -161,7 +163,7 @@ def _drive(scenario: str, density: float, penetration: float, seconds: float = 4
     e = parallel_env(scenario=scenario, density=density, penetration=penetration,
                      episode_length=seconds, seed=0, weather="normal")  # fmt: skip
     stats = {"events": {}, "mandatory": set(), "changed_after_mandatory": set(),
-             "stopped_at_red": 0, "lane_changes": 0}  # fmt: skip
+             "stopped_at_red": 0, "lane_changes": 0, "accel": {}}  # fmt: skip
     try:
         obs, _ = e.reset(seed=0)
         pol = AccLcPolicy()
@@ -180,7 +182,13 @@ def _drive(scenario: str, density: float, penetration: float, seconds: float = 4
                 red = o["lights"][1, -1, 0] > 0.5 and o["lights"][1, -1, 3] * 60 < 15
                 if red and o["ego"][-1, 0] * 40 < 0.3:
                     stats["stopped_at_red"] += 1
-            obs, _, term, _, info = e.step(pol.actions(live))
+            decision, params = pol.act(
+                {k: np.stack([o[k] for o in live.values()]) for k in OBS_KEYS}
+            )
+            _, accel = to_physical(decision, params, VehicleConfig())
+            for a, acc in zip(live, accel):
+                stats["accel"].setdefault(a, []).append(float(acc))
+            obs, _, term, _, info = e.step(to_actions(list(live), decision, params))
             for a, t in term.items():
                 ev = info.get(a, {}).get("event", "")
                 if t and ev in TERMINAL:
@@ -228,3 +236,24 @@ def test_drives_safely(scenario: str, density: float, penetration: float) -> Non
         assert s["changed_after_mandatory"], "no lane change out of an ending lane"
     if scenario.startswith("urban"):
         assert s["stopped_at_red"] > 0, "no AV stopped at a red light"
+
+
+def test_emergency_braking_is_continuous_in_the_gap() -> None:
+    """The kinematic emergency term blends in: a 1 cm change of the gap to a leader at 13 m/s
+    never changes the acceleration by more than 0.05 m/s² (a switch jumped by ~3 m/s²)."""
+    c = AccLcConfig()
+    gap = np.arange(10.0, 60.0, 0.01)
+    v = np.full_like(gap, 13.0)
+    acc = _idm(v, np.full_like(gap, 13.9), gap, np.zeros_like(gap), c)
+    assert acc.min() < -2.0 * c.b  # the emergency term still brakes hard when close
+    assert np.abs(np.diff(acc)).max() < 0.05
+
+
+def test_steady_following_is_smooth() -> None:
+    """Car-following with sensor noise: few steps change the acceleration by more than 1 m/s²
+    (34 % did when the emergency term switched at one threshold), and nothing collides."""
+    s = _drive("straight-eval", 120, 0.2, seconds=30.0)
+    jumps = np.concatenate([np.abs(np.diff(a)) for a in s["accel"].values() if len(a) > 1])
+    assert len(jumps) > 1000
+    assert np.mean(jumps > 1.0) < 0.05, np.mean(jumps > 1.0)
+    assert s["events"] == {}

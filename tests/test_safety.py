@@ -7,6 +7,7 @@ import numpy as np
 from agents.acc_lc import FOLLOW, AccLcPolicy
 from agents.policies import stack_obs, to_actions
 from agents.safety import SafetyModule
+from mixed_traffic.action import to_accel_brake, to_physical
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.observation import observation_space
 from mixed_traffic.schema import TERMINAL_REASONS
@@ -61,17 +62,44 @@ def test_acc_lc_actions_pass_unchanged() -> None:
     assert module.share < 0.5, module.interventions
 
 
-def test_prediction_follows_the_steering() -> None:
-    """Pure kinematics: straight ahead keeps the offset, left steering raises it."""
-    module = SafetyModule()
-    a = 3
+def _empty_road(a: int) -> dict[str, np.ndarray]:
+    """(a,) egos at 20 m/s on the centre line of a road without waypoints or vehicles."""
     space = observation_space(EnvConfig())
     obs = {k: np.zeros((a, *sp.shape), sp.dtype) for k, sp in space.spaces.items()}
     obs["node_mask"][:] = 1
     obs["action_mask"][:] = 1
     obs["ego"][:, :, 0] = 20.0 / 40.0
     obs["ego"][:, :, 2:4] = [0.45, 0.36]
+    return obs
+
+
+def test_prediction_follows_the_steering() -> None:
+    """Pure kinematics: straight ahead keeps the offset, left steering raises it."""
+    module = SafetyModule()
+    a = 3
+    obs = _empty_road(a)
     plan = AccLcPolicy().plan(obs)
     d = module.predicted_offset(plan, np.deg2rad([0.0, 1.2, -1.2]), np.zeros(a))
     assert abs(d[0]) < 1e-6
     assert d[1] > 0.5 and d[2] < -0.5
+
+
+def test_learned_acceleration_is_clamped_above_acc_lc_braking() -> None:
+    """Where ACC-LC brakes (15 m/s above the default 13.9 m/s limit), a learned acceleration
+    more than ``accel_tolerance`` above ACC-LC's is clamped to that bound; one within it, or
+    braking harder than ACC-LC, stands."""
+    module = SafetyModule()
+    obs = _empty_road(3)
+    obs["ego"][:, :, 0] = 15.0 / 40.0
+    plan = module.rule.plan(obs)
+    _, rule = to_physical(plan.decision, plan.params, module.vehicle)
+    assert ((rule < -0.5) & (rule > -3.0)).all(), rule
+    tol = module.config.accel_tolerance
+    want = rule + np.array([tol + 2.0, tol - 0.1, -1.0])
+    params = plan.params.copy()
+    params[np.arange(3), plan.decision, 1] = to_accel_brake(want, module.vehicle)
+    decision, params, flags = module.filter(obs, plan.decision, params)
+    _, got = to_physical(decision, params, module.vehicle)
+    assert flags["longitudinal"].tolist() == [True, False, False]
+    assert not flags["lateral"].any()
+    np.testing.assert_allclose(got, [rule[0] + tol, want[1], want[2]], atol=1e-5)
