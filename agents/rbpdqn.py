@@ -64,6 +64,11 @@ class LearnerConfig:
     """Weight of accel_brake errors in the behaviour-cloning term (1 = the paper's loss). A
     *systematic* accel_brake error of 0.1 costs efficiency (the shipped fine-tune used 10, see
     ``agents/__init__.py``)."""
+    bc_accel_expectile: float = 0.5
+    """Expectile τ of the accel_brake fit: errors below the label weigh 2τ, above it 2(1 − τ)
+    (0.5 = the paper's squared error). τ > 0.5 fits an upper expectile of the label where the
+    observation cannot separate holding from going (e.g. a queue starting), and the safety
+    module's clamp removes what is above ACC-LC's braking."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
@@ -145,7 +150,10 @@ class RBPDQN:
         avg_q = q.abs().mean().detach() + self.cfg.avgq_eps
         w = u.new_tensor([self.cfg.bc_steer_weight, self.cfg.bc_accel_weight])
         target = batch.get("label_params", batch["params"])
-        bc = ((u - target).pow(2) * w).sum(dim=(1, 2))
+        err = u - target  # (B, 3, 2)
+        tau = self.cfg.bc_accel_expectile
+        side = torch.where(err[..., 1:] < 0, 2 * tau, 2 * (1 - tau))  # (B, 3, 1), accel only
+        bc = (err.pow(2) * w * torch.cat((torch.ones_like(side), side), dim=-1)).sum(dim=(1, 2))
         return (-(self.cfg.alpha / avg_q) * q.sum(dim=1) + bc).mean()
 
     def update(self, batch: dict) -> dict[str, float]:

@@ -118,6 +118,9 @@ class TrainConfig:
     bc_accel_weight: float = 1.0
     """Weight of accel_brake errors in the behaviour-cloning term, relative to 1 per unit²
     (steering: ``LearnerConfig.bc_steer_weight``) [-] (1 = the paper's loss)."""
+    bc_accel_expectile: float = 0.5
+    """Expectile τ of the accel_brake fit: errors below the label weigh 2τ, above it 2(1 − τ)
+    [-] (0.5 = the paper's squared error; see ``LearnerConfig.bc_accel_expectile``)."""
     init: str = ""
     """Checkpoint whose networks (and optimiser states) start a new run: fine-tuning with a
     fresh replay and counters ('' = random init; ignored by --resume)."""
@@ -196,6 +199,8 @@ class TrainConfig:
             bad("lr", "must be > 0")
         if not self.bc_accel_weight >= 0:
             bad("bc_accel_weight", "must be >= 0")
+        if not 0 < self.bc_accel_expectile < 1:
+            bad("bc_accel_expectile", "must be in (0, 1)")
         for name in ("local_buffer", "replay_capacity", "batch_size", "sync_every", "log_every"):
             if getattr(self, name) < 1:
                 bad(name, "must be >= 1")
@@ -461,7 +466,8 @@ class Trainer:
         self.lca = lca_config(cfg, self.env_base)
         torch.set_num_threads(cfg.learner_threads)
         lcfg = LearnerConfig(batch_size=cfg.batch_size, regularize=not cfg.bp_dqn, alpha=cfg.alpha,
-                             lr=cfg.lr, bc_accel_weight=cfg.bc_accel_weight)  # fmt: skip
+                             lr=cfg.lr, bc_accel_weight=cfg.bc_accel_weight,
+                             bc_accel_expectile=cfg.bc_accel_expectile)  # fmt: skip
         self.learner = RBPDQN(self.lca, lcfg, seed=cfg.seed)
         self.replay = ReplayBuffer(cfg.replay_capacity, self.lca)
         self.rng = np.random.default_rng([cfg.seed, 7])

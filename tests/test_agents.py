@@ -182,6 +182,23 @@ def test_bc_weights_scale_each_parameter_error() -> None:
     assert losses[10.0] == pytest.approx(10 * losses[1.0], rel=1e-4)
 
 
+def test_accel_expectile_weighs_errors_below_the_label_more() -> None:
+    cfg = LCAConfig()
+    batch = _batch(16, cfg)
+    learner = RBPDQN(cfg, LearnerConfig(alpha=0.0, bc_accel_expectile=0.8), seed=0)
+    with torch.no_grad():
+        u = learner.actor(batch["obs"])
+    losses = {}
+    for sign in (1.0, -1.0):  # label above (actor too low) / below (actor too high)
+        batch["label_params"] = u.clone()
+        batch["label_params"][..., 1] += sign * 0.2
+        batch["label_params"][..., 0] += 0.01  # a steering error keeps its symmetric weight
+        losses[sign] = learner.actor_loss(batch).item()
+    steer = 3 * 100.0 * 0.01**2
+    assert losses[1.0] - steer == pytest.approx(3 * 1.6 * 0.04, rel=1e-4)
+    assert losses[-1.0] - steer == pytest.approx(3 * 0.4 * 0.04, rel=1e-4)
+
+
 def test_td_target_ignores_masked_decisions() -> None:
     cfg = LCAConfig()
     learner = RBPDQN(cfg)
