@@ -22,7 +22,8 @@ everything it had sent is already in the replay, only its unsent LocalBuffer is 
 
 Outputs in ``out``: ``curves.csv`` (+ TensorBoard if installed), ``checkpoint.pt`` (learner and
 optimisers, :func:`agents.checkpoint.save_checkpoint`), ``replay.pt``, ``state.json`` (counters,
-RNG), all atomic and rewritten every ``checkpoint_every`` seconds and at the end; then
+RNG), all atomic and rewritten every ``checkpoint_every`` seconds and at the end; with
+``keep_snapshots`` each periodic checkpoint is also kept as ``snapshots/<env steps>.pt``; then
 ``auto.pt`` + ``auto.json`` (command, git revision, wall time, env steps, config).
 """
 
@@ -150,6 +151,9 @@ class TrainConfig:
     """Exponent spread of the exploration ladder over the workers [-]."""
     checkpoint_every: float = 300.0
     """Seconds between checkpoints [s]."""
+    keep_snapshots: bool = True
+    """Also keep each periodic checkpoint's weights as ``snapshots/<env steps>.pt`` (≈ 1 MB
+    each), so a run's intermediate networks can be compared afterwards."""
     log_every: int = 20000
     """Transitions between learning-curve rows."""
     learner_threads: int = 1
@@ -550,12 +554,17 @@ class Trainer:
                 w.writeheader()
             w.writerows(rows)
 
-    def save(self) -> None:
-        """replay.pt, checkpoint.pt, then state.json (the commit point), each atomically."""
+    def save(self, snapshot: bool = False) -> None:
+        """replay.pt, checkpoint.pt (and a snapshot copy), then state.json (the commit point),
+        each atomically."""
         self.out.mkdir(parents=True, exist_ok=True)
         sd = self.replay.state_dict()
         atomic_write_bytes(self.out / "replay.pt", lambda f: torch.save(sd, f))
-        save_checkpoint(self.out / "checkpoint.pt", self.learner, self._meta())
+        meta = self._meta()
+        save_checkpoint(self.out / "checkpoint.pt", self.learner, meta)
+        if snapshot:
+            path = self.out / "snapshots" / f"{self.c['env_steps']:09d}.pt"
+            save_checkpoint(path, self.learner, meta)
         state = {"config": self.cfg.to_dict(), "counters": self.c,
                  "rng": self.rng.bit_generator.state}  # fmt: skip
         atomic_write_json(self.out / "state.json", state)
@@ -727,7 +736,7 @@ class Trainer:
                     while self.c["next_log"] <= self.c["env_steps"]:
                         self.c["next_log"] += cfg.log_every
                 if time.monotonic() - last_ckpt >= cfg.checkpoint_every:
-                    self.save()
+                    self.save(snapshot=cfg.keep_snapshots)
                     last_ckpt = time.monotonic()
         finally:
             collector.close()

@@ -54,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m mixed_traffic.train",
         description="Train the AUTO agent (LCA + RBP-DQN) with N rollout workers and one learner. "
         "Writes OUT/curves.csv, OUT/checkpoint.pt, OUT/replay.pt, OUT/state.json and, at the "
-        "end, OUT/auto.pt + OUT/auto.json.",
+        "end, OUT/auto.pt + OUT/auto.json; each periodic checkpoint is also kept in OUT/snapshots/.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     docs = field_docs(TrainConfig)

@@ -61,7 +61,11 @@ def test_two_worker_smoke_cli(tmp_path: Path) -> None:
 
 
 def test_resume_continues_counters(tmp_path: Path) -> None:
-    first = Trainer(_cfg(tmp_path, workers=1, env_steps=1500)).run()
+    first = Trainer(_cfg(tmp_path, workers=1, env_steps=1500, checkpoint_every=1e-9)).run()
+    snaps = sorted((tmp_path / "snapshots").glob("*.pt"))  # one per periodic checkpoint
+    assert len(snaps) >= 2
+    for snap in snaps:
+        assert load_checkpoint(snap)[1]["env_steps"] == int(snap.stem) <= first["env_steps"]
     tr = Trainer(_cfg(tmp_path, workers=1, env_steps=3000), resume=True)
     assert tr.c["env_steps"] == first["env_steps"] and tr.c["run"] == 1
     assert len(tr.replay) == first["env_steps"]
