@@ -5,6 +5,9 @@
 included) as help and the dataclass default shown. ``config_from_args(args, EnvConfig)`` builds
 the config from the options that were given, keeping the dataclass defaults for the others; a
 ``ValueError`` from the config's checks is for the caller to turn into ``parser.error``.
+
+Field types: ``bool`` becomes ``--x/--no-x``; ``tuple[T, ...]`` takes one or more values;
+``T | None`` takes a ``T``; ``Path`` a path; anything else is read as text.
 """
 
 from __future__ import annotations
@@ -12,12 +15,13 @@ from __future__ import annotations
 import argparse
 import dataclasses
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from mixed_traffic.config import field_docs
 
 _PREFIX = "cfg__"
-_TYPES: dict[str, type] = {"float": float, "int": int, "str": str}
+_TYPES: dict[str, type] = {"float": float, "int": int, "str": str, "Path": Path}
 
 
 def _fields(cls: type, prefix: str = "") -> list[tuple[str, dataclasses.Field, type]]:
@@ -34,6 +38,15 @@ def _fields(cls: type, prefix: str = "") -> list[tuple[str, dataclasses.Field, t
 
 def _default(f: dataclasses.Field) -> Any:
     return f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+
+
+def _kind(f: dataclasses.Field) -> tuple[str, bool]:
+    """(scalar type name, takes several values) of a field's annotation."""
+    kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "str")
+    kind = kind.removesuffix(" | None")
+    if kind.startswith("tuple[") and kind.endswith(", ...]"):
+        return kind[len("tuple[") : -len(", ...]")], True
+    return kind, False
 
 
 def add_config_args(
@@ -64,10 +77,13 @@ def add_config_args(
         f, owner = table[name]
         doc = field_docs(owner).get(f.name, "")
         shown = defaults.get(name, _default(f))
-        kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "str")
+        kind, several = _kind(f)
         option = "--" + name.replace("_", "-")
         dest = _PREFIX + name.replace(".", "__")
-        help_text = f"{doc} (default: {shown})".replace("%", "%%")
+        if isinstance(shown, tuple):
+            shown = " ".join(map(str, shown))
+        shown = None if shown == "" else shown  # the docstring says what "unset" means
+        help_text = (doc if shown is None else f"{doc} (default: {shown})").replace("%", "%%")
         if kind == "bool":
             target.add_argument(
                 option, dest=dest, action=argparse.BooleanOptionalAction, default=None,
@@ -76,7 +92,8 @@ def add_config_args(
         else:
             target.add_argument(
                 option, dest=dest, type=_TYPES.get(kind, str), default=None,
-                metavar=name.rsplit(".", 1)[-1].upper(), help=help_text,
+                nargs="+" if several else None, metavar=name.rsplit(".", 1)[-1].upper(),
+                help=help_text,
             )  # fmt: skip
         if name in defaults:
             parser.set_defaults(**{dest: defaults[name]})
@@ -92,7 +109,7 @@ def config_overrides(args: argparse.Namespace) -> dict[str, Any]:
         node = out
         for p in parts[:-1]:
             node = node.setdefault(p, {})
-        node[parts[-1]] = value
+        node[parts[-1]] = tuple(value) if isinstance(value, list) else value
     return out
 
 

@@ -10,6 +10,7 @@ SUMO segfault then costs one cell (recorded as failed with its exit code), not t
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import multiprocessing as mp
 import sys
 import time
@@ -19,6 +20,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+from mixed_traffic.cli import add_config_args, config_from_args
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.provenance import read_records, record_meta, write_record_atomic
 from mixed_traffic.schema import CELL_KEYS, POLICIES
@@ -26,50 +28,94 @@ from mixed_traffic.schema import CELL_KEYS, POLICIES
 PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
 DENSITIES = (60.0, 120.0, 180.0)
 WEATHERS = ("normal", "rain", "fog", "night")
+AXES = ("penetration", "density", "weather")
 
 
 @dataclass(frozen=True)
 class SweepConfig:
-    """One sweep: which axis, which cells, where results go."""
+    """One sweep: which axis, which cells, where results go. The CLI is built from it."""
 
     axis: str = "penetration"
     """penetration | density | weather."""
     scenario: str = "straight"
-    """Scenario name (see ``python -m mixed_traffic.scenario --list``)."""
-    density: float = 120.0
+    """Scenario name or .net.xml/.sumocfg path (see ``python -m mixed_traffic.scenario --list``)."""
+    at_density: float = 120.0
     """Density for the penetration and weather sweeps [veh/km]."""
-    penetration: float = 0.2
+    at_penetration: float = 0.2
     """AV penetration for the density and weather sweeps [0-1]."""
+    values: tuple[float | str, ...] = ()
+    """Values of the swept axis (default: penetration 0.2 .. 1.0, density 60 120 180 veh/km, or
+    every weather)."""
+    reference: bool = True
+    """Add the all-IDM 0 % reference cells to a penetration sweep."""
     policies: tuple[str, ...] = ("auto", "acc-lc")
-    """Policies to compare; the penetration sweep adds an all-IDM 0 % reference."""
+    """Policies to compare: auto (AUTO behind its safety module), auto-raw, acc-lc, idm, random."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Root seeds; each cell runs once per seed."""
     episode_length: float = 150.0
     """Simulated time per episode [s]."""
     warmup: float = 30.0
     """Time before flow metrics are recorded [s]."""
-    workers: int = 2
-    """Parallel worker processes."""
-    out: Path = Path("results/penetration")
-    """Results folder (records.jsonl, figures)."""
-    report: Path | None = None
-    """PDF report path (default reports/<axis>.pdf)."""
     checkpoint: Path | None = None
     """AUTO checkpoint (default: the shipped agents/checkpoints/auto.pt)."""
-    values: tuple[float, ...] | tuple[str, ...] = ()
-    """Values of the swept axis (default: the paper's, see PENETRATIONS/DENSITIES/WEATHERS)."""
-    reference: bool = True
-    """Add the all-IDM 0 % reference to a penetration sweep."""
+    workers: int = 2
+    """Parallel worker processes (or Ray tasks at a time)."""
     backend: str = "process"
     """process (local worker processes) | ray (Ray tasks, local or on a cluster)."""
     address: str = ""
-    """Ray cluster address for ray.init(address=...), e.g. 'auto' ('' = start Ray locally)."""
+    """With backend ray: cluster address for ray.init, e.g. auto (default: start Ray locally)."""
+    out: Path | None = None
+    """Results folder for records.jsonl (default: results/<axis>)."""
+    report: bool = True
+    """Write figures and the PDF report after the cells."""
+    pdf: Path | None = None
+    """PDF report path, figures beside it (default: reports/<axis>.pdf)."""
+
+    def __post_init__(self) -> None:
+        def bad(name: str, why: str) -> None:
+            raise ValueError(f"--{name.replace('_', '-')}={getattr(self, name)!r}: {why}")
+
+        if self.axis not in AXES:
+            bad("axis", f"choose from {AXES}")
+        unknown = [p for p in self.policies if p not in POLICIES]
+        if unknown or not self.policies:
+            bad("policies", f"unknown policies {unknown}; choose from {list(POLICIES)}")
+        if not self.seeds:
+            bad("seeds", "give at least one seed")
+        if self.workers < 1:
+            bad("workers", "must be >= 1")
+        if self.backend not in ("process", "ray"):
+            bad("backend", "choose from process, ray")
+        if self.address and self.backend != "ray":
+            bad("address", "--address needs --backend ray")
+        if not 0 <= self.warmup < self.episode_length:
+            bad("warmup", f"must be in [0, episode length {self.episode_length})")
+        EnvConfig(scenario=self.scenario, density=self.at_density,
+                  penetration=self.at_penetration, episode_length=self.episode_length)  # fmt: skip
+        try:
+            for v in self.axis_values():  # each value must make a valid config
+                EnvConfig(**{"density": self.at_density, "penetration": self.at_penetration,
+                             self.axis: v})  # fmt: skip
+        except ValueError as e:
+            bad("values", str(e))
 
     def axis_values(self) -> tuple:
-        default = {"penetration": PENETRATIONS, "density": DENSITIES, "weather": WEATHERS}[
-            self.axis
-        ]
-        return self.values or default
+        """The swept values: numbers for penetration and density, names for weather."""
+        if not self.values:
+            return {"penetration": PENETRATIONS, "density": DENSITIES, "weather": WEATHERS}[
+                self.axis
+            ]
+        return self.values if self.axis == "weather" else tuple(float(v) for v in self.values)
+
+    @property
+    def results(self) -> Path:
+        """Folder of records.jsonl."""
+        return self.out or Path("results") / self.axis
+
+    @property
+    def report_pdf(self) -> Path | None:
+        """Where the PDF goes, or None without a report."""
+        return (self.pdf or Path("reports") / f"{self.axis}.pdf") if self.report else None
 
 
 @dataclass(frozen=True)
@@ -89,8 +135,8 @@ def cells(sweep: SweepConfig) -> list[Cell]:
     """Every cell of the sweep, in a stable order (seed-major, so early results span the axis)."""
     base = dict(
         scenario=sweep.scenario,
-        density=sweep.density,
-        penetration=sweep.penetration,
+        density=sweep.at_density,
+        penetration=sweep.at_penetration,
         weather="normal",
     )
     out: list[Cell] = []
@@ -139,8 +185,8 @@ def _run_cell(cell: Cell, sweep: SweepConfig, queue: mp.Queue) -> None:
 
 def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
     """Run the missing cells of ``sweep``; returns the records file."""
-    sweep.out.mkdir(parents=True, exist_ok=True)
-    records_path = sweep.out / "records.jsonl"
+    sweep.results.mkdir(parents=True, exist_ok=True)
+    records_path = sweep.results / "records.jsonl"
     done = {_cell_key(r) for r in read_records(records_path)}
     todo = [c for c in cells(sweep) if c.key() not in done]
     bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode", disable=not progress)
@@ -230,107 +276,25 @@ def _cell_key(record: dict) -> tuple:
 
 # --------------------------------------------------------------------------- CLI
 def parse_args(argv: list[str] | None) -> SweepConfig:
-    d = SweepConfig()
+    """SweepConfig from the command line; exits with a message naming a bad option."""
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.sweep",
         description="Penetration / density / weather sweeps with figures and a PDF report.",
     )
     axis = p.add_mutually_exclusive_group()
-    axis.add_argument("--penetration", dest="axis", action="store_const", const="penetration",
+    dest = "cfg__axis"  # the config field `axis`, set by one of three flags
+    axis.add_argument("--penetration", dest=dest, action="store_const", const="penetration",
                       help=f"sweep AV penetration {PENETRATIONS} plus an all-IDM 0 %% reference (default)")  # fmt: skip
-    axis.add_argument("--density", dest="axis", action="store_const", const="density",
+    axis.add_argument("--density", dest=dest, action="store_const", const="density",
                       help=f"sweep density {DENSITIES} veh/km")  # fmt: skip
-    axis.add_argument("--weather", dest="axis", action="store_const", const="weather",
+    axis.add_argument("--weather", dest=dest, action="store_const", const="weather",
                       help=f"sweep the weather presets {WEATHERS}")  # fmt: skip
-    p.add_argument("--scenario", default=d.scenario, help="scenario name or .net.xml/.sumocfg path")
-    p.add_argument(
-        "--at-density",
-        type=float,
-        default=d.density,
-        help="density for penetration/weather sweeps [veh/km]",
-    )
-    p.add_argument(
-        "--at-penetration",
-        type=float,
-        default=d.penetration,
-        help="penetration for density/weather sweeps [0-1]",
-    )
-    p.add_argument(
-        "--values", nargs="+", default=None,
-        help="values of the swept axis (default: penetration 0.2 .. 1.0, density 60 120 180, all weathers)",
-    )  # fmt: skip
-    p.add_argument(
-        "--no-reference", action="store_true", help="skip the all-IDM 0 %% reference cells"
-    )
-    p.add_argument(
-        "--policies", nargs="+", default=list(d.policies), help=f"policies: {' '.join(POLICIES)}"
-    )
-    p.add_argument("--seeds", nargs="+", type=int, default=list(d.seeds), help="root seeds")
-    p.add_argument(
-        "--episode-length",
-        type=float,
-        default=d.episode_length,
-        help="simulated seconds per episode",
-    )
-    p.add_argument(
-        "--warmup", type=float, default=d.warmup, help="seconds before flow metrics count"
-    )
-    p.add_argument("--workers", type=int, default=d.workers, help="parallel worker processes")
-    p.add_argument("--out", type=Path, default=None, help="results folder (default results/<axis>)")
-    p.add_argument(
-        "--report", type=Path, default=None, help="PDF path (default reports/<axis>.pdf)"
-    )
-    p.add_argument(
-        "--checkpoint", type=Path, default=None, help="AUTO checkpoint (default: shipped)"
-    )
-    p.add_argument("--backend", choices=("process", "ray"), default=d.backend,
-                   help="run cells in local worker processes or as Ray tasks")  # fmt: skip
-    p.add_argument("--address", default=d.address,
-                   help="with --backend ray: cluster address, e.g. auto (default: start Ray locally)")  # fmt: skip
-    p.add_argument("--no-report", action="store_true", help="skip figures and the PDF")
-    a = p.parse_args(argv)
-    a.axis = a.axis or "penetration"
-    bad = [x for x in a.policies if x not in POLICIES]
-    if bad:
-        p.error(f"unknown policies {bad}; choose from {list(POLICIES)}")
-    if a.workers < 1:
-        p.error(f"--workers={a.workers} must be >= 1")
-    if a.address and a.backend != "ray":
-        p.error("--address needs --backend ray")
+    fields = [f.name for f in dataclasses.fields(SweepConfig) if f.name != "axis"]
+    add_config_args(p, SweepConfig, only=fields)
     try:
-        EnvConfig(scenario=a.scenario, density=a.at_density, penetration=a.at_penetration,
-                  episode_length=a.episode_length)  # fmt: skip
+        return config_from_args(p.parse_args(argv), SweepConfig)
     except ValueError as e:
         p.error(str(e))
-    values: tuple = ()
-    if a.values:
-        try:
-            values = tuple(a.values) if a.axis == "weather" else tuple(float(v) for v in a.values)
-            for v in values:  # each value must make a valid config
-                EnvConfig(**{"density": a.at_density, "penetration": a.at_penetration, a.axis: v})
-        except ValueError as e:
-            p.error(f"--values: {e}")
-    if a.warmup < 0 or a.warmup >= a.episode_length:
-        p.error(f"--warmup={a.warmup} must be in [0, episode length {a.episode_length})")
-    sweep = SweepConfig(
-        axis=a.axis,
-        scenario=a.scenario,
-        density=a.at_density,
-        penetration=a.at_penetration,
-        policies=tuple(a.policies),
-        seeds=tuple(a.seeds),
-        episode_length=a.episode_length,
-        warmup=a.warmup,
-        workers=a.workers,
-        out=a.out or Path("results") / a.axis,
-        report=None if a.no_report else (a.report or Path("reports") / f"{a.axis}.pdf"),
-        checkpoint=a.checkpoint,
-        values=values,
-        reference=not a.no_reference,
-        backend=a.backend,
-        address=a.address,
-    )
-    return sweep
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -338,10 +302,10 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     records = run_sweep(sweep)
     print(f"records: {records} ({time.time() - t0:.0f} s)")
-    if sweep.report is not None:
+    if sweep.report_pdf is not None:
         from analysis.report import build_report
 
-        pdf = build_report(sweep.out, sweep.report)
+        pdf = build_report(sweep.results, sweep.report_pdf)
         print(f"report: {pdf}")
     return 0
 

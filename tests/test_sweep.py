@@ -37,9 +37,7 @@ def _pdf_text(path: Path) -> str:
 def test_tiny_sweep_writes_records_figures_and_report(tmp_path: Path) -> None:
     out, pdf = tmp_path / "res", tmp_path / "rep.pdf"
     assert (
-        main(
-            ["--penetration", *TINY, "--at-density", "60", "--out", str(out), "--report", str(pdf)]
-        )
+        main(["--penetration", *TINY, "--at-density", "60", "--out", str(out), "--pdf", str(pdf)])
         == 0
     )
     records = read_records(out / "records.jsonl")
@@ -113,6 +111,8 @@ def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path: Path) -> None:
         (["--warmup", "200", "--episode-length", "100"], "--warmup"),
         (["--at-penetration", "2"], "penetration"),
         (["--address", "auto"], "--address needs --backend ray"),
+        (["--weather", "--values", "snow"], "--values"),
+        (["--backend", "slurm"], "--backend"),
     ],
 )
 def test_bad_arguments_exit_with_a_clear_message(argv: list[str], message: str, capsys) -> None:
@@ -124,9 +124,12 @@ def test_bad_arguments_exit_with_a_clear_message(argv: list[str], message: str, 
 
 def test_default_penetration_sweep_cells() -> None:
     sweep = parse_args([])
-    assert sweep == SweepConfig(
-        out=Path("results/penetration"), report=Path("reports/penetration.pdf")
-    )
+    assert sweep == SweepConfig()
+    assert sweep.results == Path("results/penetration")
+    assert sweep.report_pdf == Path("reports/penetration.pdf")
+    density = parse_args(["--density", "--values", "60", "90", "--no-report"])
+    assert density.axis_values() == (60.0, 90.0) and density.report_pdf is None
+    assert density.results == Path("results/density")
     grid = cells(sweep)
     # 5 penetrations x 2 policies + the all-IDM 0 % reference, for 3 seeds
     assert len(grid) == 33
