@@ -21,7 +21,17 @@ from typing import Any
 from mixed_traffic.config import field_docs
 
 _PREFIX = "cfg__"
-_TYPES: dict[str, type] = {"float": float, "int": int, "str": str, "Path": Path}
+
+
+def _whole_number(text: str) -> int:
+    """Integer that also accepts 2e6 and 2_000_000."""
+    value = float(text.replace("_", ""))
+    if value != int(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number")
+    return int(value)
+
+
+_TYPES: dict[str, Any] = {"float": float, "int": _whole_number, "str": str, "Path": Path}
 
 
 def _fields(cls: type, prefix: str = "") -> list[tuple[str, dataclasses.Field, type]]:
@@ -121,11 +131,10 @@ def config_from_args(args: argparse.Namespace, cls: type, **extra: Any) -> Any:
     """
     data = config_overrides(args)
     data.update(extra)
-    base = cls()
+    defaults = {f.name: f for f in dataclasses.fields(cls)}
     kwargs: dict[str, Any] = {}
-    for key, value in data.items():
-        current = getattr(base, key)
-        if isinstance(value, dict) and dataclasses.is_dataclass(current):
-            value = dataclasses.replace(current, **value)
+    for key, value in data.items():  # cls() itself may be invalid (e.g. a budget is required)
+        if isinstance(value, dict):
+            value = dataclasses.replace(_default(defaults[key]), **value)
         kwargs[key] = value
-    return dataclasses.replace(base, **kwargs)
+    return cls(**kwargs)

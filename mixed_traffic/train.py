@@ -20,7 +20,9 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from mixed_traffic.config import EnvConfig, field_docs
+from mixed_traffic import cli
+from mixed_traffic.cli import add_config_args
+from mixed_traffic.config import EnvConfig
 
 _SHORT = {"workers", "backend", "address", "scenarios", "densities", "penetrations", "weathers",
           "env_steps", "minutes", "out", "seed", "demo_steps", "ablation", "bp_dqn"}  # fmt: skip
@@ -39,14 +41,6 @@ def train_scenarios() -> list[str]:
     return sorted(out)
 
 
-def _number(text: str) -> int:
-    """Integer that also accepts 2e6 / 2_000_000."""
-    value = float(text.replace("_", ""))
-    if value != int(value):
-        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number")
-    return int(value)
-
-
 def build_parser() -> argparse.ArgumentParser:
     from agents.trainer import TrainConfig
 
@@ -55,38 +49,21 @@ def build_parser() -> argparse.ArgumentParser:
         description="Train the AUTO agent (LCA + RBP-DQN) with N rollout workers and one learner. "
         "Writes OUT/curves.csv, OUT/checkpoint.pt, OUT/replay.pt, OUT/state.json and, at the "
         "end, OUT/auto.pt + OUT/auto.json; each periodic checkpoint is also kept in OUT/snapshots/.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    docs = field_docs(TrainConfig)
-    advanced = p.add_argument_group("advanced")
-    for f in dataclasses.fields(TrainConfig):
-        target = p if f.name in _SHORT else advanced
-        opt = "--" + f.name.replace("_", "-")
-        default = f.default
-        help_text = docs.get(f.name, "").replace("%", "%%")
-        if isinstance(default, bool):
-            target.add_argument(opt, action=argparse.BooleanOptionalAction, default=default,
-                                help=help_text)  # fmt: skip
-        elif isinstance(default, tuple):
-            kind = float if f.name in ("densities", "penetrations") else str
-            target.add_argument(opt, nargs="+", type=kind, default=list(default),
-                                metavar="X", help=help_text)  # fmt: skip
-        else:
-            kind = _number if isinstance(default, int) else type(default)
-            target.add_argument(opt, type=kind, default=default, help=help_text)
+    names = [f.name for f in dataclasses.fields(TrainConfig)]
+    add_config_args(p, TrainConfig, only=[n for n in names if n in _SHORT])
+    add_config_args(p, TrainConfig, only=[n for n in names if n not in _SHORT],
+                    group_title="advanced")  # fmt: skip
     p.add_argument(
         "--resume",
         action="store_true",
         help="continue the run in --out from its checkpoint, replay and counters",
     )
-    p.add_argument(
-        "--history",
-        type=int,
-        default=EnvConfig().sensors.history,
-        help="observation history z [steps]",
-    )
-    p.add_argument("--waypoints", type=int, default=EnvConfig().sensors.waypoints,
-                   help="lane waypoints m per lane [count]")  # fmt: skip
+    sensors = EnvConfig().sensors
+    p.add_argument("--history", type=int, default=sensors.history,
+                   help=f"observation history z [steps] (default: {sensors.history})")  # fmt: skip
+    p.add_argument("--waypoints", type=int, default=sensors.waypoints,
+                   help=f"lane waypoints m per lane [count] (default: {sensors.waypoints})")  # fmt: skip
     return p
 
 
@@ -95,11 +72,11 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
     from agents.trainer import TrainConfig
     from mixed_traffic.scenario import check_density, list_scenarios, load_scenario
 
-    values = {f.name: getattr(args, f.name) for f in dataclasses.fields(TrainConfig)}
-    for k, v in values.items():
-        if isinstance(v, list):
-            values[k] = tuple(v)
-    scen = tuple(s for s in values["scenarios"] if s) or tuple(train_scenarios())
+    try:
+        cfg = cli.config_from_args(args, TrainConfig)
+    except ValueError as e:
+        parser.error(str(e))
+    scen = tuple(s for s in cfg.scenarios if s) or tuple(train_scenarios())
     for s in scen:
         if s not in list_scenarios():
             parser.error(
@@ -109,16 +86,12 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
         if sc.split != "train":
             parser.error(f"--scenarios: {s!r} is a held-out {sc.split!r} scenario; train on "
                          f"train-split ones: {', '.join(train_scenarios())}")  # fmt: skip
-        for d in values["densities"]:
+        for d in cfg.densities:
             try:
                 check_density(sc, d)
             except ValueError as e:
                 parser.error(f"--densities: {e}")
-    values["scenarios"] = scen
-    try:
-        return TrainConfig(**values)
-    except ValueError as e:
-        parser.error(str(e))
+    return dataclasses.replace(cfg, scenarios=scen)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
