@@ -1,0 +1,89 @@
+"""Checkpoint comparison on the train split (mixed_traffic.compare), on real SUMO."""
+
+from __future__ import annotations
+
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from agents.checkpoint import load_checkpoint, save_checkpoint
+from mixed_traffic.compare import CompareConfig, expand, main, rank_key, run, score
+from mixed_traffic.provenance import read_records
+
+SHIPPED = Path(__file__).resolve().parents[1] / "agents" / "checkpoints" / "auto.pt"
+
+
+def _run_folder(tmp: Path) -> Path:
+    """A training-run layout: auto.pt (the shipped network) and one perturbed snapshot."""
+    run_dir = tmp / "run"
+    (run_dir / "snapshots").mkdir(parents=True)
+    shutil.copy(SHIPPED, run_dir / "auto.pt")
+    learner, meta = load_checkpoint(SHIPPED)
+    torch.manual_seed(0)
+    with torch.no_grad():
+        for p in learner.actor.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    save_checkpoint(run_dir / "snapshots" / "000001000.pt", learner, meta)
+    return run_dir
+
+
+def test_checkpoints_are_ranked_by_their_excess_over_acc_lc(tmp_path: Path) -> None:
+    run_dir = _run_folder(tmp_path)
+    checkpoints = expand([run_dir])
+    assert [c.name for c in checkpoints] == ["000001000.pt", "auto.pt"]
+    cfg = CompareConfig(scenarios=("straight-3lane",), density=60.0, penetrations=(1.0,),
+                        seeds=(100,), episode_length=30.0, warmup=2.0, out=tmp_path / "cmp")  # fmt: skip
+    scores = run(cfg, checkpoints, progress=False)
+    assert sorted(s["checkpoint"] for s in scores) == sorted(map(str, checkpoints))
+
+    def dt_a(key: str) -> float:
+        (rec,) = read_records(cfg.folder / key / "straight-3lane" / "records.jsonl")
+        assert rec["status"] == "ok" and rec["cell"]["seed"] == 100
+        return rec["metrics"]["avg_dt_a"]
+
+    for s in scores:  # recomputed from the records on disk
+        assert s["unsafe"] == 0
+        assert s["max_excess"] == pytest.approx(100 * (dt_a(s["key"]) / dt_a("acc-lc") - 1))
+    assert scores[0]["max_excess"] <= scores[1]["max_excess"]
+    assert scores[0]["key"] != scores[1]["key"]  # different weights, different records
+
+    files = sorted(cfg.folder.rglob("records.jsonl"))
+    before = [f.read_bytes() for f in files]
+    assert run(cfg, checkpoints, progress=False) == scores  # resumed: nothing re-run
+    assert [f.read_bytes() for f in files] == before
+
+
+def _cells(dt: dict[tuple[str, float], float], terminal: int = 0) -> dict:
+    return {k: {"avg_dt_a": v, "terminal": terminal, "failed": 0} for k, v in dt.items()}
+
+
+def test_score_takes_the_largest_excess_and_puts_unsafe_checkpoints_last() -> None:
+    acc = _cells({("a", 0.2): 100.0, ("b", 1.0): 200.0})
+    even = score(_cells({("a", 0.2): 101.0, ("b", 1.0): 202.0}), acc)
+    lopsided = score(_cells({("a", 0.2): 90.0, ("b", 1.0): 210.0}), acc)
+    unsafe = score(_cells({("a", 0.2): 80.0, ("b", 1.0): 160.0}, terminal=1), acc)
+    missing = score(_cells({("a", 0.2): 80.0}), acc)
+    assert even["max_excess"] == pytest.approx(1.0)
+    assert lopsided["max_excess"] == pytest.approx(5.0)
+    assert lopsided["mean_excess"] == pytest.approx(np.mean([-10.0, 5.0]))
+    assert unsafe["unsafe"] == 2 and missing["unsafe"] == 1 and math.isnan(missing["max_excess"])
+    ranked = sorted([missing, unsafe, lopsided, even], key=rank_key)
+    assert ranked == [even, lopsided, unsafe, missing]  # unsafe last, however fast
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        ([str(SHIPPED), "--scenarios", "straight-eval"], "held-out"),
+        (["no/such/run"], "no such checkpoint"),
+        ([str(SHIPPED), "--warmup", "90"], "--warmup"),
+    ],
+)
+def test_bad_arguments_exit_with_a_clear_message(argv: list[str], message: str, capsys) -> None:
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 2 and message in capsys.readouterr().err
