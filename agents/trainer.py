@@ -494,8 +494,12 @@ class Trainer:
             )
         elif cfg.init:
             self._init_from(Path(cfg.init))
-        # every invocation of this run, first to last (auto.json provenance)
+        # every invocation of this run, first to last (auto.json provenance); the revision is
+        # taken now, as commits made while a run trains do not change the code it runs
+        from mixed_traffic.provenance import git_revision
+
         self.c["commands"] = [*self.c.get("commands", []), self.command]
+        self.c["revisions"] = [*self.c.get("revisions", []), git_revision()]
 
     # -------------------------------------------------------------- persistence
     def _load(self) -> None:
@@ -570,12 +574,11 @@ class Trainer:
         atomic_write_json(self.out / "state.json", state)
 
     def _meta(self) -> dict[str, Any]:
-        from mixed_traffic.provenance import git_revision
-
         return {
             "command": self.command,
             "commands": self.c["commands"],
-            "git_revision": git_revision(),
+            "git_revision": self.c["revisions"][-1],
+            "git_revisions": self.c["revisions"],
             "train_config": self.cfg.to_dict(),
             "env_base": self.env_base.to_dict(),
             **{k: self.c[k] for k in ("env_steps", "updates", "episodes", "wall_time")},

@@ -78,6 +78,17 @@ def test_resume_continues_counters(tmp_path: Path) -> None:
         Trainer(_cfg(tmp_path, workers=1, env_steps=3000))
 
 
+def test_provenance_names_the_revision_the_run_started_at(tmp_path: Path, monkeypatch) -> None:
+    from mixed_traffic import provenance
+
+    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=300, demo_steps=300))
+    started = tr.c["revisions"][-1]
+    monkeypatch.setattr(provenance, "git_revision", lambda: "committed-while-training")
+    info = tr.run()
+    assert info["git_revision"] == started != "committed-while-training"
+    assert load_checkpoint(tmp_path / "checkpoint.pt")[1]["git_revisions"] == [started]
+
+
 def test_init_fine_tunes_from_a_checkpoint(tmp_path: Path) -> None:
     first = Trainer(_cfg(tmp_path / "a", workers=1, env_steps=1000)).run()
     src = tmp_path / "a" / "auto.pt"
