@@ -56,6 +56,8 @@ class CompareConfig:
     """Records folder; a re-run skips episodes already recorded."""
 
     def __post_init__(self) -> None:
+        if not self.scenarios:
+            raise ValueError("--scenarios: give at least one train-split scenario")
         for name in self.scenarios:
             split = load_scenario(name).split
             if split != "train":
