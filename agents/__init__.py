@@ -53,11 +53,11 @@ Deviations from the paper, and why:
   in rain (merge-ramp, p = 1.0). The fit still shrinks towards the mean (it accelerates less
   than ACC-LC where ACC-LC accelerates, and brakes less where it brakes), most where a queue
   starts: the network cannot tell holding from going and fits the mean of the two.
-- The last two fine-tunes fit accel_brake as an upper expectile of the label instead of its
-  mean (``--bc-accel-expectile`` 0.7, then 0.8: errors below the label weigh 2τ, above it
+- The last three fine-tunes fit accel_brake as an upper expectile of the label instead of its
+  mean (``--bc-accel-expectile`` 0.7, then 0.8 twice: errors below the label weigh 2τ, above it
   2(1 − τ)). Behind the safety module, which clamps the acceleration where ACC-LC brakes,
   erring upwards caused no terminal event in the eval cells, and AUTO starts queues sooner; the
-  network alone still has terminal events on the bottleneck and urban variants (README).
+  network alone still has terminal events on the bottleneck, merge and urban variants (README).
 - A safety module (``agents.safety``) sits behind the learned policy at evaluation: the paper
   names it as standard in industrial stacks (§VI) but evaluates AUTO without one. It hands the
   step to ACC-LC when the learned steering would leave the lane corridor (or enter a gap ACC-LC
