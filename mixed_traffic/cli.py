@@ -50,6 +50,12 @@ def _default(f: dataclasses.Field) -> Any:
     return f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
 
 
+def config_dest(name: str) -> str:
+    """argparse ``dest`` of a (dotted) config field: hand-written options that set a field
+    (e.g. flags choosing a value) use it, and ``config_from_args`` picks them up."""
+    return _PREFIX + name.replace(".", "__")
+
+
 def _kind(f: dataclasses.Field) -> tuple[str, bool]:
     """(scalar type name, takes several values) of a field's annotation."""
     kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "str")
@@ -89,7 +95,7 @@ def add_config_args(
         shown = defaults.get(name, _default(f))
         kind, several = _kind(f)
         option = "--" + name.replace("_", "-")
-        dest = _PREFIX + name.replace(".", "__")
+        dest = config_dest(name)
         if isinstance(shown, tuple):
             shown = " ".join(map(str, shown))
         shown = None if shown == "" else shown  # the docstring says what "unset" means

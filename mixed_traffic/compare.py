@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from mixed_traffic.cli import add_config_args, config_from_args
 from mixed_traffic.provenance import read_records
-from mixed_traffic.scenario import load_scenario
+from mixed_traffic.scenario import train_split_scenario
 from mixed_traffic.sweep import SweepConfig, run_sweep
 
 TRAIN_CELLS = ("merge-ramp", "bottleneck-3to2", "urban-grid3x3", "highway-curves", "straight-3lane")
@@ -59,12 +59,10 @@ class CompareConfig:
         if not self.scenarios:
             raise ValueError("--scenarios: give at least one train-split scenario")
         for name in self.scenarios:
-            split = load_scenario(name).split
-            if split != "train":
-                raise ValueError(
-                    f"--scenarios: {name!r} is a held-out {split!r} scenario; choose "
-                    "checkpoints on train-split scenarios only"
-                )
+            try:
+                train_split_scenario(name)
+            except ValueError as e:
+                raise ValueError(f"--scenarios: {e}") from None
         self.sweep("acc-lc", None, self.scenarios[0], Path("."))  # validates the rest
 
     @property

@@ -131,6 +131,27 @@ def list_scenarios() -> list[str]:
     return sorted(_registry())
 
 
+def train_scenarios() -> list[str]:
+    """Every bundled train-split scenario, one name per variant folder (aliases dropped)."""
+    seen, out = set(), []
+    for name, folder in sorted(_registry().items(), key=lambda kv: ("-" not in kv[0], kv[0])):
+        if folder in seen or load_scenario(name).split != "train":
+            continue
+        seen.add(folder)
+        out.append(name)
+    return sorted(out)
+
+
+def train_split_scenario(name: str) -> Scenario:
+    """``load_scenario(name)``, refused (ValueError) unless it is on the train split: training
+    and checkpoint selection must leave the held-out variants unseen."""
+    scenario = load_scenario(name)
+    if scenario.split != "train":
+        raise ValueError(f"{name!r} is a held-out {scenario.split!r} scenario; use train-split "
+                         f"ones: {', '.join(train_scenarios())}")  # fmt: skip
+    return scenario
+
+
 def load_scenario(name: str) -> Scenario:
     """A bundled scenario by name, or a user's ``.net.xml`` / ``.sumocfg`` by path."""
     if name.endswith(".net.xml") or name.endswith(".sumocfg"):

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from mixed_traffic.cli import add_config_args, config_from_args
+from mixed_traffic.cli import add_config_args, config_dest, config_from_args
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.provenance import read_records, record_meta, write_record_atomic
 from mixed_traffic.schema import CELL_KEYS, POLICIES
@@ -282,7 +282,7 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
         description="Penetration / density / weather sweeps with figures and a PDF report.",
     )
     axis = p.add_mutually_exclusive_group()
-    dest = "cfg__axis"  # the config field `axis`, set by one of three flags
+    dest = config_dest("axis")  # the config field `axis`, set by one of three flags
     axis.add_argument("--penetration", dest=dest, action="store_const", const="penetration",
                       help=f"sweep AV penetration {PENETRATIONS} plus an all-IDM 0 %% reference (default)")  # fmt: skip
     axis.add_argument("--density", dest=dest, action="store_const", const="density",

@@ -28,19 +28,6 @@ _SHORT = {"workers", "backend", "address", "scenarios", "densities", "penetratio
           "env_steps", "minutes", "out", "seed", "demo_steps", "ablation", "bp_dqn"}  # fmt: skip
 
 
-def train_scenarios() -> list[str]:
-    """Every bundled train-split scenario, one name per variant folder (aliases dropped)."""
-    from mixed_traffic.scenario import _registry, load_scenario
-
-    seen, out = set(), []
-    for name, folder in sorted(_registry().items(), key=lambda kv: ("-" not in kv[0], kv[0])):
-        if folder in seen or load_scenario(name).split != "train":
-            continue
-        seen.add(folder)
-        out.append(name)
-    return sorted(out)
-
-
 def build_parser() -> argparse.ArgumentParser:
     from agents.trainer import TrainConfig
 
@@ -70,7 +57,12 @@ def build_parser() -> argparse.ArgumentParser:
 def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Any:
     """TrainConfig from the options; validates scenarios and densities (parser.error on bad)."""
     from agents.trainer import TrainConfig
-    from mixed_traffic.scenario import check_density, list_scenarios, load_scenario
+    from mixed_traffic.scenario import (
+        check_density,
+        list_scenarios,
+        train_scenarios,
+        train_split_scenario,
+    )
 
     try:
         cfg = cli.config_from_args(args, TrainConfig)
@@ -82,10 +74,10 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
             parser.error(
                 f"--scenarios: unknown scenario {s!r}; known: {', '.join(list_scenarios())}"
             )
-        sc = load_scenario(s)
-        if sc.split != "train":
-            parser.error(f"--scenarios: {s!r} is a held-out {sc.split!r} scenario; train on "
-                         f"train-split ones: {', '.join(train_scenarios())}")  # fmt: skip
+        try:
+            sc = train_split_scenario(s)
+        except ValueError as e:
+            parser.error(f"--scenarios: {e}")
         for d in cfg.densities:
             try:
                 check_density(sc, d)
