@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -84,16 +85,19 @@ def load_checkpoint(
     z: int | None = None,
     m: int | None = None,
     learner: RBPDQN | None = None,
+    widen: bool = False,
 ) -> tuple[RBPDQN, dict[str, Any]]:
     """Rebuild (or fill ``learner``) from ``path`` → (learner, meta).
 
     ``z``/``m`` are the observation config the caller will feed; a mismatch with the stored
-    shapes raises ValueError listing both. With ``learner`` given, its LCA config must match.
+    shapes raises ValueError listing both. With ``learner`` given, its LCA config must match,
+    except that ``widen`` lets paper-form weights (``ego_fusion=False``) fill an ego-fusion
+    learner (:func:`_widen`).
     """
     data = read_checkpoint(path)
     meta = data["meta"]
     try:
-        lca = LCAConfig(**meta["lca"])
+        lca = LCAConfig.from_dict(meta["lca"])
         lcfg = LearnerConfig(**meta["learner_cfg"])
     except (KeyError, TypeError) as exc:
         raise ValueError(f"checkpoint {path}: invalid meta ({exc})") from exc
@@ -102,17 +106,24 @@ def load_checkpoint(
     )
     if learner is not None:
         want = learner.lca_cfg
+        if widen and not lca.ego_fusion and want == replace(lca, ego_fusion=True):
+            data["learner"] = _widen(path, data["learner"], lca, lcfg, learner)
+            lca = want
     if want != lca:
-        diff = {
-            k: (tuple(a), tuple(want.obs_shapes()[k]))
+        shapes = [
+            f"{k}: checkpoint {tuple(a)} vs requested {tuple(want.obs_shapes()[k])}"
             for k, a in lca.obs_shapes().items()
             if tuple(a) != tuple(want.obs_shapes()[k])
-        }
-        detail = ", ".join(f"{k}: checkpoint {a} vs requested {b}" for k, (a, b) in diff.items())
+        ]
+        flags = [
+            f"{k}: checkpoint {v} vs requested {getattr(want, k)}"
+            for k, v in lca.to_dict().items()
+            if k not in ("z", "m", "d") and v != getattr(want, k)
+        ]
         raise ValueError(
             f"checkpoint {path}: observation/model config mismatch "
             f"(checkpoint z={lca.z}, m={lca.m}, d={lca.d}; requested z={want.z}, m={want.m}, "
-            f"d={want.d}){'; ' + detail if detail else ''}"
+            f"d={want.d})" + "".join(f"; {x}" for x in shapes + flags)
         )
     out = learner if learner is not None else RBPDQN(lca, lcfg)
     try:
@@ -120,6 +131,36 @@ def load_checkpoint(
     except (KeyError, RuntimeError, ValueError) as exc:
         raise ValueError(f"checkpoint {path}: state does not fit the model ({exc})") from exc
     return out, meta
+
+
+def _widen(
+    path: str | os.PathLike, sd: dict, lca: LCAConfig, lcfg: LearnerConfig, learner: RBPDQN
+) -> dict:
+    """Paper-form learner state → the state of ``learner`` (ego fusion) computing the same
+    function: the fusion layers' new h_A input columns and their Adam moments start at zero."""
+    old = RBPDQN(lca, lcfg)
+    try:
+        old.load_state_dict(sd)
+    except (KeyError, RuntimeError, ValueError) as exc:
+        raise ValueError(f"checkpoint {path}: state does not fit the model ({exc})") from exc
+    sd, like = old.state_dict(), learner.state_dict()
+    for net in ("actor", "critic", "actor_targ", "critic_targ"):
+        sd[net] = {k: _zero_pad(v, like[net][k].shape) for k, v in sd[net].items()}
+    for opt, net in (("actor_opt", learner.actor), ("critic_opt", learner.critic)):
+        shapes = [p.shape for p in net.parameters()]  # the optimiser's state is keyed by index
+        for i, state in sd[opt]["state"].items():
+            sd[opt]["state"][i] = {k: _zero_pad(v, shapes[i]) if v.ndim else v
+                                   for k, v in state.items()}  # fmt: skip
+    return sd
+
+
+def _zero_pad(t: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+    """``t`` in the leading corner of zeros of ``shape`` (``t`` itself if the shape is equal)."""
+    if t.shape == shape:
+        return t
+    out = t.new_zeros(shape)
+    out[tuple(slice(0, n) for n in t.shape)] = t
+    return out
 
 
 def load_policy(

@@ -156,6 +156,8 @@ class FusedActorCritic:
             w8 = m.fuse[0].weight  # (D, 3D)
             wf.append(torch.cat([w8[:, i * d : (i + 1) * d] @ wv for i in range(N_LANES)], dim=1))
         self.wf_t = _stack_t(wf)  # (2, 3D, D)
+        # ego fusion: the fusion layer's last D input columns take h_ego directly
+        self.we_t = _stack_t([m.fuse[0].weight[:, N_LANES * d :] for m in lcas])  # (2, D|0, D)
         self.bf = torch.stack([m.fuse[0].bias for m in lcas])[:, None, :]
         self.actor_head = [t.detach().clone() for t in self.actor.head.parameters()]
         self.critic_w10 = [t.detach().clone() for t in self.critic.act_embed.parameters()]
@@ -187,8 +189,8 @@ class FusedActorCritic:
         veh = obs["vehicles"].reshape(b * N_LANES, z, -1)
         light = obs["lights"].reshape(b * N_LANES, z, -1)
         ego = obs["ego"]
-        h_nodes = self.nodes_gru([lanes, veh, light, lanes, veh, light])  # (6, 3B, D) as h̃
-        h_ego = self.ego_gru([ego, ego])  # (2, B, D) as h̃
+        h_nodes = self.nodes_gru([lanes, veh, light, lanes, veh, light])  # (6, 3B, D)
+        h_ego = self.ego_gru([ego, ego])  # (2, B, D)
         # Rows of h_nodes per net are ordered (type, b, lane); attention runs in that layout
         # (elementwise products + sums) so nothing is permuted or copied.
         buf = self._attn_buffers(b)
@@ -201,7 +203,10 @@ class FusedActorCritic:
         att = torch.softmax(logits, dim=1).mul_(mask.any(0))  # all-masked lane → 0
         wsum = torch.mul(nodes, att.unsqueeze(-1), out=buf["prod"]).sum(1)  # (2, B, L, D)
         e = wsum.view(2, b, N_LANES * d)
-        e_s = torch.relu_(torch.baddbmm(self.bf, e, self.wf_t, out=buf["es"]))  # (2, B, D)
+        e_s = torch.baddbmm(self.bf, e, self.wf_t, out=buf["es"])  # (2, B, D)
+        if self.we_t.shape[1]:
+            e_s.baddbmm_(h_ego, self.we_t)
+        torch.relu_(e_s)
         w1, b1, w2, b2 = self.actor_head
         hid = torch.relu(torch.addmm(b1, e_s[0], w1.t()))
         params = torch.sigmoid(2.0 * torch.addmm(b2, hid, w2.t())) * 2.0 - 1.0  # tanh

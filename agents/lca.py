@@ -14,7 +14,8 @@ z and m are read from the shapes (through :class:`LCAConfig`), never hard-coded 
 Pipeline: one GRU per node type embeds the z-step history of every node (hidden state of the
 last step, D values); per lane k a star graph with the ego as the only query attends over that
 lane's (lane, vehicle, light) nodes, honouring ``node_mask``; a fusion MLP maps
-concat(E_left, E_cur, E_right) to the state embedding E_s (B, D).
+concat(E_left, E_cur, E_right, h_ego) to the state embedding E_s (B, D). The paper fuses the
+three lane vectors only; ``LCAConfig.ego_fusion`` explains the added ego embedding.
 
 Ablation flags (paper §V-A): ``history=False`` (NoHIS: a per-frame MLP on the last step instead
 of the GRU), ``lane_wise=False`` (NoLANE: one ego attention over all nine nodes),
@@ -56,6 +57,11 @@ class LCAConfig:
     """False → NoLANE ablation (one attention over all nodes, no lane-wise fusion)."""
     star: bool = True
     """False → NoSTAR ablation (complete graph: self-attention over ego and all nodes)."""
+    ego_fusion: bool = True
+    """True → the ego embedding joins the fusion, E_s = W8(E_k-1 ⊕ E_k ⊕ E_k+1 ⊕ h_A). The
+    paper's eq. (W8 over the lane vectors only) leaves the agent's own speed, heading and offset
+    in E_s only through the attention weights. False → the paper's form (and every checkpoint
+    written before this field, see :meth:`from_dict`)."""
 
     @property
     def lane_dim(self) -> int:
@@ -63,6 +69,12 @@ class LCAConfig:
 
     def to_dict(self) -> dict[str, int | bool]:
         return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, int | bool]) -> LCAConfig:
+        """Inverse of :meth:`to_dict`; configs stored before ``ego_fusion`` existed are the
+        paper's form."""
+        return cls(**{"ego_fusion": False, **data})
 
     @classmethod
     def from_obs_shapes(cls, shapes: dict[str, tuple[int, ...]], **kw: int | bool) -> LCAConfig:
@@ -163,7 +175,7 @@ class LCA(nn.Module):
         if not cfg.star:
             # Complete graph: one self-attention layer over [ego, 9 nodes] (NoSTAR).
             self.sa_qkv = nn.Linear(d, 3 * d, bias=False)
-        fuse_in = N_LANES * d if cfg.lane_wise else d
+        fuse_in = (N_LANES * d if cfg.lane_wise else d) + (d if cfg.ego_fusion else 0)
         self.fuse = nn.Sequential(nn.Linear(fuse_in, d), nn.ReLU())  # W8
 
     def embed_nodes(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
@@ -185,11 +197,12 @@ class LCA(nn.Module):
         if not self.cfg.star:
             h_ego, nodes = self._complete_graph(h_ego, nodes, mask)
         if self.cfg.lane_wise:
-            e = self._lane_attention(h_ego, nodes, mask)  # (B, 3, D)
-            return self.fuse(e.flatten(1))
-        b, d = h_ego.shape
-        e = self._lane_attention(h_ego, nodes.reshape(b, 1, -1, d), mask.reshape(b, 1, -1))
-        return self.fuse(e[:, 0])
+            e = self._lane_attention(h_ego, nodes, mask).flatten(1)  # (B, 3D)
+        else:
+            b, d = h_ego.shape
+            e = self._lane_attention(h_ego, nodes.reshape(b, 1, -1, d), mask.reshape(b, 1, -1))
+            e = e[:, 0]
+        return self.fuse(torch.cat((e, h_ego), dim=1) if self.cfg.ego_fusion else e)
 
     def _lane_attention(self, h_ego: Tensor, nodes: Tensor, mask: Tensor) -> Tensor:
         """Star-graph cross attention per lane.

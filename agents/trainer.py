@@ -124,9 +124,14 @@ class TrainConfig:
     [-] (0.5 = the paper's squared error; see ``LearnerConfig.bc_accel_expectile``)."""
     init: str = ""
     """Checkpoint whose networks (and optimiser states) start a new run: fine-tuning with a
-    fresh replay and counters ('' = random init; ignored by --resume)."""
+    fresh replay and counters ('' = random init; ignored by --resume). A paper-form checkpoint
+    (no ego fusion) is widened with zero weights on the ego input, so the run starts from the
+    same policy."""
     ablation: str = "none"
     """Paper §V-A variant: none | nohis | nolane | nostar | noimp | nomul | novec."""
+    ego_fusion: bool = True
+    """The ego embedding joins LCA's lane-wise fusion (``LCAConfig.ego_fusion``); False trains
+    the paper's fusion of the three lane vectors only."""
     bp_dqn: bool = False
     """Train the BP-DQN baseline (no behaviour-cloning regulariser) instead of RBP-DQN."""
     local_buffer: int = 256
@@ -228,7 +233,8 @@ def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:
     """Encoder config from the env's history/waypoints and the ablation."""
     flags = {"nohis": {"history": False}, "nolane": {"lane_wise": False},
              "nostar": {"star": False}}.get(cfg.ablation, {})  # fmt: skip
-    return LCAConfig(z=env_base.sensors.history, m=env_base.sensors.waypoints, **flags)
+    return LCAConfig(z=env_base.sensors.history, m=env_base.sensors.waypoints,
+                     ego_fusion=cfg.ego_fusion, **flags)  # fmt: skip
 
 
 def env_base_config(cfg: TrainConfig, env_base: EnvConfig | None = None) -> EnvConfig:
@@ -508,7 +514,7 @@ class Trainer:
             raise FileNotFoundError(f"--resume: {state_file} not found")
         state = json.loads(state_file.read_text())
         old = TrainConfig.from_dict(state["config"])
-        for name in ("ablation", "bp_dqn", "replay_capacity", "workers"):
+        for name in ("ablation", "ego_fusion", "bp_dqn", "replay_capacity", "workers"):
             if getattr(old, name) != getattr(self.cfg, name):
                 raise ValueError(
                     f"--resume: {name}={getattr(self.cfg, name)!r} differs from the run in "
@@ -532,7 +538,7 @@ class Trainer:
 
     def _init_from(self, path: Path) -> None:
         """Start from ``path``'s networks; its provenance goes into this run's (``init``)."""
-        _, meta = load_checkpoint(path, learner=self.learner)
+        _, meta = load_checkpoint(path, learner=self.learner, widen=True)
         self.learner.steps = 0  # this run's update counter (resume checks they agree)
         keys = ("commands", "git_revision", "env_steps", "updates", "wall_time")
         self.c["init"] = {"path": str(path), **{k: meta.get(k) for k in keys}}

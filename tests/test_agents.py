@@ -19,6 +19,7 @@ from agents.replay import ReplayBuffer
 
 ABLATIONS = [
     {},
+    {"ego_fusion": False},  # the paper's fusion of the lane vectors only
     {"history": False},
     {"lane_wise": False},
     {"star": False},
@@ -107,9 +108,10 @@ def test_policy_respects_mask_with_exploration() -> None:
         assert np.abs(params).max() <= 1.0
 
 
+@pytest.mark.parametrize("ego_fusion", [True, False])
 @pytest.mark.parametrize("b", [1, 7, 128])
-def test_fused_matches_reference(b: int) -> None:
-    cfg = LCAConfig()
+def test_fused_matches_reference(b: int, ego_fusion: bool) -> None:
+    cfg = LCAConfig(ego_fusion=ego_fusion)
     torch.manual_seed(3)
     actor, critic = Actor(cfg), Critic(cfg)
     obs = _obs(b, cfg, seed=b)
@@ -279,6 +281,33 @@ def test_checkpoint_round_trip(tmp_path) -> None:
     pol = load_policy(path)
     dec, params = pol.act({k: v.numpy() for k, v in obs.items()}, explore=False)
     assert dec.shape == (7,) and params.shape == (7, 3, 2)
+
+
+def test_paper_form_checkpoint_widens_to_the_same_policy(tmp_path) -> None:
+    paper = LCAConfig(ego_fusion=False)
+    old = RBPDQN(paper, seed=1)
+    old.update(_batch(16, paper))
+    path = save_checkpoint(tmp_path / "paper.pt", old)
+    # a checkpoint written before the field existed is the paper's form
+    data = torch.load(path, weights_only=True)
+    del data["meta"]["lca"]["ego_fusion"]
+    torch.save(data, path)
+    assert load_checkpoint(path)[0].lca_cfg == paper
+    new = RBPDQN(LCAConfig())
+    with pytest.raises(
+        ValueError, match=r"paper\.pt.*ego_fusion: checkpoint False vs requested True"
+    ):
+        load_checkpoint(path, learner=new)  # only an explicit widen changes the model
+    load_checkpoint(path, learner=new, widen=True)
+    obs = _obs(9, paper, seed=3)
+    with torch.no_grad():
+        p_old, p_new = old.actor(obs), new.actor(obs)
+        torch.testing.assert_close(p_new, p_old, atol=0.0, rtol=0.0)
+        torch.testing.assert_close(new.critic(obs, p_new), old.critic(obs, p_old))
+    # the new ego columns start at zero, then learn (they get gradients)
+    assert new.actor.lca.fuse[0].weight[:, 3 * paper.d :].abs().max() == 0
+    new.update(_batch(16, paper, seed=4))
+    assert new.actor.lca.fuse[0].weight[:, 3 * paper.d :].abs().max() > 0
 
 
 def test_checkpoint_errors(tmp_path) -> None:
