@@ -76,9 +76,16 @@ Deviations from the paper, and why:
   the latter.
 - Actor loss: the BC term is *added* (TD3+BC, the paper's cited source); the printed equation
   negates it too, which would push the actor away from the data.
+- LCA's fusion also takes the ego embedding: E_s = W8(E_k-1 ⊕ E_k ⊕ E_k+1 ⊕ h_A)
+  (``LCAConfig.ego_fusion``, on by default). In the paper's equation h_A is only the attention
+  query, so the agent's own speed, heading and lateral offset reach the actor only through at
+  most three softmax weights per lane; ACC-LC's acceleration depends on the ego speed directly.
+  ``--no-ego-fusion`` trains the paper's form; checkpoints written before the field load in it,
+  and ``--init`` widens them with zero weights on h_A, so a fine-tune starts from the same policy.
 - A lane whose nodes are all masked contributes a zero vector to the fusion (softmax over an
   empty set is undefined); the paper does not say.
-- MLP depths (not given in the paper): fusion Linear(3D, D)+ReLU; actor head D→D→6;
+- MLP depths (not given in the paper): fusion Linear(3D + D, D)+ReLU (3D in the paper's
+  form); actor head D→D→6;
   critic head 2D→D→3; D = 32 everywhere (D1 = D2 = D3 = D4).
 - NoSTAR: one residual masked self-attention layer over [ego, 9 nodes], then the same
   lane-wise read-out; NoLANE: one ego attention over all 9 nodes, fusion of that one vector.

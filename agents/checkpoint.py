@@ -137,7 +137,9 @@ def _widen(
     path: str | os.PathLike, sd: dict, lca: LCAConfig, lcfg: LearnerConfig, learner: RBPDQN
 ) -> dict:
     """Paper-form learner state → the state of ``learner`` (ego fusion) computing the same
-    function: the fusion layers' new h_A input columns and their Adam moments start at zero."""
+    function: the fusion layers' new h_A input columns start at zero, their Adam first moments
+    too, and their second moments at the row's mean over the old columns (zero would make the
+    first updates of the new weights several times the learning rate)."""
     old = RBPDQN(lca, lcfg)
     try:
         old.load_state_dict(sd)
@@ -149,16 +151,20 @@ def _widen(
     for opt, net in (("actor_opt", learner.actor), ("critic_opt", learner.critic)):
         shapes = [p.shape for p in net.parameters()]  # the optimiser's state is keyed by index
         for i, state in sd[opt]["state"].items():
-            sd[opt]["state"][i] = {k: _zero_pad(v, shapes[i]) if v.ndim else v
-                                   for k, v in state.items()}  # fmt: skip
+            sd[opt]["state"][i] = {
+                k: _zero_pad(v, shapes[i], row_mean=k == "exp_avg_sq") if v.ndim else v
+                for k, v in state.items()
+            }
     return sd
 
 
-def _zero_pad(t: torch.Tensor, shape: torch.Size) -> torch.Tensor:
-    """``t`` in the leading corner of zeros of ``shape`` (``t`` itself if the shape is equal)."""
+def _zero_pad(t: torch.Tensor, shape: torch.Size, row_mean: bool = False) -> torch.Tensor:
+    """``t`` in the leading corner of zeros of ``shape`` (``t`` itself if the shape is equal);
+    ``row_mean`` fills the new columns with the mean of each row of ``t`` instead."""
     if t.shape == shape:
         return t
-    out = t.new_zeros(shape)
+    fill = t.mean(dim=-1, keepdim=True) if row_mean else t.new_zeros(())
+    out = fill.expand(shape).clone()
     out[tuple(slice(0, n) for n in t.shape)] = t
     return out
 

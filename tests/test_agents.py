@@ -304,8 +304,14 @@ def test_paper_form_checkpoint_widens_to_the_same_policy(tmp_path) -> None:
         p_old, p_new = old.actor(obs), new.actor(obs)
         torch.testing.assert_close(p_new, p_old, atol=0.0, rtol=0.0)
         torch.testing.assert_close(new.critic(obs, p_new), old.critic(obs, p_old))
-    # the new ego columns start at zero, then learn (they get gradients)
-    assert new.actor.lca.fuse[0].weight[:, 3 * paper.d :].abs().max() == 0
+    # the new ego columns start at zero, then learn (they get gradients); their Adam second
+    # moments start at the row means of the old columns, not at zero
+    d = paper.d
+    assert new.actor.lca.fuse[0].weight[:, 3 * d :].abs().max() == 0
+    i = [p is new.actor.lca.fuse[0].weight for p in new.actor.parameters()].index(True)
+    v = new.actor_opt.state_dict()["state"][i]["exp_avg_sq"]
+    torch.testing.assert_close(v[:, 3 * d :], v[:, : 3 * d].mean(1, keepdim=True).expand(-1, d))
+    assert v[:, 3 * d :].max() > 0
     new.update(_batch(16, paper, seed=4))
     assert new.actor.lca.fuse[0].weight[:, 3 * paper.d :].abs().max() > 0
 
