@@ -153,7 +153,7 @@ class FusedActorCritic:
         # into the fusion layer, W8' = W8·blockdiag(W_v, W_v, W_v).
         wf = []
         for m, wv in zip(lcas, w_v):
-            w8 = m.fuse[0].weight  # (D, 3D)
+            w8 = m.fuse[0].weight  # (D, 3D), (D, 4D) with ego fusion
             wf.append(torch.cat([w8[:, i * d : (i + 1) * d] @ wv for i in range(N_LANES)], dim=1))
         self.wf_t = _stack_t(wf)  # (2, 3D, D)
         # ego fusion: the fusion layer's last D input columns take h_ego directly
