@@ -80,6 +80,8 @@ Deviations from the paper, and why:
   (``LCAConfig.ego_fusion``, on by default). In the paper's equation h_A is only the attention
   query, so the agent's own speed, heading and lateral offset reach the actor only through at
   most three softmax weights per lane; ACC-LC's acceleration depends on the ego speed directly.
+  Cloning ACC-LC from random weights on one run's replay (lr 1e-3, 12.5 k updates, one seed),
+  the held-out BC loss was 0.89 against 1.01 in the paper's form, lower at every checkpoint.
   ``--no-ego-fusion`` trains the paper's form; checkpoints written before the field load in it,
   and ``--init`` widens them with zero weights on h_A, so a fine-tune starts from the same policy.
 - A lane whose nodes are all masked contributes a zero vector to the fusion (softmax over an
