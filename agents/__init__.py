@@ -53,18 +53,18 @@ Deviations from the paper, and why:
   in rain (merge-ramp, p = 1.0). The fit still shrinks towards the mean (it accelerates less
   than ACC-LC where ACC-LC accelerates, and brakes less where it brakes), most where a queue
   starts: the network cannot tell holding from going and fits the mean of the two.
-- The last three fine-tunes fit accel_brake as an upper expectile of the label instead of its
-  mean (``--bc-accel-expectile`` 0.7, then 0.8 twice: errors below the label weigh 2τ, above it
-  2(1 − τ)). Behind the safety module, which clamps the acceleration where ACC-LC brakes,
+- The last four fine-tunes fit accel_brake as an upper expectile of the label instead of its
+  mean (``--bc-accel-expectile`` 0.7, then 0.8 three times: errors below the label weigh 2τ,
+  above it 2(1 − τ)). Behind the safety module, which clamps the acceleration where ACC-LC brakes,
   erring upwards caused no terminal event in the eval cells, and AUTO starts queues sooner; the
-  network alone still has terminal events on the bottleneck, merge and urban variants (README).
+  network alone still has terminal events on the bottleneck and urban variants (README).
 - A safety module (``agents.safety``) sits behind the learned policy at evaluation: the paper
   names it as standard in industrial stacks (§VI) but evaluates AUTO without one. It hands the
   step to ACC-LC when the learned steering would leave the lane corridor (or enter a gap ACC-LC
   rejects) or drift off the lane centre beyond ACC-LC's steering, and in a lane that must be
   left; when ACC-LC brakes, it clamps the learned acceleration to at most ACC-LC's + 0.3 m/s².
-  Without it the network ends a share of its AV trips in a terminal event on the bottleneck,
-  merge and urban eval variants (README). ``auto-raw`` is the policy without it; the
+  Without it the network ends a share of its AV trips in a terminal event on the bottleneck
+  and urban eval variants (README). ``auto-raw`` is the policy without it; the
   ``sm_share`` metric reports how often the module changed an action. Training does not use it.
 - The behaviour-cloning term weights steering errors by ``bc_steer_weight`` = 100: steering
   ±1 is ±60°, lane keeping needs about 1°, and with equal weights the fit ignores steering.
@@ -82,6 +82,7 @@ Deviations from the paper, and why:
   most three softmax weights per lane; ACC-LC's acceleration depends on the ego speed directly.
   Cloning ACC-LC from random weights on one run's replay (lr 1e-3, 12.5 k updates, one seed),
   the held-out BC loss was 0.89 against 1.01 in the paper's form, lower at every checkpoint.
+  The shipped network is the first with it (README).
   ``--no-ego-fusion`` trains the paper's form; checkpoints written before the field load in it,
   and ``--init`` widens them with zero weights on h_A, so a fine-tune starts from the same policy.
 - A lane whose nodes are all masked contributes a zero vector to the fusion (softmax over an
