@@ -6,8 +6,9 @@ A run folder stands for its ``snapshots/*.pt`` and ``auto.pt``. Every checkpoint
 ``auto`` policy (network behind the safety module) in the same cells as ACC-LC: train-split
 scenarios only, so the held-out eval variants stay unseen until the final table. Per cell the
 score is AUTO's AvgDT-A excess over ACC-LC's [%] (mean over seeds); a checkpoint's rank is its
-largest excess over the cells, so no single scenario (urban's long trips) dominates the choice.
-A checkpoint with a terminal event (collision, leaving the road, ...) or a failed episode is
+largest excess over the cells, so no single scenario (urban's long trips) dominates the choice;
+checkpoints whose largest excess is within ``tie`` points of the best one's (seed noise) are
+ordered by their mean excess instead. A checkpoint with a terminal event (collision, leaving the road, ...) or a failed episode is
 ranked last. Records go to ``OUT/<density, length, warm-up>/<policy or checkpoint content
 hash>/<scenario>/records.jsonl`` through :mod:`mixed_traffic.sweep`, so an interrupted
 comparison resumes where it stopped and a checkpoint compared before is not run again.
@@ -52,10 +53,15 @@ class CompareConfig:
     """Time before flow metrics are recorded [s]."""
     workers: int = 2
     """Parallel worker processes."""
+    tie: float = 0.5
+    """Largest excesses within this of the lowest count as equal (seed noise); those checkpoints
+    are ordered by their mean excess [percentage points]."""
     out: Path = Path("results/compare")
     """Records folder; a re-run skips episodes already recorded."""
 
     def __post_init__(self) -> None:
+        if not (self.tie >= 0):
+            raise ValueError(f"--tie: {self.tie} must be >= 0 percentage points")
         if not self.scenarios:
             raise ValueError("--scenarios: give at least one train-split scenario")
         for name in self.scenarios:
@@ -142,6 +148,17 @@ def rank_key(s: dict) -> tuple:
     return (s["unsafe"] > 0, math.isnan(s["max_excess"]), s["max_excess"])
 
 
+def rank(scores: list[dict], tie: float) -> list[dict]:
+    """Best first by :func:`rank_key`; safe checkpoints within ``tie`` of the best largest
+    excess are reordered by their mean excess."""
+    ordered = sorted(scores, key=rank_key)
+    if not ordered or ordered[0]["unsafe"] or math.isnan(ordered[0]["max_excess"]):
+        return ordered
+    limit = ordered[0]["max_excess"] + tie
+    near = [s for s in ordered if not s["unsafe"] and s["max_excess"] <= limit]
+    return sorted(near, key=lambda s: s["mean_excess"]) + ordered[len(near) :]
+
+
 def run(cfg: CompareConfig, checkpoints: list[Path], progress: bool = True) -> list[dict]:
     """Run the missing episodes; one score dict per checkpoint, best first."""
     jobs = [("acc-lc", None, "acc-lc")] + [("auto", c, content_key(c)) for c in checkpoints]
@@ -159,7 +176,7 @@ def run(cfg: CompareConfig, checkpoints: list[Path], progress: bool = True) -> l
     acc = cell_means(records["acc-lc"])
     scores = [{"checkpoint": str(c), "key": k, **score(cell_means(records[k]), acc)}
               for _, c, k in jobs[1:]]  # fmt: skip
-    return sorted(scores, key=rank_key)
+    return rank(scores, cfg.tie)
 
 
 def table(scores: list[dict]) -> str:
@@ -178,7 +195,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.compare",
         description="Rank AUTO checkpoints by their largest AvgDT-A excess over ACC-LC on "
-        "train-split cells (safe ones first); the best is printed last.",
+        "train-split cells (safe ones first, near-ties by the mean excess); the best is "
+        "printed last.",
     )
     p.add_argument("checkpoints", nargs="+", type=Path,
                    help="checkpoint files or training run folders (their snapshots and auto.pt)")  # fmt: skip

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from agents.checkpoint import load_checkpoint, save_checkpoint
-from mixed_traffic.compare import CompareConfig, expand, main, rank_key, run, score
+from mixed_traffic.compare import CompareConfig, expand, main, rank, rank_key, run, score
 from mixed_traffic.provenance import read_records
 
 SHIPPED = Path(__file__).resolve().parents[1] / "agents" / "checkpoints" / "auto.pt"
@@ -75,12 +75,26 @@ def test_score_takes_the_largest_excess_and_puts_unsafe_checkpoints_last() -> No
     assert ranked == [even, lopsided, unsafe, missing]  # unsafe last, however fast
 
 
+def test_near_ties_in_the_largest_excess_go_to_the_lower_mean() -> None:
+    acc = _cells({("a", 0.2): 100.0, ("b", 1.0): 100.0, ("c", 1.0): 100.0})
+    flat = score(_cells({("a", 0.2): 100.2, ("b", 1.0): 99.0, ("c", 1.0): 99.0}), acc)
+    lower = score(_cells({("a", 0.2): 100.3, ("b", 1.0): 97.0, ("c", 1.0): 97.0}), acc)
+    far = score(_cells({("a", 0.2): 101.0, ("b", 1.0): 90.0, ("c", 1.0): 90.0}), acc)
+    unsafe = score(_cells({("a", 0.2): 90.0, ("b", 1.0): 90.0, ("c", 1.0): 90.0}, 1), acc)
+    scores = [unsafe, far, flat, lower]
+    assert rank(scores, tie=0.0) == [flat, lower, far, unsafe]  # strict largest-excess order
+    assert rank(scores, tie=0.5) == [lower, flat, far, unsafe]  # 0.1 apart: the mean decides
+    assert rank(scores, tie=2.0) == [far, lower, flat, unsafe]  # never an unsafe one
+    assert rank([unsafe], tie=0.5) == [unsafe] and rank([], tie=0.5) == []
+
+
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
         ([str(SHIPPED), "--scenarios", "straight-eval"], "held-out"),
         (["no/such/run"], "no such checkpoint"),
         ([str(SHIPPED), "--warmup", "90"], "--warmup"),
+        ([str(SHIPPED), "--tie", "-1"], "--tie"),
     ],
 )
 def test_bad_arguments_exit_with_a_clear_message(argv: list[str], message: str, capsys) -> None:
