@@ -8,10 +8,11 @@ scenarios only, so the held-out eval variants stay unseen until the final table.
 score is AUTO's AvgDT-A excess over ACC-LC's [%] (mean over seeds); a checkpoint's rank is its
 largest excess over the cells, so no single scenario (urban's long trips) dominates the choice;
 checkpoints whose largest excess is within ``tie`` points of the best one's (seed noise) are
-ordered by their mean excess instead. A checkpoint with a terminal event (collision, leaving the road, ...) or a failed episode is
-ranked last. Records go to ``OUT/<density, length, warm-up>/<policy or checkpoint content
-hash>/<scenario>/records.jsonl`` through :mod:`mixed_traffic.sweep`, so an interrupted
-comparison resumes where it stopped and a checkpoint compared before is not run again.
+ordered by their mean excess instead. A checkpoint with a terminal event (collision, leaving
+the road, ...) or a failed episode is ranked last. Records go to ``OUT/<density, length,
+warm-up>/<policy or checkpoint content hash>/<scenario>/records.jsonl`` through
+:mod:`mixed_traffic.sweep`, so an interrupted comparison resumes where it stopped and a
+checkpoint compared before is not run again.
 """
 
 from __future__ import annotations
