@@ -204,10 +204,14 @@ class RBPDQN:
         self.critic_targ.load_state_dict(sd["critic_targ"])
         self.actor_opt.load_state_dict(sd["actor_opt"])
         self.critic_opt.load_state_dict(sd["critic_opt"])
-        for opt in (self.actor_opt, self.critic_opt):  # the config's rate, not the saved one
-            for group in opt.param_groups:
-                group["lr"] = self.cfg.lr
+        self.set_lr(self.cfg.lr)  # the config's rate, not the saved one
         self.steps = int(sd["steps"])
+
+    def set_lr(self, lr: float) -> None:
+        """Learning rate of both optimisers from the next update on [-]."""
+        for opt in (self.actor_opt, self.critic_opt):
+            for group in opt.param_groups:
+                group["lr"] = lr
 
 
 OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")

@@ -116,6 +116,10 @@ class TrainConfig:
     """Weight α of the normalised Q term in the actor loss after pretraining [-] (paper 0.6)."""
     lr: float = 1e-3
     """Adam learning rate of actor and critic [-] (paper 1e-3)."""
+    lr_final: float = 0.0
+    """Learning rate reached at the end of the ``env_steps`` budget by cosine decay from
+    ``lr``, a function of transitions received, so it survives --resume and keeps one-worker
+    runs deterministic [-] (0 = constant ``lr``)."""
     bc_accel_weight: float = 1.0
     """Weight of accel_brake errors in the behaviour-cloning term, relative to 1 per unit²
     (steering: ``LearnerConfig.bc_steer_weight``) [-] (1 = the paper's loss)."""
@@ -206,6 +210,10 @@ class TrainConfig:
             bad("alpha", "must be >= 0")
         if not self.lr > 0:
             bad("lr", "must be > 0")
+        if not 0 <= self.lr_final <= self.lr:
+            bad("lr_final", "must be in [0, lr] (0 = no decay)")
+        if self.lr_final and not self.env_steps:
+            bad("lr_final", "the decay runs over the env_steps budget: give env_steps > 0")
         if not self.bc_accel_weight >= 0:
             bad("bc_accel_weight", "must be >= 0")
         if not 0 < self.bc_accel_expectile < 1:
@@ -690,7 +698,16 @@ class Trainer:
             self.out / "pretrained.pt", self.learner, {**self._meta(), "phase": "pretrained"}
         )
 
+    def lr_now(self) -> float:
+        """The scheduled learning rate after ``env_steps`` transitions (cosine to lr_final)."""
+        cfg = self.cfg
+        if not cfg.lr_final:
+            return cfg.lr
+        done = min(1.0, self.c["env_steps"] / cfg.env_steps)
+        return cfg.lr_final + 0.5 * (cfg.lr - cfg.lr_final) * (1 + math.cos(math.pi * done))
+
     def update_once(self, window: Window, collector: Any) -> None:
+        self.learner.set_lr(self.lr_now())
         batch = self.replay.sample(self.cfg.batch_size, self.rng)
         losses = self.learner.update(batch)
         window.c_loss.append(losses["critic_loss"])

@@ -107,6 +107,20 @@ def test_init_fine_tunes_from_a_checkpoint(tmp_path: Path) -> None:
         Trainer(_cfg(tmp_path / "c", workers=1, env_steps=10, init=str(src)))
 
 
+def test_learning_rate_decays_over_the_env_steps_budget(tmp_path: Path) -> None:
+    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1000, lr=1e-3, lr_final=1e-4))
+    expect = {0: 1e-3, 500: 5.5e-4, 1000: 1e-4, 5000: 1e-4}  # cosine: halfway is the mean
+    for steps, lr in expect.items():
+        tr.c["env_steps"] = steps
+        assert tr.lr_now() == pytest.approx(lr)
+    tr.c["env_steps"] = 0
+    info = tr.run()
+    assert info["updates"] > 0
+    for opt in (tr.learner.actor_opt, tr.learner.critic_opt):
+        assert opt.param_groups[0]["lr"] < 2e-4  # the last updates ran near lr_final
+    assert Trainer(_cfg(tmp_path / "c", workers=1, env_steps=10)).lr_now() == 1e-3
+
+
 def test_one_worker_is_deterministic(tmp_path: Path) -> None:
     runs = []
     for name in ("a", "b"):
@@ -167,6 +181,8 @@ def test_ray_backend_smoke_with_crash(tmp_path: Path) -> None:
         (["--workers", "2"], "budget"),
         (["--ablation", "novec", "--env-steps", "10"], "NoVEC"),
         (["--densities", "5000", "--env-steps", "10"], "--densities"),
+        (["--minutes", "1", "--lr-final", "1e-4"], "env_steps budget"),
+        (["--env-steps", "10", "--lr-final", "0.1"], "lr_final"),
     ],
 )
 def test_cli_errors(argv: list[str], message: str, capsys: pytest.CaptureFixture) -> None:
