@@ -44,7 +44,10 @@ Conventions
   among the first ``STRADDLE_DEPTH`` ahead on a neighbour lane whose body overlaps the ego's
   laterally is also the current lane's front vehicle when nearer (two cars can share a lane
   side by side, and the nearer one would hide it); like a vehicle across the path, its
-  features are then in the ego lane's frame (``path_geometry``).
+  features are then in the ego lane's frame (``path_geometry``). Of two cars side by side on
+  a neighbour lane (bodies overlapping along it), that lane's front / rear vehicle is the one
+  laterally nearer the ego (``_nearer_beside``): the other may be a few cm nearer along the
+  lane while this one straddles towards the ego.
 * On a neighbour lane the agent's position is projected by the lane-length ratio
   (lanes of one edge have near-equal lengths; curves make them differ slightly).
 """
@@ -395,6 +398,12 @@ def find_neighbours(
     rdist = np.where(r_ok, s_pos[np.clip(ri, 0, n_sorted - 1)] - pos if len(order) else 0, -np.inf)
 
     if len(order):
+        front, fdist = _nearer_beside(
+            snap, hdmap, rows, lanes, order, start, s_pos, pos, front, fdist, fi, +1
+        )
+        rear, rdist = _nearer_beside(
+            snap, hdmap, rows, lanes, order, start, s_pos, pos, rear, rdist, ri, -1
+        )
         count = np.diff(start)  # (L,) vehicles per lane
         # ---- ahead: successor lanes (first hop on the route if known)
         lane_k = lsafe
@@ -454,6 +463,37 @@ def find_neighbours(
         lead_gap = np.where(take, gap, lead_gap)
         on_path |= take
     return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom)
+
+
+def _nearer_beside(
+    snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np.ndarray, order: np.ndarray,
+    start: np.ndarray, s_pos: np.ndarray, pos: np.ndarray, vehicle: np.ndarray, dist: np.ndarray,
+    idx: np.ndarray, step: int,
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """Neighbour lanes' front (``step`` +1) or rear (-1) vehicle on the same lane: of two cars
+    side by side there (sublane model; bodies overlapping along the lane), the one laterally
+    nearer the ego. The nearest by position alone could hide one straddling towards the ego,
+    which is also the one a LiDAR would see.
+
+    ``vehicle`` / ``dist`` (A, 3) as found, at sorted-order indices ``idx`` (A, 3); returns
+    them with the swaps. The current lane (column ``CURRENT``) is left as it is.
+    """
+    vehicle, dist = vehicle.copy(), dist.copy()
+    cur = np.maximum(lanes[:, CURRENT], 0)
+    for col, side in ((LEFT, 1.0), (RIGHT, -1.0)):
+        lane = np.maximum(lanes[:, col], 0)
+        j = idx[:, col] + step
+        ok = (vehicle[:, col] >= 0) & (j >= start[lane]) & (j < start[lane + 1])
+        j = np.clip(j, 0, len(order) - 1)
+        v, w = np.maximum(vehicle[:, col], 0), order[j]
+        lead = w if step > 0 else v  # the one farther along the lane
+        ok &= np.abs(s_pos[j] - snap.lane_pos[v]) < snap.length[lead]
+        shift = side * 0.5 * (hdmap.lane_width[cur] + hdmap.lane_width[lane])
+        ego = snap.lateral[rows]
+        ok &= np.abs(snap.lateral[w] + shift - ego) < np.abs(snap.lateral[v] + shift - ego)
+        vehicle[:, col] = np.where(ok, w, vehicle[:, col])
+        dist[:, col] = np.where(ok, s_pos[j] - pos[:, col], dist[:, col])
+    return vehicle, dist
 
 
 def _straddlers(

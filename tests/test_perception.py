@@ -16,6 +16,7 @@ from mixed_traffic.perception import (
     GREEN,
     NO_LIGHT,
     RED,
+    RIGHT,
     VEHICLE_NOISE_FLOOR,
     WEATHER_PRESETS,
     Perception,
@@ -143,15 +144,33 @@ def fake_snapshot(
 def brute_force(
     snap: TrafficSnapshot, ego: int, lane_index: int, rng: float
 ) -> tuple[float, float]:
-    """Nearest front / rear distance on a straight road along +x, by x, in lane ``lane_index``."""
-    others = np.array(
-        [j for j in range(snap.n) if j != ego and snap.lane_index[j] == lane_index], int
+    """Nearest front / rear distance on a straight road along +x, by x, in lane ``lane_index``;
+    on a neighbour lane, of two cars side by side the one laterally nearer the ego."""
+    others = [j for j in range(snap.n) if j != ego and snap.lane_index[j] == lane_index]
+    shift = (lane_index - snap.lane_index[ego]) * 3.5  # left is +
+
+    def off(j: int) -> float:  # lateral distance from the ego [m]
+        return abs(snap.lateral[j] + shift - snap.lateral[ego])
+
+    def pick(cands: list[int], missing: float) -> float:
+        if not cands:
+            return missing
+        near, *rest = sorted(cands, key=lambda j: abs(snap.x[j] - snap.x[ego]))
+        if (
+            shift
+            and rest
+            and abs(snap.x[rest[0]] - snap.x[near])
+            < snap.length[max(near, rest[0], key=snap.x.__getitem__)]
+            and off(rest[0]) < off(near)
+        ):
+            near = rest[0]
+        return snap.x[near] - snap.x[ego]
+
+    dx = {j: snap.x[j] - snap.x[ego] for j in others}
+    return (
+        pick([j for j in others if 0 <= dx[j] <= rng], np.inf),
+        pick([j for j in others if -rng <= dx[j] < 0], -np.inf),
     )
-    if len(others) == 0:
-        return np.inf, -np.inf
-    dx = snap.x[others] - snap.x[ego]
-    ahead, behind = dx[(dx >= 0) & (dx <= rng)], dx[(dx < 0) & (dx >= -rng)]
-    return (ahead.min() if len(ahead) else np.inf), (behind.max() if len(behind) else -np.inf)
 
 
 # --------------------------------------------------------------------------- pure functions
@@ -220,6 +239,28 @@ def test_vehicle_straddling_in_behind_a_neighbour_is_the_current_lane_leader() -
     # keeping to its own lane it is not in our way: the lane leader stays
     snap = replace(snap, lateral=np.array([0.0, -0.8, 0.0, 0.0]))
     assert find_neighbours(snap, hd, np.array([0]), 90.0).front[0, CURRENT] == 3
+
+
+def test_of_two_cars_side_by_side_on_a_neighbour_lane_the_nearer_one_is_reported() -> None:
+    """Sublane model: two cars share the right lane side by side, the one at its left edge
+    straddling towards the ego. It is the right lane's rear (front) vehicle even when the
+    other is a few cm nearer along the lane (a LiDAR sees it first, and it is in the way)."""
+    hd = load_scenario("straight").hdmap
+    lanes = ["meas_2", "meas_1", "meas_1", "meas_1", "meas_1"]
+    snap = fake_snapshot(hd, lanes, [100.0, 95.71, 95.70, 120.0, 120.5], [13.0] * 5)
+    snap = replace(snap, lateral=np.array([0.5, -0.85, 1.55, -0.85, 1.4]))
+    nb = find_neighbours(snap, hd, np.array([0]), 90.0)
+    assert nb.rear[0, RIGHT] == 2 and nb.rear_dist[0, RIGHT] == pytest.approx(-4.3)
+    assert nb.front[0, RIGHT] == 4 and nb.front_dist[0, RIGHT] == pytest.approx(20.5)
+    # a car length apart they are not side by side: the nearest along the lane stays
+    snap = replace(snap, lane_pos=np.array([100.0, 95.71, 90.0, 120.0, 125.5]))
+    nb = find_neighbours(snap, hd, np.array([0]), 90.0)
+    assert nb.rear[0, RIGHT] == 1 and nb.front[0, RIGHT] == 3
+    # nor when the farther one is not laterally nearer the ego
+    snap = replace(snap, lane_pos=np.array([100.0, 95.71, 95.70, 120.0, 120.5]),
+                   lateral=np.array([0.5, 1.55, -0.85, 1.4, -0.85]))  # fmt: skip
+    nb = find_neighbours(snap, hd, np.array([0]), 90.0)
+    assert nb.rear[0, RIGHT] == 1 and nb.front[0, RIGHT] == 3
 
 
 # --------------------------------------------------------------------------- real SUMO
