@@ -479,7 +479,7 @@ def _nearer_beside(
     them with the swaps. The current lane (column ``CURRENT``) is left as it is.
     """
     vehicle, dist = vehicle.copy(), dist.copy()
-    cur = np.maximum(lanes[:, CURRENT], 0)
+    cur, ego = np.maximum(lanes[:, CURRENT], 0), snap.lateral[rows]
     for col, side in ((LEFT, 1.0), (RIGHT, -1.0)):
         lane = np.maximum(lanes[:, col], 0)
         j = idx[:, col] + step
@@ -489,7 +489,6 @@ def _nearer_beside(
         lead = w if step > 0 else v  # the one farther along the lane
         ok &= np.abs(s_pos[j] - snap.lane_pos[v]) < snap.length[lead]
         shift = side * 0.5 * (hdmap.lane_width[cur] + hdmap.lane_width[lane])
-        ego = snap.lateral[rows]
         ok &= np.abs(snap.lateral[w] + shift - ego) < np.abs(snap.lateral[v] + shift - ego)
         vehicle[:, col] = np.where(ok, w, vehicle[:, col])
         dist[:, col] = np.where(ok, s_pos[j] - pos[:, col], dist[:, col])
