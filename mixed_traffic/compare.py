@@ -12,7 +12,8 @@ ordered by their mean excess instead. A checkpoint with a terminal event (collis
 the road, ...) or a failed episode is ranked last. Records go to ``OUT/<density, length,
 warm-up>/<policy or checkpoint content hash>/<scenario>/records.jsonl`` through
 :mod:`mixed_traffic.sweep`, so an interrupted comparison resumes where it stopped and a
-checkpoint compared before is not run again.
+checkpoint compared before is not run again. The cache is keyed by content, not by code: after
+a change to the env, perception or ACC-LC, compare into a fresh ``--out``.
 """
 
 from __future__ import annotations
@@ -58,7 +59,8 @@ class CompareConfig:
     """Largest excesses within this of the lowest count as equal (seed noise); those checkpoints
     are ordered by their mean excess [percentage points]."""
     out: Path = Path("results/compare")
-    """Records folder; a re-run skips episodes already recorded."""
+    """Records folder; a re-run skips episodes already recorded (also after a code change: use a
+    fresh folder then)."""
 
     def __post_init__(self) -> None:
         if not (self.tie >= 0):
