@@ -135,6 +135,9 @@ class AccLcConfig:
     lat_speed: float = 1.0
     lat_gain: float = 0.8
     heading_gain: float = 1.0
+    # largest course angle (rad) of in-lane steering (follow): creeping in a queue, a larger one
+    # turned the ego up to 21 deg, and when the queue moved on it swung out into the next lane
+    follow_course: float = 0.15
 
 
 @dataclass
@@ -370,7 +373,9 @@ class AccLcPolicy:
         return cap
 
     # ------------------------------------------------------------------ lateral
-    def _steer(self, f, target: np.ndarray) -> np.ndarray:
+    def _steer(self, f, target: np.ndarray, course: float = 1.05) -> np.ndarray:
+        """(A,) steering in [-1, 1] towards the lateral ``target`` [m], with a course angle
+        relative to the lane of at most ``course`` [rad]."""
         c = self.c
         v = f["v"]
         vs = np.maximum(v, 0.5)
@@ -389,6 +394,7 @@ class AccLcPolicy:
         vl = np.clip(vl_des, vl_now - c.lat_accel * 0.25, vl_now + c.lat_accel * 0.25)
         # (up to 60 deg at walking pace: a change from standstill at a lane's end has little room)
         chi = np.arcsin(np.clip(vl / vs, -0.87, 0.87))
+        chi = np.clip(chi, -course, course)
         # lane curvature here, from the current lane's waypoint orientations (relative to ego
         # heading), over the 5 m window the env's bicycle model uses: a longer look-ahead
         # averages an S-bend (the lane-drop junction shifts every lane by one width within
@@ -586,7 +592,7 @@ class AccLcPolicy:
         t_l = np.clip(t_l, lo, hi)
         t_r = np.clip(t_r, lo, hi)
         params = np.empty((A, 3, 2), dtype=np.float32)
-        params[:, FOLLOW, 0] = self._steer(f, t_f)
+        params[:, FOLLOW, 0] = self._steer(f, t_f, c.follow_course)
         params[:, LEFT, 0] = self._steer(f, t_l)
         params[:, RIGHT, 0] = self._steer(f, t_r)
         params[:, FOLLOW, 1] = self._to_ab(acc_f)

@@ -257,3 +257,13 @@ def test_steady_following_is_smooth() -> None:
     assert len(jumps) > 1000
     assert np.mean(jumps > 1.0) < 0.05, np.mean(jumps > 1.0)
     assert s["events"] == {}
+
+
+def test_creeping_in_a_queue_does_not_swing_into_the_next_lane() -> None:
+    """merge-eval, 120 veh/km, half AVs, seed 0: an AV centring itself while creeping in a queue
+    turned 21 deg off its lane and, when the queue moved on, hit the car beside it (t = 98 s)."""
+    from agents.acc_lc import _run_episode
+
+    m, events, _ = _run_episode("merge-eval", 120, 0.5, 120.0, 0)
+    assert events == {} and int(m["collisions"] or 0) == 0, events
+    assert m["route_completion"] >= 95.0
