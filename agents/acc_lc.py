@@ -135,9 +135,12 @@ class AccLcConfig:
     lat_speed: float = 1.0
     lat_gain: float = 0.8
     heading_gain: float = 1.0
-    # largest course angle (rad) of in-lane steering (follow): creeping in a queue, a larger one
-    # turned the ego up to 21 deg, and when the queue moved on it swung out into the next lane
-    follow_course: float = 0.15
+    # in its lane (follow), the course is never steeper than one that can be turned straight
+    # at this curvature [1/m] within the remaining offset: creeping in a queue, a course set
+    # from the lateral speed alone reached 21 deg, and when the queue moved on the ego swung
+    # past its lane centre into the next lane (a fixed small cap instead left egos straddling
+    # two lanes when the queue stopped)
+    follow_curvature: float = 0.1
 
 
 @dataclass
@@ -373,9 +376,9 @@ class AccLcPolicy:
         return cap
 
     # ------------------------------------------------------------------ lateral
-    def _steer(self, f, target: np.ndarray, course: float = 1.05) -> np.ndarray:
-        """(A,) steering in [-1, 1] towards the lateral ``target`` [m], with a course angle
-        relative to the lane of at most ``course`` [rad]."""
+    def _steer(self, f, target: np.ndarray, curvature: float | None = None) -> np.ndarray:
+        """(A,) steering in [-1, 1] towards the lateral ``target`` [m]; with a ``curvature``
+        [1/m], the course is one that turns straight at it before reaching the target."""
         c = self.c
         v = f["v"]
         vs = np.maximum(v, 0.5)
@@ -394,7 +397,10 @@ class AccLcPolicy:
         vl = np.clip(vl_des, vl_now - c.lat_accel * 0.25, vl_now + c.lat_accel * 0.25)
         # (up to 60 deg at walking pace: a change from standstill at a lane's end has little room)
         chi = np.arcsin(np.clip(vl / vs, -0.87, 0.87))
-        chi = np.clip(chi, -course, course)
+        if curvature is not None:
+            # a course chi straightens out at curvature k over about chi²/(2k) of offset
+            chi_max = np.sqrt(2.0 * curvature * np.abs(err))
+            chi = np.clip(chi, -chi_max, chi_max)
         # lane curvature here, from the current lane's waypoint orientations (relative to ego
         # heading), over the 5 m window the env's bicycle model uses: a longer look-ahead
         # averages an S-bend (the lane-drop junction shifts every lane by one width within
@@ -592,7 +598,7 @@ class AccLcPolicy:
         t_l = np.clip(t_l, lo, hi)
         t_r = np.clip(t_r, lo, hi)
         params = np.empty((A, 3, 2), dtype=np.float32)
-        params[:, FOLLOW, 0] = self._steer(f, t_f, c.follow_course)
+        params[:, FOLLOW, 0] = self._steer(f, t_f, c.follow_curvature)
         params[:, LEFT, 0] = self._steer(f, t_l)
         params[:, RIGHT, 0] = self._steer(f, t_r)
         params[:, FOLLOW, 1] = self._to_ab(acc_f)

@@ -157,15 +157,15 @@ def test_follows_an_s_bend_with_local_curvature() -> None:
     assert p[0, 1, 0] > 0.1
 
 
-def _drive(scenario: str, density: float, penetration: float, seconds: float = 45.0):
+def _drive(scenario: str, density: float, penetration: float, seconds: float = 45.0, seed: int = 0):
     from mixed_traffic.env import parallel_env
 
     e = parallel_env(scenario=scenario, density=density, penetration=penetration,
-                     episode_length=seconds, seed=0, weather="normal")  # fmt: skip
+                     episode_length=seconds, seed=seed, weather="normal")  # fmt: skip
     stats = {"events": {}, "mandatory": set(), "changed_after_mandatory": set(),
-             "stopped_at_red": 0, "lane_changes": 0, "accel": {}}  # fmt: skip
+             "stopped_at_red": 0, "lane_changes": 0, "accel": {}, "stood_astride": {}}  # fmt: skip
     try:
-        obs, _ = e.reset(seed=0)
+        obs, _ = e.reset(seed=seed)
         pol = AccLcPolicy()
         last_lat: dict[str, float] = {}
         while e.agents:
@@ -188,6 +188,10 @@ def _drive(scenario: str, density: float, penetration: float, seconds: float = 4
             _, accel = to_physical(decision, params, VehicleConfig())
             for a, acc in zip(live, accel):
                 stats["accel"].setdefault(a, []).append(float(acc))
+            for a, o, dec in zip(live, live.values(), decision):
+                # standing in its lane (follow) but with a side well over a lane line
+                astride = dec == 1 and o["ego"][-1, 0] * 40 < 0.5 and abs(o["ego"][-1, 4]) > 0.35
+                stats["stood_astride"][a] = stats["stood_astride"].get(a, 0) + int(astride)
             obs, _, term, _, info = e.step(to_actions(list(live), decision, params))
             for a, t in term.items():
                 ev = info.get(a, {}).get("event", "")
@@ -267,3 +271,12 @@ def test_creeping_in_a_queue_does_not_swing_into_the_next_lane() -> None:
     m, events, _ = _run_episode("merge-eval", 120, 0.5, 120.0, 0)
     assert events == {} and int(m["collisions"] or 0) == 0, events
     assert m["route_completion"] >= 95.0
+
+
+def test_centres_itself_while_a_queue_creeps() -> None:
+    """bottleneck-eval, 120 veh/km, all AVs, seed 2: with the in-lane course capped at 0.15 rad
+    (whatever the offset), AVs that ended a lane change in a queue stopped astride two lanes
+    for the rest of the minute and blocked the lane beside them (AvgDT-A 123 s against 97 s)."""
+    s = _drive("bottleneck-eval", 120, 1.0, seconds=25.0, seed=2)
+    assert len(s["stood_astride"]) > 100
+    assert max(s["stood_astride"].values()) <= 50, sorted(s["stood_astride"].values())[-5:]
