@@ -151,6 +151,7 @@ def provenance_rows(df: pd.DataFrame, results_dir: Path) -> list[list[str]]:
         ["step length", _unique(df["step_length"].map(lambda v: f"{v:g} s"))],
         ["warm-up", _unique(df["warmup"].dropna().map(lambda v: f"{v:g} s"))],
         ["git revision", _unique(df["git_revision"])],
+        ["code hash", _unique(df["code"])],
         ["SUMO version", _unique(df["sumo_version"])],
         ["records created", f"{created.min()} to {created.max()}" if len(created) else "n/a"],
         ["episode wall time", f"{wall.sum():.0f} s in total, {wall.mean():.1f} s mean" if len(wall) else "n/a"],

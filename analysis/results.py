@@ -29,6 +29,7 @@ INFO_COLUMNS = (
     "error",
     "sumo_version",
     "git_revision",
+    "code",
     "created",
     "wall_time",
     "warmup",
@@ -102,6 +103,7 @@ def _flatten(record: dict[str, Any]) -> dict[str, Any]:
     row["error"] = record.get("error")
     row["sumo_version"] = record.get("sumo_version")
     row["git_revision"] = record.get("git_revision")
+    row["code"] = record.get("code")
     row["created"] = record.get("created")
     row["wall_time"] = record.get("wall_time")
     row["warmup"] = record.get("warmup")

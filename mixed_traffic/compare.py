@@ -10,10 +10,11 @@ largest excess over the cells, so no single scenario (urban's long trips) domina
 checkpoints whose largest excess is within ``tie`` points of the best one's (seed noise) are
 ordered by their mean excess instead. A checkpoint with a terminal event (collision, leaving
 the road, ...) or a failed episode is ranked last. Records go to ``OUT/<density, length,
-warm-up>/<policy or checkpoint content hash>/<scenario>/records.jsonl`` through
+warm-up>/code-<code hash>/<policy or checkpoint content hash>/<scenario>/records.jsonl`` through
 :mod:`mixed_traffic.sweep`, so an interrupted comparison resumes where it stopped and a
-checkpoint compared before is not run again. The cache is keyed by content, not by code: after
-a change to the env, perception or ACC-LC, compare into a fresh ``--out``.
+checkpoint compared before is not run again. The cache is also keyed by the code
+(``provenance.code_key``: the Python sources, shipped checkpoint and scenarios), so after a
+change to the env, perception or ACC-LC every episode, ACC-LC's included, runs again.
 """
 
 from __future__ import annotations
@@ -30,7 +31,7 @@ import numpy as np
 from tqdm import tqdm
 
 from mixed_traffic.cli import add_config_args, config_from_args
-from mixed_traffic.provenance import read_records
+from mixed_traffic.provenance import current_code_key, read_records
 from mixed_traffic.scenario import train_split_scenario
 from mixed_traffic.sweep import SweepConfig, run_sweep
 
@@ -59,8 +60,7 @@ class CompareConfig:
     """Largest excesses within this of the lowest count as equal (seed noise); those checkpoints
     are ordered by their mean excess [percentage points]."""
     out: Path = Path("results/compare")
-    """Records folder; a re-run skips episodes already recorded (also after a code change: use a
-    fresh folder then)."""
+    """Records folder; a re-run skips episodes already recorded with the same code."""
 
     def __post_init__(self) -> None:
         if not (self.tie >= 0):
@@ -76,8 +76,10 @@ class CompareConfig:
 
     @property
     def folder(self) -> Path:
-        """Records of these settings (seeds and penetrations are picked from them)."""
-        return self.out / f"{self.density:g}vkm-{self.episode_length:g}s-w{self.warmup:g}"
+        """Records of these settings and this code (seeds and penetrations are picked from
+        them)."""
+        cells = f"{self.density:g}vkm-{self.episode_length:g}s-w{self.warmup:g}"
+        return self.out / cells / f"code-{current_code_key()}"
 
     def wanted(self, record: dict) -> bool:
         cell = record["cell"]

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import contextlib
 import fcntl
+import functools
+import hashlib
 import json
 import math
 import os
@@ -25,7 +27,7 @@ from typing import Any
 
 from mixed_traffic.backend import sumo_version as _backend_sumo_version
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.paths import REPO_ROOT
+from mixed_traffic.paths import REPO_ROOT, SCENARIOS_DIR
 
 
 def git_revision(repo: Path = REPO_ROOT) -> str:
@@ -46,6 +48,25 @@ def git_revision(repo: Path = REPO_ROOT) -> str:
     return f"{rev}-dirty" if status else rev
 
 
+def code_key(root: Path = REPO_ROOT, scenarios: Path = SCENARIOS_DIR) -> str:
+    """Hash (12 hex digits) of what decides an episode besides its config: the Python sources
+    of ``mixed_traffic`` and ``agents``, the shipped checkpoint and the scenario files. Unlike
+    the git revision it changes with uncommitted edits and not with documentation."""
+    files = [(root, f) for d in ("mixed_traffic", "agents") for f in (root / d).rglob("*.py")]
+    files += [(root, f) for f in (root / "agents" / "checkpoints").glob("*.pt")]
+    files += [(scenarios, f) for f in scenarios.rglob("*") if f.is_file()]
+    h = hashlib.sha256()
+    for base, f in sorted(files, key=lambda bf: str(bf[1].relative_to(bf[0]))):
+        h.update(str(f.relative_to(base)).encode() + b"\0" + f.read_bytes())
+    return h.hexdigest()[:12]
+
+
+@functools.cache
+def current_code_key() -> str:
+    """``code_key`` of this process's code, taken once (edits after import do not run)."""
+    return code_key()
+
+
 def sumo_version() -> str:
     """Version of the SUMO binaries in use (the backend's answer)."""
     return _backend_sumo_version()
@@ -57,12 +78,14 @@ def now_iso() -> str:
 
 
 def record_meta(config: EnvConfig) -> dict[str, Any]:
-    """Provenance fields of a record: config (nested dict), seed, SUMO version, git revision, created."""
+    """Provenance fields of a record: config (nested dict), seed, SUMO version, git revision,
+    code hash (``code_key``), created."""
     return {
         "config": config.to_dict(),
         "seed": config.seed,
         "sumo_version": sumo_version(),
         "git_revision": git_revision(),
+        "code": current_code_key(),
         "created": now_iso(),
     }
 

@@ -7,7 +7,7 @@ A result record (one per episode, one JSON object per line in ``records.jsonl``)
     {"cell": {"policy", "scenario", "density", "penetration", "weather", "seed"},
      "status": "ok" | "failed", "error": str | None,
      "config": EnvConfig.to_dict(), "seed": int, "sumo_version": str, "git_revision": str,
-     "created": ISO-8601 time, "wall_time": s,
+     "code": str (provenance.code_key), "created": ISO-8601 time, "wall_time": s,
      "metrics": {key: value for key in METRICS}}
 """
 

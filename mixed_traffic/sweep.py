@@ -2,9 +2,10 @@
 
 ``python -m mixed_traffic.sweep --penetration`` runs every (policy, value, seed) cell in parallel
 worker processes, appends each episode's record to ``RESULTS/records.jsonl`` as soon as it
-finishes (atomically; a re-run skips cells already recorded), then writes figures and a PDF
-report. Each cell runs in its own process: libsumo allows one simulation per process, and a
-SUMO segfault then costs one cell (recorded as failed with its exit code), not the sweep.
+finishes (atomically; a re-run skips cells already recorded by the same code), then writes
+figures and a PDF report. Each cell runs in its own process: libsumo allows one simulation per
+process, and a SUMO segfault then costs one cell (recorded as failed with its exit code), not
+the sweep.
 """
 
 from __future__ import annotations
@@ -22,7 +23,12 @@ from tqdm import tqdm
 
 from mixed_traffic.cli import add_config_args, config_dest, config_from_args
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.provenance import read_records, record_meta, write_record_atomic
+from mixed_traffic.provenance import (
+    current_code_key,
+    read_records,
+    record_meta,
+    write_record_atomic,
+)
 from mixed_traffic.schema import CELL_KEYS, POLICIES
 
 PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -187,6 +193,7 @@ def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
     """Run the missing cells of ``sweep``; returns the records file."""
     sweep.results.mkdir(parents=True, exist_ok=True)
     records_path = sweep.results / "records.jsonl"
+    _set_aside_other_code(records_path)
     done = {_cell_key(r) for r in read_records(records_path)}
     todo = [c for c in cells(sweep) if c.key() not in done]
     bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode", disable=not progress)
@@ -196,6 +203,24 @@ def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
         _run_processes(todo, sweep, records_path, bar)
     bar.close()
     return records_path
+
+
+def _set_aside_other_code(path: Path) -> None:
+    """Records written by other code (another ``code`` hash, or none) would count as done and
+    mix into the report: move the file aside as ``records.code-<theirs>.jsonl`` (nothing is
+    lost) so that every cell runs again."""
+    codes = {r.get("code") or "unknown" for r in read_records(path)}
+    if not codes or codes == {current_code_key()}:
+        return
+    tag = "-".join(sorted(codes - {current_code_key()}))[:40]
+    aside = path.with_name(f"records.code-{tag}.jsonl")
+    n = 1
+    while aside.exists():
+        n += 1
+        aside = path.with_name(f"records.code-{tag}.{n}.jsonl")
+    path.replace(aside)
+    print(f"{path}: records from other code ({tag}) moved to {aside.name}; running every cell "
+          "again", file=sys.stderr)  # fmt: skip
 
 
 def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm) -> None:

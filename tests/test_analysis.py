@@ -89,6 +89,7 @@ def _record(policy, scenario, density, penetration, weather, seed, rng, status="
         "seed": seed,
         "sumo_version": "1.28.0",
         "git_revision": "abc1234",
+        "code": "0b0b39a57b8a",
         "created": f"2025-01-01T00:{rng.randint(0, 59):02d}:{rng.randint(0, 59):02d}+00:00",
         "wall_time": 30.0 + rng.random(),
         "metrics": (_metrics(policy, density, penetration, weather, rng) if status == "ok" else {}),
@@ -151,7 +152,8 @@ def test_load_results_shape(results):
     with pytest.warns(UserWarning, match="truncated last line"):
         df = load_results(d)
     assert len(df) == len(records) == 2 * 3 * 3 + 3 + 1
-    for col in (*CELL_KEYS, "status", "error", "seed", "sumo_version", "git_revision", "wall_time"):
+    for col in (*CELL_KEYS, "status", "error", "seed", "sumo_version", "git_revision", "code",
+                "wall_time"):  # fmt: skip
         assert col in df.columns
     for key in METRICS:
         assert key in df.columns
@@ -305,7 +307,7 @@ def test_report_pdf_contains_labels_and_numbers(results, tmp_path):
         "AvgDEC-C",
     ):
         assert name in text, name
-    for prov in ("abc1234", "1.28.0", "FatalTraCIError"):
+    for prov in ("abc1234", "0b0b39a57b8a", "1.28.0", "FatalTraCIError"):
         assert prov in text, prov
     with pytest.warns(UserWarning):
         df = load_results(d)

@@ -12,7 +12,7 @@ import torch
 
 from agents.checkpoint import load_checkpoint, save_checkpoint
 from mixed_traffic.compare import CompareConfig, expand, main, rank, rank_key, run, score
-from mixed_traffic.provenance import read_records
+from mixed_traffic.provenance import code_key, read_records
 
 SHIPPED = Path(__file__).resolve().parents[1] / "agents" / "checkpoints" / "auto.pt"
 
@@ -51,6 +51,7 @@ def test_checkpoints_are_ranked_by_their_excess_over_acc_lc(tmp_path: Path) -> N
     assert scores[0]["max_excess"] <= scores[1]["max_excess"]
     assert scores[0]["key"] != scores[1]["key"]  # different weights, different records
 
+    assert cfg.folder.name == f"code-{code_key()}"  # a code change starts a new cache
     files = sorted(cfg.folder.rglob("records.jsonl"))
     before = [f.read_bytes() for f in files]
     assert run(cfg, checkpoints, progress=False) == scores  # resumed: nothing re-run
@@ -101,3 +102,25 @@ def test_bad_arguments_exit_with_a_clear_message(argv: list[str], message: str, 
     with pytest.raises(SystemExit) as exit_info:
         main(argv)
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
+
+
+def test_code_key_follows_sources_checkpoint_and_scenarios_only(tmp_path: Path) -> None:
+    root, scen = tmp_path / "repo", tmp_path / "scenarios"
+    for path, text in [(root / "mixed_traffic" / "env.py", "a = 1\n"),
+                       (root / "agents" / "acc_lc.py", "b = 2\n"),
+                       (root / "agents" / "checkpoints" / "auto.pt", "weights"),
+                       (scen / "straight" / "net.xml", "<net/>\n")]:  # fmt: skip
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(text)
+    key = code_key(root, scen)
+    (root / "README.md").write_text("docs\n")
+    (root / "agents" / "notes.txt").write_text("not code\n")
+    assert code_key(root, scen) == key
+    (root / "agents" / "acc_lc.py").write_text("b = 3\n")
+    changed = code_key(root, scen)
+    assert changed != key
+    (scen / "straight" / "net.xml").write_text("<net version='2'/>\n")
+    keys = {key, changed, code_key(root, scen)}
+    (root / "agents" / "checkpoints" / "auto.pt").write_text("other weights")
+    keys.add(code_key(root, scen))
+    assert len(keys) == 4

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from pypdf import PdfReader
 
-from mixed_traffic.provenance import read_records
+from mixed_traffic.provenance import current_code_key, read_records
 from mixed_traffic.sweep import SweepConfig, cells, main, parse_args
 
 TINY = [
@@ -86,6 +86,24 @@ def test_interrupted_sweep_resumes_without_duplicates(tmp_path: Path) -> None:
     keys = [json.dumps(r["cell"], sort_keys=True) for r in records]
     assert len(keys) == len(set(keys)) == 3  # idm reference + 2 penetrations, each once
     assert all(r["status"] == "ok" for r in records)
+    assert all(r in records for r in first)  # kept, not run again
+
+
+def test_records_from_other_code_are_set_aside_and_run_again(tmp_path: Path) -> None:
+    out = tmp_path / "res"
+    args = ["--penetration", "--values", "0.5", "--policies", "random", "--seeds", "0",
+            "--episode-length", "10", "--warmup", "1", "--no-report", "--no-reference",
+            "--out", str(out)]  # fmt: skip
+    assert main(args) == 0
+    (record,) = read_records(out / "records.jsonl")
+    assert record["code"] == current_code_key()
+    old = {**record, "code": "0123456789ab", "metrics": {}}  # as if an older env wrote it
+    (out / "records.jsonl").write_text(json.dumps(old) + "\n")
+    assert main(args) == 0
+    assert read_records(out / "records.code-0123456789ab.jsonl") == [old]
+    (again,) = read_records(out / "records.jsonl")
+    assert again["code"] == current_code_key()
+    assert again["metrics"]["avg_vel_a"] == record["metrics"]["avg_vel_a"]  # same seed, re-run
 
 
 def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path: Path) -> None:
