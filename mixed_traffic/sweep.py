@@ -193,8 +193,7 @@ def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
     """Run the missing cells of ``sweep``; returns the records file."""
     sweep.results.mkdir(parents=True, exist_ok=True)
     records_path = sweep.results / "records.jsonl"
-    _set_aside_other_code(records_path)
-    done = {_cell_key(r) for r in read_records(records_path)}
+    done = {_cell_key(r) for r in _records_of_this_code(records_path)}
     todo = [c for c in cells(sweep) if c.key() not in done]
     bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode", disable=not progress)
     if sweep.backend == "ray":
@@ -205,14 +204,15 @@ def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
     return records_path
 
 
-def _set_aside_other_code(path: Path) -> None:
-    """Records written by other code (another ``code`` hash, or none) would count as done and
-    mix into the report: move the file aside as ``records.code-<theirs>.jsonl`` (nothing is
-    lost) so that every cell runs again."""
-    codes = {r.get("code") or "unknown" for r in read_records(path)}
-    if not codes or codes == {current_code_key()}:
-        return
-    tag = "-".join(sorted(codes - {current_code_key()}))[:40]
+def _records_of_this_code(path: Path) -> list[dict]:
+    """The records in ``path``, or none if any was written by other code (another ``code``
+    hash, or none): those would count as done and mix into the report, so the file is moved
+    aside as ``records.code-<theirs>.jsonl`` (nothing is lost) and every cell runs again."""
+    records, ours = read_records(path), current_code_key()
+    codes = {r.get("code") or "unknown" for r in records}
+    if codes <= {ours}:
+        return records
+    tag = "-".join(sorted(codes - {ours}))[:40]
     aside = path.with_name(f"records.code-{tag}.jsonl")
     n = 1
     while aside.exists():
@@ -221,6 +221,7 @@ def _set_aside_other_code(path: Path) -> None:
     path.replace(aside)
     print(f"{path}: records from other code ({tag}) moved to {aside.name}; running every cell "
           "again", file=sys.stderr)  # fmt: skip
+    return []
 
 
 def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm) -> None:

@@ -188,7 +188,7 @@ def _drive(scenario: str, density: float, penetration: float, seconds: float = 4
             _, accel = to_physical(decision, params, VehicleConfig())
             for a, acc in zip(live, accel):
                 stats["accel"].setdefault(a, []).append(float(acc))
-            for a, o, dec in zip(live, live.values(), decision):
+            for (a, o), dec in zip(live.items(), decision):
                 # standing in its lane (follow) but with a side well over a lane line
                 astride = dec == 1 and o["ego"][-1, 0] * 40 < 0.5 and abs(o["ego"][-1, 4]) > 0.35
                 stats["stood_astride"][a] = stats["stood_astride"].get(a, 0) + int(astride)
