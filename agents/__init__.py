@@ -1,18 +1,18 @@
 """AUTO agent (paper §IV-C/D/F, DESIGN §10). Submodules are imported explicitly (torch is heavy):
 
-- ``agents.lca``: ``LCAConfig`` (z, m, d, ablation flags), ``LCA`` encoder.
-- ``agents.networks``: ``Actor``, ``Critic``, ``select`` (masked argmax; all-masked → follow).
-- ``agents.rbpdqn``: ``RBPDQN`` learner (``update(batch) -> losses``; ``regularize=False`` is
+- ``agents.nets.lca``: ``LCAConfig`` (z, m, d, ablation flags), ``LCA`` encoder.
+- ``agents.nets.networks``: ``Actor``, ``Critic``, ``select`` (masked argmax; all-masked → follow).
+- ``agents.learning.rbpdqn``: ``RBPDQN`` learner (``update(batch) -> losses``; ``regularize=False`` is
   BP-DQN), ``Policy`` (batched ``act`` for all agents of a step).
-- ``agents.fused``: fused actor + critic inference, numerically equal to the modules.
-- ``agents.replay``: ``ReplayBuffer`` (numpy SoA ring, resumable).
+- ``agents.nets.fused``: fused actor + critic inference, numerically equal to the modules.
+- ``agents.learning.replay``: ``ReplayBuffer`` (numpy SoA ring, resumable).
 - ``agents.checkpoint``: ``save_checkpoint`` / ``load_checkpoint`` / ``load_policy``.
 - ``agents.bench_inference``: ``avg_inference_us`` (AvgIT per decision).
-- ``agents.workers``: ``RolloutWorker`` (env + local policy + LocalBuffer), ``SharedWeights``.
-- ``agents.trainer``: ``TrainConfig``, ``Trainer`` (learner + GlobalBuffer; process/Ray workers);
+- ``agents.collection.workers``: ``RolloutWorker`` (env + local policy + LocalBuffer), ``SharedWeights``.
+- ``agents.learning.trainer``: ``TrainConfig``, ``Trainer`` (learner + GlobalBuffer; process/Ray workers);
   the CLI is ``python -m mixed_traffic.train``.
-- ``agents.acc_lc``: the ACC-LC baseline (``AccLcPolicy``; ``plan`` exposes its checks).
-- ``agents.safety``: ``SafetyModule``, the safety module behind the learned policy.
+- ``agents.rules.acc_lc``: the ACC-LC baseline (``AccLcPolicy``; ``plan`` exposes its checks).
+- ``agents.rules.safety``: ``SafetyModule``, the safety module behind the learned policy.
 - ``agents.policies``: policies by name (``auto``, ``auto-raw``, ``acc-lc``, ``random``).
 
 Deviations from the paper, and why:
@@ -58,7 +58,7 @@ Deviations from the paper, and why:
   above it 2(1 − τ)). Behind the safety module, which clamps the acceleration where ACC-LC brakes,
   erring upwards caused no terminal event in the eval cells, and AUTO starts queues sooner; the
   network alone still has terminal events on the bottleneck and urban variants (README).
-- A safety module (``agents.safety``) sits behind the learned policy at evaluation: the paper
+- A safety module (``agents.rules.safety``) sits behind the learned policy at evaluation: the paper
   names it as standard in industrial stacks (§VI) but evaluates AUTO without one. It hands the
   step to ACC-LC when the learned steering would leave the lane corridor (or enter a gap ACC-LC
   rejects) or drift off the lane centre beyond ACC-LC's steering, and in a lane that must be

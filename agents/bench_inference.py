@@ -15,9 +15,9 @@ import time
 import numpy as np
 import torch
 
-from agents.lca import LCAConfig
-from agents.networks import Actor, Critic
-from agents.rbpdqn import Policy
+from agents.learning.rbpdqn import Policy
+from agents.nets.lca import LCAConfig
+from agents.nets.networks import Actor, Critic
 
 
 def random_obs(n: int, cfg: LCAConfig, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -42,8 +42,8 @@ def avg_inference_us(
     safety: bool = False,
 ) -> float:
     """µs per decision (per agent) of a batched forward for ``n_agents`` agents; with
-    ``safety`` the safety module's filter (``agents.safety``) is timed after it."""
-    from agents.safety import SafetyModule
+    ``safety`` the safety module's filter (``agents.rules.safety``) is timed after it."""
+    from agents.rules.safety import SafetyModule
 
     prev = torch.get_num_threads()
     torch.set_num_threads(threads)

@@ -1,4 +1,4 @@
-"""Atomic, validated checkpoints of an :class:`agents.rbpdqn.RBPDQN` learner.
+"""Atomic, validated checkpoints of an :class:`agents.learning.rbpdqn.RBPDQN` learner.
 
 File content (``torch.save`` of a plain dict, loadable with ``weights_only=True``):
 ``{"format": FORMAT, "learner": learner.state_dict(), "meta": {...}}`` where ``meta`` holds at
@@ -16,8 +16,8 @@ from typing import Any
 
 import torch
 
-from agents.lca import LCAConfig
-from agents.rbpdqn import RBPDQN, LearnerConfig, Policy
+from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy
+from agents.nets.lca import LCAConfig
 
 FORMAT = "mixed_traffic.rbpdqn/1"
 _REQUIRED = ("format", "learner", "meta")

@@ -56,7 +56,7 @@ class RandomPolicy:
 
 class AutoPolicy:
     """The AUTO agent (LCA + RBP-DQN actor/critic) from a checkpoint, greedy, behind the safety
-    module (``agents.safety``) unless ``safety=False`` (name ``auto-raw``)."""
+    module (``agents.rules.safety``) unless ``safety=False`` (name ``auto-raw``)."""
 
     def __init__(
         self,
@@ -66,7 +66,7 @@ class AutoPolicy:
         safety: bool = True,
     ) -> None:
         from agents.checkpoint import load_policy
-        from agents.safety import SafetyModule
+        from agents.rules.safety import SafetyModule
 
         path = Path(checkpoint) if checkpoint is not None else SHIPPED_CHECKPOINT
         self.checkpoint = path
@@ -87,7 +87,7 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
     if name == "random":
         return RandomPolicy(seed)
     if name == "acc-lc":
-        from agents.acc_lc import AccLcPolicy
+        from agents.rules.acc_lc import AccLcPolicy
 
         return AccLcPolicy()
     if name in ("auto", "auto-raw"):

@@ -1,14 +1,22 @@
 """Short findings worded from the data.
 
-Rules: a change or a difference is only called a rise/fall or better/worse when the two 95 %
-t-intervals do not overlap; otherwise it is reported as "within noise". A single seed (no
-interval) is said so. Numbers are formatted exactly as in the tables.
+Rules: a difference between two groups of episodes that differ in one factor only (two policies
+in the same cell, or one policy at the lowest and the highest value of a sweep axis) is tested
+with :func:`analysis.stats.paired_difference`. When the two groups share at least two seeds (the
+seed fixes the demand and the human drivers), the per-seed differences are paired: the difference
+is called (better/worse, rises/falls) only when the 95 % t-interval of the mean per-seed
+difference excludes 0 (paired t-test). Otherwise Welch's t-test is used and the difference is
+called only when p < 0.05. Anything else is reported as "within noise"; with fewer than two
+episodes in a group there is no test, and the finding says so. Each finding names the test, the
+difference (mean ± 95 % half-width, in the metric's unit) and its p-value. Numbers are formatted
+exactly as in the tables.
 """
 
 from __future__ import annotations
 
-import math
+from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from analysis.results import (
@@ -18,9 +26,11 @@ from analysis.results import (
     summarise,
     sweep_condition,
 )
+from analysis.stats import MIN_PAIRS, Difference, paired_difference
 from analysis.style import (
     describe_condition,
     fmt_density,
+    fmt_mean_ci,
     fmt_num,
     fmt_penetration,
     order_policies,
@@ -30,56 +40,81 @@ from analysis.tables import TERMINAL_KEYS
 from mixed_traffic.schema import MACRO, METRICS
 
 
-def _separated(m1: float, h1: float, m2: float, h2: float) -> bool | None:
-    """True if the intervals [m±h] do not overlap, False if they do, None without intervals."""
-    if any(isinstance(v, float) and math.isnan(v) for v in (h1, h2)):
-        return None
-    return abs(m1 - m2) > h1 + h2
-
-
-def _noise_note(sep: bool | None) -> str:
-    if sep is None:
-        return " (too few seeds for a confidence interval)"
-    return "" if sep else " (within noise: the 95 % CIs overlap)"
-
-
 def _value(key: str, mean: float) -> str:
     return with_unit(key, fmt_num(mean))
+
+
+_WELCH = f"Welch's t-test (fewer than {MIN_PAIRS} shared seeds)"
+
+
+def _fmt_p(p: float) -> str:
+    """'p = 0.020', 'p = 0.54' (table number format), 'p < 0.001'."""
+    return "p < 0.001" if p < 0.001 else f"p = {fmt_num(p)}"
+
+
+def _test_note(d: Difference, metric: str) -> str:
+    """Which test, the difference (mean ± 95 % half-width, metric unit) and its p-value."""
+    which = f"paired t-test over {d.n} seeds" if d.paired else _WELCH
+    diff = with_unit(metric, fmt_mean_ci(d.mean, d.half_width))
+    return f"{which}: difference {diff}, {_fmt_p(d.p)}"
+
+
+def _noise_note(d: Difference, metric: str) -> str:
+    """' (too few seeds for a test)', ' (within noise; <test>)' or ' (<test>)'."""
+    sig = d.significant
+    if sig is None:
+        return " (too few seeds for a test)"
+    return f" ({'' if sig else 'within noise; '}{_test_note(d, metric)})"
+
+
+def by_seed(rows: pd.DataFrame, metric: str) -> pd.Series:
+    """Finite values of ``metric`` in ``rows`` (episodes of one condition), indexed by seed.
+
+    Returns a float Series of shape (n,) in the metric's unit; NaN/inf values are dropped.
+    """
+    values = pd.to_numeric(rows[metric], errors="coerce").astype(float)
+    s = pd.Series(values.to_numpy(), index=pd.Index(rows["seed"], name="seed"), name=metric)
+    return s[np.isfinite(s.to_numpy())]
 
 
 _AXIS_FORMAT = {"penetration": fmt_penetration, "density": fmt_density, "weather": str}
 
 
+def _axis_values(rows: pd.DataFrame, vary: str, metric: str) -> list[tuple[Any, pd.Series]]:
+    """(value of ``vary``, ``metric`` by seed) for each value with data, in ascending order."""
+    out = []
+    for x, group in rows.groupby(vary, sort=True):
+        s = by_seed(group, metric)
+        if len(s):
+            out.append((x, s))
+    return out
+
+
 def trend(df: pd.DataFrame, vary: str, metric: str) -> list[str]:
     """Per policy: how ``metric`` changes from the lowest to the highest value of ``vary``.
 
-    For penetration the 0 % all-IDM cells are left out of the trend and reported as a reference.
+    The change is tested with :func:`paired_difference` (highest minus lowest, paired by seed
+    when the seeds match). For penetration the 0 % all-IDM cells are left out of the trend and
+    reported as a reference.
     """
     cond = sweep_condition(df, vary)
     if cond is None:
         return []
     sub = ok_rows(filter_condition(df, cond))
     with_avs = sub[sub["penetration"] > 0]
-    stats = summarise(with_avs, ["policy", vary], [metric])
     fmt_x = _AXIS_FORMAT.get(vary, str)
     name = METRICS[metric].label
     out: list[str] = []
-    for policy in order_policies(stats["policy"]):
-        s = stats[(stats["policy"] == policy) & (stats[f"{metric}_n"] > 0)].sort_values(vary)
-        if len(s) < 2:
+    for policy in order_policies(with_avs["policy"]):
+        values = _axis_values(with_avs[with_avs["policy"] == policy], vary, metric)
+        if len(values) < 2:
             continue
-        lo, hi = s.iloc[0], s.iloc[-1]
-        m1, h1, m2, h2 = (
-            lo[f"{metric}_mean"],
-            lo[f"{metric}_ci"],
-            hi[f"{metric}_mean"],
-            hi[f"{metric}_ci"],
-        )
-        sep = _separated(m1, h1, m2, h2)
-        verb = ("falls" if m2 < m1 else "rises") if sep else "changes"
+        (x1, s1), (x2, s2) = values[0], values[-1]
+        d = paired_difference(s2, s1)
+        verb = ("falls" if d.mean < 0 else "rises") if d.significant else "changes"
         out.append(
-            f"{name} with {policy} {verb} from {_value(metric, m1)} at {fmt_x(lo[vary])}"
-            f" to {_value(metric, m2)} at {fmt_x(hi[vary])}{_noise_note(sep)}."
+            f"{name} with {policy} {verb} from {_value(metric, s1.mean())} at {fmt_x(x1)}"
+            f" to {_value(metric, s2.mean())} at {fmt_x(x2)}{_noise_note(d, metric)}."
         )
     ref = summarise(sub[sub["penetration"] == 0], [], [metric])
     if vary == "penetration" and not ref.empty and ref[f"{metric}_n"].iloc[0] > 0:
@@ -90,44 +125,49 @@ def trend(df: pd.DataFrame, vary: str, metric: str) -> list[str]:
     return out
 
 
+def compare(first: str, other: str, a: pd.Series, b: pd.Series, metric: str, where: str) -> str:
+    """One finding: policy ``first`` (values ``a`` by seed) against ``other`` (``b``) on ``metric``.
+
+    ``where`` names the condition (e.g. '120 veh/km'). The verdict follows
+    :attr:`analysis.stats.Difference.significant` of ``paired_difference(a, b)``.
+    """
+    d = paired_difference(a, b)
+    verdict = _noise_note(d, metric)
+    better = METRICS[metric].better
+    if d.significant:
+        if better:
+            a_better = (d.mean < 0) == (better == "lower")
+            verdict = f"{first} {'better' if a_better else 'worse'}; {better} is better"
+        else:
+            verdict = f"{first} {'higher' if d.mean > 0 else 'lower'}"
+        verdict = f" ({verdict}; {_test_note(d, metric)})"
+    return (
+        f"{first} vs {other} {METRICS[metric].label} at {where}: "
+        f"{fmt_num(a.mean())} vs {_value(metric, b.mean())}{verdict}."
+    )
+
+
 def policy_comparisons(df: pd.DataFrame, metrics: tuple[str, ...] = MACRO) -> list[str]:
-    """The first policy against each other one on ``metrics`` at each density of the reference condition."""
+    """The first policy against each other one on ``metrics`` at each density of the reference
+    condition (same scenario, penetration and weather), paired by seed where possible."""
     cond = reference_condition(df)
     if cond is None:
         return []
     base = {k: v for k, v in cond.items() if k != "density"}
     sub = ok_rows(filter_condition(df, base))
-    stats = summarise(sub, ["policy", "density"], list(metrics))
-    policies = order_policies(stats["policy"])
+    policies = order_policies(sub["policy"])
     if len(policies) < 2:
         return []
     first = policies[0]
     out: list[str] = []
-    for density in sorted(stats["density"].dropna().unique()):
-        at = stats[stats["density"] == density]
-        a = at[at["policy"] == first]
-        if a.empty:
-            continue
+    for density in sorted(sub["density"].dropna().unique()):
+        at = sub[sub["density"] == density]
         for other in policies[1:]:
-            b = at[at["policy"] == other]
-            if b.empty:
-                continue
             for m in metrics:
-                ma, ha, mb, hb = (
-                    a[f"{m}_mean"].iloc[0], a[f"{m}_ci"].iloc[0], b[f"{m}_mean"].iloc[0], b[f"{m}_ci"].iloc[0]
-                )  # fmt: skip
-                if math.isnan(ma) or math.isnan(mb):
-                    continue
-                sep = _separated(ma, ha, mb, hb)
-                verdict = _noise_note(sep)
-                better = METRICS[m].better
-                if sep and better:
-                    a_better = (ma < mb) == (better == "lower")
-                    verdict = f" ({first} {'better' if a_better else 'worse'}; {better} is better)"
-                out.append(
-                    f"{first} vs {other} {METRICS[m].label} at {fmt_density(density)}: "
-                    f"{fmt_num(ma)} vs {_value(m, mb)}{verdict}."
-                )
+                a = by_seed(at[at["policy"] == first], m)
+                b = by_seed(at[at["policy"] == other], m)
+                if len(a) and len(b):
+                    out.append(compare(first, other, a, b, m, fmt_density(density)))
     return out
 
 

@@ -1,121 +1,40 @@
-"""PDF report of a results folder (reportlab, so the text stays extractable).
+"""PDF report of a results folder (reportlab, so the text stays extractable), and its CLI.
 
 Contents: title; findings; configuration and provenance; the macroscopic, microscopic and
 per-cell tables with safety counts beside them; the figures; the safety counts by policy; the
 failed episodes with their errors. Built from result files alone (no SUMO, no torch).
+
+python -m mixed_traffic.report RESULTS_DIR [--out reports/NAME.pdf] [--title TITLE]
+(``python -m analysis.report`` is the same command.)
 """
 
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
 import json
 import os
+import sys
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 from xml.sax.saxutils import escape
 
 import pandas as pd
-from reportlab.lib import colors
-from reportlab.lib.pagesizes import A4
-from reportlab.lib.styles import ParagraphStyle, getSampleStyleSheet
+from reportlab.lib.styles import ParagraphStyle
 from reportlab.lib.units import cm
-from reportlab.pdfbase.pdfmetrics import stringWidth
-from reportlab.platypus import (
-    Image,
-    KeepTogether,
-    Paragraph,
-    SimpleDocTemplate,
-    Spacer,
-    Table,
-    TableStyle,
-)
+from reportlab.platypus import Paragraph, Spacer
 
 from analysis import figures as figs
 from analysis import findings as fnd
 from analysis import tables as tbl
+from analysis.pdf import PAGE_WIDTH, figure, frame_rows, grid, make_styles, para, write_pdf
 from analysis.results import load_results
 from analysis.style import fmt_density, fmt_penetration
 from mixed_traffic.schema import METRICS
 
-PAGE_WIDTH = A4[0] - 3.0 * cm
-"""Usable width of the page (1.5 cm margins)."""
 _ERROR_CHARS = 300
-
-
-def _styles() -> dict[str, ParagraphStyle]:
-    """Paragraph styles of the report."""
-    base = getSampleStyleSheet()
-    return {
-        "title": base["Title"],
-        "h1": base["Heading2"],
-        "h2": base["Heading4"],
-        "body": base["BodyText"],
-        "small": ParagraphStyle("small", parent=base["BodyText"], fontSize=8, leading=10),
-        "cell": ParagraphStyle("cell", parent=base["BodyText"], fontSize=7, leading=8.5),
-        "head": ParagraphStyle(
-            "head", parent=base["BodyText"], fontSize=7, leading=8.5, fontName="Helvetica-Bold"
-        ),
-        "bullet": ParagraphStyle("bullet", parent=base["BodyText"], leftIndent=10, bulletIndent=0),
-    }
-
-
-def _p(text: Any, style: ParagraphStyle) -> Paragraph:
-    """A paragraph of plain (escaped) text."""
-    return Paragraph(escape(str(text)), style)
-
-
-def _auto_widths(rows: Sequence[Sequence[Any]], total: float = PAGE_WIDTH) -> list[float]:
-    """Column widths from the content: natural widths if they fit, else shrunk towards the
-    longest word of each column (headers may wrap at spaces, values rarely)."""
-    pad = 7.0
-
-    def width(text: str, bold: bool = False) -> float:
-        return stringWidth(text, "Helvetica-Bold" if bold else "Helvetica", 7) + pad
-
-    natural, minimum = [], []
-    for j in range(len(rows[0])):
-        head = str(rows[0][j])
-        cells = [str(r[j]) for r in rows[1:]]
-        head_word = max((width(w, True) for w in head.split()), default=pad)
-        natural.append(max([head_word, *(width(c) for c in cells)]))
-        words = [w for c in cells for w in c.split()]
-        minimum.append(max([head_word, *(width(w) for w in words)]))
-    if sum(natural) <= total:
-        return natural
-    slack = [n - m for n, m in zip(natural, minimum)]
-    excess = sum(natural) - total
-    if sum(slack) <= 0 or excess >= sum(slack):
-        scale = total / sum(minimum)
-        return [m * scale for m in minimum]
-    return [n - s * excess / sum(slack) for n, s in zip(natural, slack)]
-
-
-def _grid(
-    rows: Sequence[Sequence[Any]], styles: dict[str, ParagraphStyle], col_widths=None
-) -> Table:
-    """A table with a bold header row, wrapping cells and a light grid."""
-    col_widths = col_widths or _auto_widths(rows)
-    data = [[_p(c, styles["head"]) for c in rows[0]]]
-    data += [[_p(c, styles["cell"]) for c in r] for r in rows[1:]]
-    table = Table(data, colWidths=col_widths, repeatRows=1, hAlign="LEFT")
-    table.setStyle(
-        TableStyle(
-            [
-                ("GRID", (0, 0), (-1, -1), 0.3, colors.grey),
-                ("BACKGROUND", (0, 0), (-1, 0), colors.HexColor("#e8eef7")),
-                ("VALIGN", (0, 0), (-1, -1), "TOP"),
-                ("LEFTPADDING", (0, 0), (-1, -1), 3),
-                ("RIGHTPADDING", (0, 0), (-1, -1), 3),
-            ]
-        )
-    )
-    return table
-
-
-def _frame_rows(shown: pd.DataFrame) -> list[list[str]]:
-    """Header + body rows of a formatted table."""
-    return [list(shown.columns)] + shown.astype(str).to_numpy().tolist()
 
 
 def _unique(series: pd.Series) -> str:
@@ -181,22 +100,6 @@ def failed_rows(df: pd.DataFrame) -> list[list[str]]:
     return rows
 
 
-def _figure(path: Path, caption: str, styles: dict[str, ParagraphStyle]) -> KeepTogether:
-    """An embedded PNG scaled to the page width, with its caption."""
-    from PIL import Image as PILImage
-
-    with PILImage.open(path) as im:
-        w, h = im.size
-    width = PAGE_WIDTH
-    height = width * h / w
-    max_h = 11 * cm
-    if height > max_h:
-        width, height = width * max_h / height, max_h
-    return KeepTogether(
-        [Image(str(path), width=width, height=height), _p(caption, styles["small"])]
-    )
-
-
 _FIGURE_CAPTIONS = {
     "penetration": "DT-TF (mean time of all vehicles to cross the 1 km measurement segment) against AV "
     "penetration per policy; dashed line: the 0 % all-IDM reference (paper Fig. 'Scalability "
@@ -211,10 +114,10 @@ _FIGURE_CAPTIONS = {
 
 def _table_block(table: pd.DataFrame, styles: dict[str, ParagraphStyle]) -> list[Any]:
     """Heading, formatted table and a note, or a note that there is nothing to show."""
-    out: list[Any] = [_p(table.attrs.get("title", ""), styles["h2"])]
+    out: list[Any] = [para(table.attrs.get("title", ""), styles["h2"])]
     if table.empty:
-        return out + [_p("No successful episodes for this table.", styles["small"])]
-    out.append(_grid(_frame_rows(tbl.format_table(table)), styles))
+        return out + [para("No successful episodes for this table.", styles["small"])]
+    out.append(grid(frame_rows(tbl.format_table(table)), styles))
     return out
 
 
@@ -254,33 +157,40 @@ def build_report(
     fig_dir = Path(figures_dir) if figures_dir is not None else out_pdf.parent
     made = figs.all_figures(df, fig_dir, name=f"{out_pdf.stem}-")
 
-    styles = _styles()
+    styles = make_styles()
     title = title or f"Mixed-traffic results: {results_dir.name}"
-    story: list[Any] = [_p(title, styles["title"])]
+    story: list[Any] = [para(title, styles["title"])]
 
-    story.append(_p("Findings", styles["h1"]))
+    story.append(para("Findings", styles["h1"]))
     items = fnd.findings(df) or ["No successful episodes: no findings."]
     story += [Paragraph(escape(t), styles["bullet"], bulletText="•") for t in items]
     story.append(
-        _p(
-            "Means over seeds with 95 % t confidence intervals (mean ± half-width); differences are "
-            "only called out when the intervals do not overlap.",
+        para(
+            "Means over seeds with 95 % t confidence intervals (mean ± half-width). A difference "
+            "between two policies, or between the lowest and the highest value of a sweep axis, is "
+            "only called out when the 95 % t-interval of the mean per-seed difference excludes 0 "
+            "(paired t-test on the seeds both groups ran; the seed fixes the demand and the human "
+            "drivers) or, with fewer than two shared seeds, when Welch's t-test gives p < 0.05; "
+            "otherwise it is reported as within noise. Each finding names its test, the difference "
+            "(mean ± half-width) and its p-value.",
             styles["small"],
         )
     )
 
-    story.append(_p("Configuration and provenance", styles["h1"]))
-    story.append(_grid(provenance_rows(df, results_dir), styles, [4 * cm, PAGE_WIDTH - 4 * cm]))
+    story.append(para("Configuration and provenance", styles["h1"]))
+    story.append(grid(provenance_rows(df, results_dir), styles, [4 * cm, PAGE_WIDTH - 4 * cm]))
     configs = df["config"].dropna().unique()
     if len(configs) == 1:
         cfg = json.loads(configs[0])
         flat = {k: v for k, v in cfg.items() if not isinstance(v, dict)}
         story.append(Spacer(1, 4))
-        story.append(_p("Environment config: " + json.dumps(flat, sort_keys=True), styles["small"]))
+        story.append(
+            para("Environment config: " + json.dumps(flat, sort_keys=True), styles["small"])
+        )
 
-    story.append(_p("Results tables", styles["h1"]))
+    story.append(para("Results tables", styles["h1"]))
     story.append(
-        _p(
+        para(
             "Rows are policies; each table carries its safety counts (summed over its episodes; "
             "route completion weighted by AV trips).",
             styles["small"],
@@ -295,61 +205,82 @@ def build_report(
     story.append(_metric_legend(("dt_tf", *tbl.MACRO, *tbl.MICRO, "pt_rt"), styles))
 
     if made:
-        story.append(_p("Figures", styles["h1"]))
+        story.append(para("Figures", styles["h1"]))
         for key, path in made.items():
             story.append(
-                _figure(
-                    path, _FIGURE_CAPTIONS[key] + " Error bars: 95 % t-CI across seeds.", styles
-                )
+                figure(path, _FIGURE_CAPTIONS[key] + " Error bars: 95 % t-CI across seeds.", styles)
             )
             story.append(Spacer(1, 8))
 
-    story.append(_p("Safety counts", styles["h1"]))
+    story.append(para("Safety counts", styles["h1"]))
     safety = tbl.safety_table(df)
     if safety.empty:
-        story.append(_p("No successful episodes.", styles["small"]))
+        story.append(para("No successful episodes.", styles["small"]))
     else:
-        story.append(_grid(_frame_rows(tbl.format_table(safety)), styles))
+        story.append(grid(frame_rows(tbl.format_table(safety)), styles))
         tele = int(safety["teleports"].sum())
         if tele:
-            story.append(_p(f"Warning: {tele} SUMO teleports occurred.", styles["body"]))
+            story.append(para(f"Warning: {tele} SUMO teleports occurred.", styles["body"]))
 
     if (df["status"] != "ok").any():
-        story.append(_p("Failed episodes", styles["h1"]))
+        story.append(para("Failed episodes", styles["h1"]))
         widths = [1.5 * cm, 1.6 * cm, 1.8 * cm, 1.4 * cm, 1.4 * cm, 1.0 * cm]
         widths.append(PAGE_WIDTH - sum(widths))
-        story.append(_grid(failed_rows(df), styles, widths))
+        story.append(grid(failed_rows(df), styles, widths))
 
-    _write_pdf(story, out_pdf, title)
+    write_pdf(story, out_pdf, title)
     return out_pdf
 
 
-def _write_pdf(story: list[Any], out_pdf: Path, title: str) -> None:
-    """Render ``story`` to a temporary file beside ``out_pdf`` and rename it into place."""
-    tmp = out_pdf.with_name(f".{out_pdf.stem}.{os.getpid()}.tmp")
-    try:
-        doc = SimpleDocTemplate(
-            str(tmp),
-            pagesize=A4,
-            leftMargin=1.5 * cm,
-            rightMargin=1.5 * cm,
-            topMargin=1.5 * cm,
-            bottomMargin=1.5 * cm,
-            title=title,
-            author="mixed_traffic analysis",
-        )
-        doc.build(story, onLaterPages=_page_number, onFirstPage=_page_number)
-        os.replace(tmp, out_pdf)
-    finally:
-        tmp.unlink(missing_ok=True)
+def build_parser() -> argparse.ArgumentParser:
+    """The command-line interface."""
+    parser = argparse.ArgumentParser(
+        prog="python -m mixed_traffic.report",
+        description=(
+            "Build the PDF report (tables, figures with 95 % CIs, safety counts, findings, "
+            "provenance) from the episode records in RESULTS_DIR (records.jsonl and/or "
+            "records.parquet). Needs no SUMO."
+        ),
+    )
+    parser.add_argument(
+        "results_dir", metavar="RESULTS_DIR", type=Path, help="folder with records.jsonl"
+    )
+    parser.add_argument(
+        "--out",
+        type=Path,
+        default=None,
+        help="output PDF (default: reports/<RESULTS_DIR name>.pdf); figures are saved beside it",
+    )
+    parser.add_argument(
+        "--title", default=None, help="report title (default: from the folder name)"
+    )
+    return parser
 
 
-def _page_number(canvas: Any, doc: Any) -> None:
-    """Footer with the page number."""
-    canvas.saveState()
-    canvas.setFont("Helvetica", 7)
-    canvas.drawRightString(A4[0] - 1.5 * cm, 0.8 * cm, f"page {doc.page}")
-    canvas.restoreState()
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point; returns the exit status (2 for bad arguments or unusable results)."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    results_dir: Path = args.results_dir
+    if not results_dir.exists():
+        parser.error(f"results directory {str(results_dir)!r} does not exist")
+    out = args.out or Path("reports") / f"{results_dir.resolve().name}.pdf"
+    if out.suffix.lower() != ".pdf":
+        parser.error(f"--out {str(out)!r} must end in .pdf")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            path = build_report(results_dir, out, title=args.title)
+        except (FileNotFoundError, ValueError) as exc:
+            parser.error(str(exc))
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    print(f"report written to {path}")
+    return 0
 
 
-__all__ = ["build_report", "failed_rows", "provenance_rows"]
+__all__ = ["build_parser", "build_report", "failed_rows", "main", "provenance_rows"]
+
+
+if __name__ == "__main__":
+    sys.exit(main())

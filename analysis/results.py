@@ -2,7 +2,8 @@
 
 Reads result files only (``records.jsonl``, optionally ``records.parquet``); never imports SUMO
 or torch. One row per episode; columns are the cell keys, the provenance fields and one column
-per metric key of :data:`mixed_traffic.schema.METRICS`.
+per metric key of :data:`mixed_traffic.schema.METRICS`. The t critical values come from
+:func:`analysis.stats.t_quantile_975` (scipy), also importable from here.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from analysis.stats import t_quantile_975
 from mixed_traffic.schema import CELL_KEYS, METRICS
 
 JSONL_NAME = "records.jsonl"
@@ -44,34 +46,9 @@ COLUMNS = (*CELL_KEYS, *INFO_COLUMNS, *METRIC_KEYS)
 #: The condition of a cell without its seed: episodes of one group differ only by seed.
 CONDITION_KEYS = tuple(k for k in CELL_KEYS if k != "seed")
 
-# Two-sided 95 % Student t quantiles t_{0.975, df} for df = 1..30.
-_T975 = (
-    12.7062, 4.3027, 3.1824, 2.7764, 2.5706, 2.4469, 2.3646, 2.3060, 2.2622, 2.2281,
-    2.2010, 2.1788, 2.1604, 2.1448, 2.1314, 2.1199, 2.1098, 2.1009, 2.0930, 2.0860,
-    2.0796, 2.0739, 2.0687, 2.0639, 2.0595, 2.0555, 2.0518, 2.0484, 2.0452, 2.0423,
-)  # fmt: skip
-
 
 class ResultsError(ValueError):
     """A results directory or file that cannot be read as episode records."""
-
-
-def t_quantile_975(df: int) -> float:
-    """Two-sided 95 % Student t critical value t_{0.975} for ``df`` degrees of freedom.
-
-    Exact table for df <= 30; above that the Cornish-Fisher expansion (error < 1e-4).
-    """
-    if df < 1:
-        raise ValueError(f"degrees of freedom must be >= 1, got {df}")
-    if df <= len(_T975):
-        return _T975[df - 1]
-    z = 1.959963984540054
-    return (
-        z
-        + (z**3 + z) / (4 * df)
-        + (5 * z**5 + 16 * z**3 + 3 * z) / (96 * df**2)
-        + (3 * z**7 + 19 * z**5 + 17 * z**3 - 15 * z) / (384 * df**3)
-    )
 
 
 def mean_ci(values: Iterable[float]) -> tuple[float, float, int]:

@@ -1,7 +1,12 @@
 """mixed_traffic: a PettingZoo environment over SUMO for autonomous vehicles in mixed traffic.
 
-``parallel_env`` and ``env`` are imported lazily so that ``analysis`` (and ``schema``) work
-without SUMO.
+Stages, each a folder (docs/architecture.md): ``world`` (SUMO, scenarios, demand) ->
+``sensing`` (perception, observation) -> ``env`` (the ParallelEnv) -> ``experiments``
+(runner, CLIs); the AUTO agent lives in the top-level ``agents`` package and the report in
+``analysis``.
+
+``parallel_env``, ``env`` and ``mixed_traffic_v0`` are imported lazily, so that ``analysis``
+(and ``schema``) import without SUMO.
 """
 
 from __future__ import annotations
@@ -9,19 +14,22 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
-__all__ = ["EnvConfig", "env", "list_scenarios", "parallel_env"]
+__all__ = ["EnvConfig", "env", "list_scenarios", "mixed_traffic_v0", "parallel_env"]
 __version__ = "0.1.0"
+
+_LAZY = {
+    "parallel_env": ("mixed_traffic.env.parallel", "parallel_env"),
+    "MixedTrafficEnv": ("mixed_traffic.env.parallel", "MixedTrafficEnv"),
+    "list_scenarios": ("mixed_traffic.world.registry", "list_scenarios"),
+    "EnvConfig": ("mixed_traffic.config", "EnvConfig"),
+}
 
 
 def __getattr__(name: str) -> Any:
     # importlib, not "from mixed_traffic import env": that would re-enter this hook
-    if name in ("parallel_env", "env", "MixedTrafficEnv"):
-        module = importlib.import_module("mixed_traffic.env")
-        globals().update(parallel_env=module.parallel_env, MixedTrafficEnv=module.MixedTrafficEnv)
-        # the submodule is callable like the env() function it contains (see env.py's end)
-        return module if name == "env" else globals()[name]
-    if name == "list_scenarios":
-        return importlib.import_module("mixed_traffic.scenario").list_scenarios
-    if name == "EnvConfig":
-        return importlib.import_module("mixed_traffic.config").EnvConfig
+    if name in ("env", "mixed_traffic_v0"):
+        return importlib.import_module(f"mixed_traffic.{name}")  # env: a callable package
+    if name in _LAZY:
+        module, attr = _LAZY[name]
+        return getattr(importlib.import_module(module), attr)
     raise AttributeError(f"module 'mixed_traffic' has no attribute {name!r}")

@@ -25,9 +25,9 @@ from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from mixed_traffic.backend import sumo_version as _backend_sumo_version
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.paths import REPO_ROOT, SCENARIOS_DIR
+from mixed_traffic.world.backend import sumo_version as _backend_sumo_version
 
 
 def git_revision(repo: Path = REPO_ROOT) -> str:

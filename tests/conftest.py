@@ -9,11 +9,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mixed_traffic.backend import SumoBackend
-from mixed_traffic.boundary import PeriodicBoundary
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.hdmap import HDMap
-from mixed_traffic.scenario import (
+from mixed_traffic.world.backend import SumoBackend
+from mixed_traffic.world.boundary import PeriodicBoundary
+from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.registry import (
     Demand,
     Scenario,
     load_scenario,

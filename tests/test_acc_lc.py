@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agents.acc_lc import AccLcConfig, AccLcPolicy, _idm
 from agents.policies import OBS_KEYS, to_actions
-from mixed_traffic.action import to_physical
+from agents.rules.acc_lc import AccLcConfig, AccLcPolicy, _idm
 from mixed_traffic.config import EnvConfig, VehicleConfig
-from mixed_traffic.observation import observation_space
+from mixed_traffic.env.action import to_physical
+from mixed_traffic.sensing.observation import observation_space
 
 LANE_END_CASES = {
     ("bottleneck", 60, 1.0),
@@ -266,7 +266,7 @@ def test_steady_following_is_smooth() -> None:
 def test_creeping_in_a_queue_does_not_swing_into_the_next_lane() -> None:
     """merge-eval, 120 veh/km, half AVs, seed 0: an AV centring itself while creeping in a queue
     turned 21 deg off its lane and, when the queue moved on, hit the car beside it (t = 98 s)."""
-    from agents.acc_lc import _run_episode
+    from agents.rules.acc_lc import _run_episode
 
     m, events, _ = _run_episode("merge-eval", 120, 0.5, 120.0, 0)
     assert events == {} and int(m["collisions"] or 0) == 0, events

@@ -9,8 +9,8 @@ import pytest
 from gymnasium import spaces
 from pettingzoo.utils.env import ParallelEnv
 
-from mixed_traffic.action import action_space, stack_actions, to_physical
 from mixed_traffic.config import VehicleConfig
+from mixed_traffic.env.action import action_space, stack_actions, to_physical
 from mixed_traffic.wrappers import FlatActionWrapper, dict_to_flat, flat_action_space, flat_to_dict
 
 

@@ -11,11 +11,11 @@ import torch
 
 from agents.bench_inference import random_obs
 from agents.checkpoint import load_checkpoint, load_policy, save_checkpoint
-from agents.fused import FusedActorCritic
-from agents.lca import LCA, LCAConfig
-from agents.networks import FOLLOW, Actor, Critic, select
-from agents.rbpdqn import RBPDQN, LearnerConfig, Policy, obs_to_torch
-from agents.replay import ReplayBuffer
+from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy, obs_to_torch
+from agents.learning.replay import ReplayBuffer
+from agents.nets.fused import FusedActorCritic
+from agents.nets.lca import LCA, LCAConfig
+from agents.nets.networks import FOLLOW, Actor, Critic, select
 
 ABLATIONS = [
     {},

@@ -275,6 +275,7 @@ def test_findings_wording(results):
         df = load_results(d)
     text = "\n".join(findings.findings(df))
     assert "DT-TF with auto falls from" in text
+    assert "paired t-test over 3 seeds: difference" in text  # same seeds at every cell
     assert "collisions" in text and "AV trips" in text
     assert "1 of 22 episodes failed" in text
     # identical data for two policies -> no difference can be claimed
@@ -282,7 +283,7 @@ def test_findings_wording(results):
     same2 = same.copy()
     same2["policy"] = "acc-lc"
     text2 = " ".join(findings.findings(pd.concat([same, same2], ignore_index=True)))
-    assert "within noise" in text2
+    assert "within noise; paired t-test over 3 seeds: difference 0.00 ± 0.00" in text2
 
 
 # ---------------------------------------------------------------- report
@@ -309,6 +310,7 @@ def test_report_pdf_contains_labels_and_numbers(results, tmp_path):
         assert name in text, name
     for prov in ("abc1234", "0b0b39a57b8a", "1.28.0", "FatalTraCIError"):
         assert prov in text, prov
+    assert "Welch's t-test" in " ".join(text.split())  # the wording rule is stated
     with pytest.warns(UserWarning):
         df = load_results(d)
     sel = df[(df["policy"] == "auto") & (df["penetration"] == 0.2)]

@@ -1,4 +1,4 @@
-"""Checkpoint comparison on the train split (mixed_traffic.compare), on real SUMO."""
+"""Checkpoint comparison on the train split (mixed_traffic.experiments.compare), on real SUMO."""
 
 from __future__ import annotations
 
@@ -11,7 +11,15 @@ import pytest
 import torch
 
 from agents.checkpoint import load_checkpoint, save_checkpoint
-from mixed_traffic.compare import CompareConfig, expand, main, rank, rank_key, run, score
+from mixed_traffic.experiments.compare import (
+    CompareConfig,
+    expand,
+    main,
+    rank,
+    rank_key,
+    run,
+    score,
+)
 from mixed_traffic.provenance import code_key, read_records
 
 SHIPPED = Path(__file__).resolve().parents[1] / "agents" / "checkpoints" / "auto.pt"

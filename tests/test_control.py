@@ -10,11 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mixed_traffic.backend import SumoBackend, TrafficSnapshot
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.control import BicycleController, bicycle_frenet_step, measure_mechanisms
-from mixed_traffic.hdmap import HDMap
-from mixed_traffic.scenario import load_scenario, make_demand, sumo_args, write_demand
+from mixed_traffic.env.control import BicycleController, bicycle_frenet_step, measure_mechanisms
+from mixed_traffic.world.backend import SumoBackend
+from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.registry import load_scenario, make_demand, sumo_args, write_demand
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 DT = 0.1
 
@@ -235,9 +236,10 @@ _SEGFAULT_SCRIPT = textwrap.dedent(
     import sys
     from pathlib import Path
     import numpy as np
-    from mixed_traffic.backend import SumoBackend, rad_to_sumo_angle
+    from mixed_traffic.world.backend import SumoBackend
+    from mixed_traffic.world.snapshot import rad_to_sumo_angle
     from mixed_traffic.config import EnvConfig
-    from mixed_traffic.scenario import load_scenario, make_demand, sumo_args, write_demand
+    from mixed_traffic.world.registry import load_scenario, make_demand, sumo_args, write_demand
 
     mode = sys.argv[1]
     cfg = EnvConfig(density=30.0, penetration=0.5, episode_length=30)

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mixed_traffic.backend import TrafficSnapshot
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.scenario import load_scenario, make_demand
+from mixed_traffic.world.registry import load_scenario, make_demand
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 from .conftest import start_sim
 

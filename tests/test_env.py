@@ -11,9 +11,9 @@ from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test
 import mixed_traffic
 from mixed_traffic.config import EnvConfig, SensorConfig
 from mixed_traffic.env import MixedTrafficEnv, env, parallel_env
-from mixed_traffic.reward import TERM_NAMES
-from mixed_traffic.scenario import list_scenarios
+from mixed_traffic.env.reward import TERM_NAMES
 from mixed_traffic.schema import TERMINAL_REASONS
+from mixed_traffic.world.registry import list_scenarios
 
 SHORT = dict(density=60.0, penetration=0.3, episode_length=8.0)
 
@@ -249,7 +249,7 @@ def test_a_refused_placement_never_appears_mid_road(monkeypatch) -> None:
     # would appear wherever a gap opens later; reset drops it instead
     import dataclasses
 
-    import mixed_traffic.env as env_module
+    import mixed_traffic.env.parallel as env_module
 
     make_demand, refused = env_module.make_demand, []
 
@@ -280,7 +280,7 @@ def test_vehicles_waiting_at_an_entry_are_not_dropped(tmp_path) -> None:
     # six of a user's vehicles depart together at a 3-lane entry: the others wait and follow
     import shutil
 
-    from mixed_traffic.scenario import load_scenario
+    from mixed_traffic.world.registry import load_scenario
 
     shutil.copy(load_scenario("straight").net_file, tmp_path / "road.net.xml")
     cars = "".join(f'<vehicle id="c{i}" depart="0" route="main"/>' for i in range(6))

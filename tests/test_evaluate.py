@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from mixed_traffic.evaluate import main
+from mixed_traffic.experiments.evaluate import main
 from mixed_traffic.provenance import read_records, scan_records, write_record_atomic
 from mixed_traffic.schema import METRICS
 

@@ -5,9 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mixed_traffic.backend import TrafficSnapshot
-from mixed_traffic.metrics import FlowRecorder, delay_index, density_per_km, entry_time, exit_time
-from mixed_traffic.scenario import load_scenario
+from mixed_traffic.env.metrics import (
+    FlowRecorder,
+    delay_index,
+    density_per_km,
+    entry_time,
+    exit_time,
+)
+from mixed_traffic.world.registry import load_scenario
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 from .conftest import start_sim
 

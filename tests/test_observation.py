@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 
 from mixed_traffic.config import EnvConfig, SensorConfig
-from mixed_traffic.observation import (
+from mixed_traffic.sensing.observation import (
     LEFT_CHANGE,
     RIGHT_CHANGE,
     SPEED_SCALE,
     ObservationBuilder,
     observation_space,
 )
-from mixed_traffic.perception import Perception, next_route_edge
+from mixed_traffic.sensing.perception import Perception, next_route_edge
 
 from .conftest import start_sim
 from .test_perception import brute_force, drop_network, routes_of, start_drop

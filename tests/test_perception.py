@@ -8,10 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mixed_traffic.backend import SumoBackend, TrafficSnapshot
 from mixed_traffic.config import SensorConfig
-from mixed_traffic.hdmap import HDMap, load_hdmap
-from mixed_traffic.perception import (
+from mixed_traffic.sensing.perception import (
     CURRENT,
     GREEN,
     NO_LIGHT,
@@ -26,7 +24,10 @@ from mixed_traffic.perception import (
     ttc,
     vehicle_features,
 )
-from mixed_traffic.scenario import build_network, load_scenario
+from mixed_traffic.world.backend import SumoBackend
+from mixed_traffic.world.hdmap import HDMap, load_hdmap
+from mixed_traffic.world.registry import build_network, load_scenario
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 from .conftest import start_sim
 

@@ -7,7 +7,7 @@ import pytest
 from PIL import Image
 
 from mixed_traffic.env import parallel_env
-from mixed_traffic.render import FrameCollector, record_gif
+from mixed_traffic.env.render import FrameCollector, record_gif
 
 
 def test_short_recording_writes_a_valid_animated_gif(tmp_path) -> None:

@@ -8,11 +8,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mixed_traffic.backend import SumoBackend
 from mixed_traffic.config import RewardConfig
-from mixed_traffic.control import BicycleController
-from mixed_traffic.hdmap import load_hdmap
-from mixed_traffic.reward import (
+from mixed_traffic.env.control import BicycleController
+from mixed_traffic.env.reward import (
     TERM_NAMES,
     centreline_distance,
     collided_mask,
@@ -26,7 +24,9 @@ from mixed_traffic.reward import (
     terminal_events,
     total_reward,
 )
-from mixed_traffic.scenario import build_network
+from mixed_traffic.world.backend import SumoBackend
+from mixed_traffic.world.hdmap import load_hdmap
+from mixed_traffic.world.registry import build_network
 
 from .test_control import DT, isolate, pick_av, start_straight
 

@@ -1,16 +1,16 @@
-"""Safety module (agents.safety) on real SUMO: it stops a reckless driver and leaves ACC-LC alone."""
+"""Safety module (agents.rules.safety) on real SUMO: it stops a reckless driver and leaves ACC-LC alone."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from agents.acc_lc import FOLLOW, AccLcPolicy
 from agents.policies import stack_obs, to_actions
-from agents.safety import SafetyModule
-from mixed_traffic.action import to_accel_brake, to_physical
+from agents.rules.acc_lc import FOLLOW, AccLcPolicy
+from agents.rules.safety import SafetyModule
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.observation import observation_space
+from mixed_traffic.env.action import to_accel_brake, to_physical
 from mixed_traffic.schema import TERMINAL_REASONS
+from mixed_traffic.sensing.observation import observation_space
 
 
 def _reckless(obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:

@@ -9,14 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from mixed_traffic.backend import SumoBackend, SumoError
 from mixed_traffic.config import EnvConfig
+from mixed_traffic.experiments.scenarios import main
 from mixed_traffic.paths import SCENARIOS_DIR
-from mixed_traffic.scenario import (
+from mixed_traffic.world.backend import SumoBackend, SumoError
+from mixed_traffic.world.registry import (
     build_network,
     list_scenarios,
     load_scenario,
-    main,
     make_demand,
     sumo_args,
 )

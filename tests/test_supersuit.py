@@ -8,7 +8,7 @@ import pytest
 from gymnasium import spaces
 
 from mixed_traffic.env import parallel_env
-from mixed_traffic.wrappers import FLAT_SIZE, FlatActionWrapper, FlatObservationWrapper
+from mixed_traffic.env.wrappers import FLAT_SIZE, FlatActionWrapper, FlatObservationWrapper
 
 ss = pytest.importorskip("supersuit")
 

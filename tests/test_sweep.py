@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 from pypdf import PdfReader
 
+from mixed_traffic.experiments.sweep import SweepConfig, cells, main, parse_args
 from mixed_traffic.provenance import current_code_key, read_records
-from mixed_traffic.sweep import SweepConfig, cells, main, parse_args
 
 TINY = [
     "--values",

@@ -1,4 +1,4 @@
-"""Multi-worker training (agents.trainer, agents.workers, mixed_traffic.train) on real SUMO.
+"""Multi-worker training (agents.learning.trainer, agents.collection.workers, mixed_traffic.experiments.train) on real SUMO.
 
 Tiny budgets: a few thousand transitions of 2 s episodes on one straight scenario.
 """
@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import torch
 
-from agents.acc_lc import AccLcPolicy
 from agents.checkpoint import load_checkpoint
-from agents.trainer import TrainConfig, Trainer
-from agents.workers import RolloutWorker
-from mixed_traffic.train import main
+from agents.collection.workers import RolloutWorker
+from agents.learning.trainer import TrainConfig, Trainer
+from agents.rules.acc_lc import AccLcPolicy
+from mixed_traffic.experiments.train import main
 
 DEMO = "acc-lc"
 

@@ -59,10 +59,8 @@ from itertools import repeat
 import gymnasium as gym
 import numpy as np
 
-from mixed_traffic.backend.snapshot import TrafficSnapshot
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.hdmap import HDMap
-from mixed_traffic.perception import (
+from mixed_traffic.sensing.perception import (
     CURRENT,
     NO_LIGHT,
     PerceptionFrame,
@@ -70,6 +68,8 @@ from mixed_traffic.perception import (
     next_route_edge,
     wrap_angle,
 )
+from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 #: Speed scale for velocities, relative velocities and speed limits [m/s].
 SPEED_SCALE = 40.0

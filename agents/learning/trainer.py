@@ -1,10 +1,10 @@
 """Multi-worker RBP-DQN training (paper §IV-F; DESIGN §10): N rollout workers, one learner.
 
-Topology: each worker (:mod:`agents.workers`) runs one env with a single-threaded copy of the
-policy and its own exploration (Ape-X ladder, :func:`agents.workers.exploration_ladder`), and
+Topology: each worker (:mod:`agents.collection.workers`) runs one env with a single-threaded copy of the
+policy and its own exploration (Ape-X ladder, :func:`agents.collection.workers.exploration_ladder`), and
 flushes its LocalBuffer in chunks of ≥ ``local_buffer`` transitions to the learner. The learner
-(this process) holds the GlobalBuffer (:class:`agents.replay.ReplayBuffer`), runs
-:meth:`agents.rbpdqn.RBPDQN.update` at ``update_ratio`` updates per transition received, and
+(this process) holds the GlobalBuffer (:class:`agents.learning.replay.ReplayBuffer`), runs
+:meth:`agents.learning.rbpdqn.RBPDQN.update` at ``update_ratio`` updates per transition received, and
 broadcasts weights every ``sync_every`` updates.
 
 Backends (:class:`TrainConfig.backend`):
@@ -44,10 +44,7 @@ import numpy as np
 import torch
 
 from agents.checkpoint import atomic_write_bytes, load_checkpoint, save_checkpoint
-from agents.lca import LCAConfig
-from agents.rbpdqn import RBPDQN, LearnerConfig
-from agents.replay import ReplayBuffer
-from agents.workers import (
+from agents.collection.workers import (
     Chunk,
     RolloutWorker,
     SharedWeights,
@@ -56,6 +53,9 @@ from agents.workers import (
     process_main,
     weight_vector,
 )
+from agents.learning.rbpdqn import RBPDQN, LearnerConfig
+from agents.learning.replay import ReplayBuffer
+from agents.nets.lca import LCAConfig
 from mixed_traffic.config import WEATHERS, EnvConfig
 
 BACKENDS = ("process", "ray")
@@ -111,7 +111,7 @@ class TrainConfig:
     expert_labels: bool = True
     """Label every transition the learning policy drives with the demonstrator's action for
     the same observation; behaviour cloning and the DQfD margin then target it (DAgger-style
-    deviation from the paper, see agents.rbpdqn; off = BC on the taken action)."""
+    deviation from the paper, see agents.learning.rbpdqn; off = BC on the taken action)."""
     alpha: float = 0.6
     """Weight α of the normalised Q term in the actor loss after pretraining [-] (paper 0.6)."""
     lr: float = 1e-3
@@ -476,7 +476,9 @@ class Trainer:
     def __init__(self, cfg: TrainConfig, env_base: EnvConfig | None = None,
                  resume: bool = False, command: str = "", log: Any = None) -> None:  # fmt: skip
         if not cfg.scenarios:
-            raise ValueError("TrainConfig.scenarios is empty (mixed_traffic.train fills it)")
+            raise ValueError(
+                "TrainConfig.scenarios is empty (mixed_traffic.experiments.train fills it)"
+            )
         self.cfg, self.command = cfg, command or " ".join(sys.argv)
         self.log = log or (lambda msg: print(msg, file=sys.stderr, flush=True))
         self.out = Path(cfg.out)

@@ -24,7 +24,7 @@ import numpy as np
 import traci
 import traci.constants as tc
 
-from mixed_traffic.backend.snapshot import Collision, TrafficSnapshot, sumo_angle_to_rad
+from mixed_traffic.world.snapshot import Collision, TrafficSnapshot, sumo_angle_to_rad
 
 #: speedMode 32: no safe-speed, acceleration, deceleration or right-of-way checks, so the
 #: policy (not SUMO) drives the AV; bit 5 set disregards right of way inside junctions too.

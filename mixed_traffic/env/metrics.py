@@ -46,9 +46,9 @@ from itertools import repeat
 
 import numpy as np
 
-from mixed_traffic.backend.snapshot import TrafficSnapshot
-from mixed_traffic.hdmap import HDMap
 from mixed_traffic.schema import TERMINAL_REASONS
+from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 #: Per-vehicle crossing state (int8).
 UNSEEN, UPSTREAM, INSIDE, INSIDE_UNKNOWN, CROSSED, LEFT = 0, 1, 2, 3, 4, 5

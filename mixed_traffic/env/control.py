@@ -43,9 +43,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from mixed_traffic.backend import SumoBackend, TrafficSnapshot
 from mixed_traffic.config import VehicleConfig
-from mixed_traffic.hdmap import SPACING, HDMap
+from mixed_traffic.world.backend import SumoBackend
+from mixed_traffic.world.hdmap import SPACING, HDMap
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 #: Largest course angle relative to the lane [rad]; SUMO cannot move a vehicle backwards.
 MAX_COURSE = np.deg2rad(80.0)
@@ -294,7 +295,7 @@ def measure_mechanisms(
     Returns:
         ``{"set_speed_change_sublane_us": ..., "move_to_xy_us": ...}`` per vehicle.
     """
-    from mixed_traffic.backend import rad_to_sumo_angle
+    from mixed_traffic.world.snapshot import rad_to_sumo_angle
 
     wanted = set(ids)
     t_cs = t_xy = 0.0

@@ -20,8 +20,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from agents.lca import LCA, N_LANES, N_NODE_TYPES, HistoryGRU
-from agents.networks import ACTION_DIM, N_DECISIONS, N_PARAMS, Actor, Critic
+from agents.nets.lca import LCA, N_LANES, N_NODE_TYPES, HistoryGRU
+from agents.nets.networks import ACTION_DIM, N_DECISIONS, N_PARAMS, Actor, Critic
 
 _MAX_CACHED_SIZES = 4
 """Buffer sets kept per distinct batch size (agent counts vary per step); oldest evicted."""

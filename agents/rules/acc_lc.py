@@ -2,7 +2,7 @@
 
 It acts exactly like a learned policy, ``obs -> action`` through the env's parameterized action
 space, from the observation only (DESIGN §6 layout, normalisation constants of
-``mixed_traffic.observation``), vectorised over agents::
+``mixed_traffic.sensing.observation``), vectorised over agents::
 
     pol = AccLcPolicy()
     decision, params = pol.act(obs_batch)   # obs_batch[key]: (A, ...) stacked observations
@@ -63,9 +63,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from mixed_traffic.config import SensorConfig, VehicleConfig
-from mixed_traffic.control import CURVATURE_WINDOW
-from mixed_traffic.observation import EGO_SCALE, SPEED_SCALE, WAYPOINT_SCALE
-from mixed_traffic.reward import DEAD_END_DISTANCE
+from mixed_traffic.env.api import (
+    CURVATURE_WINDOW,
+    DEAD_END_DISTANCE,
+    EGO_SCALE,
+    SPEED_SCALE,
+    WAYPOINT_SCALE,
+)
 
 LEFT, FOLLOW, RIGHT = 0, 1, 2
 #: lane columns in the observation (left, current, right)

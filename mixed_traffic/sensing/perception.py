@@ -59,9 +59,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from mixed_traffic.backend.snapshot import TrafficSnapshot
 from mixed_traffic.config import SensorConfig
-from mixed_traffic.hdmap import SPACING, HDMap
+from mixed_traffic.world.hdmap import SPACING, HDMap
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 #: Lanes followed ahead (and behind) of a lane when looking for a leader (follower).
 SEARCH_DEPTH = 4

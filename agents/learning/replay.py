@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from agents.lca import LCAConfig
+from agents.nets.lca import LCAConfig
 
 OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
 LABEL_KEYS = ("labelled", "label_decision", "label_params")
@@ -90,7 +90,7 @@ class ReplayBuffer:
         self.size = min(self.size + n, self.capacity)
 
     def sample(self, batch: int, rng: np.random.Generator) -> dict:
-        """Uniform sample with replacement → batch dict of torch tensors (see agents.rbpdqn)."""
+        """Uniform sample with replacement → batch dict of torch tensors (see agents.learning.rbpdqn)."""
         if self.size == 0:
             raise ValueError("cannot sample from an empty replay buffer")
         idx = rng.integers(0, self.size, size=batch)

@@ -12,7 +12,7 @@ Agents
     empty observation (only ``follow`` allowed) and its actions are ignored.
 Observation
     ``Dict(ego (z,5), lanes (3,z,4m), vehicles (3,z,12), lights (3,z,4), node_mask (3,3),
-    action_mask (3,))``, see ``mixed_traffic.observation`` for features and scales. Sensors
+    action_mask (3,))``, see ``mixed_traffic.sensing.observation`` for features and scales. Sensors
     (LiDAR vehicles, camera lights, GNSS/IMU ego) apply the weather preset's noise and
     misdetection; rewards, terminations and metrics use ground truth.
 Action
@@ -25,7 +25,7 @@ Action
 Reward
     ``0.9·r1 + 0.8·r2 + 0.6·r3 + 0.2·r4`` (``RewardConfig``), every term by name in
     ``infos[agent]["reward_terms"]``: r1_ttc, r1_lane, r1_terminal, r2_speed, r2_lane_change,
-    r3_comfort, r4_impact (``mixed_traffic.reward``).
+    r3_comfort, r4_impact (``mixed_traffic.env.reward``).
 Termination / truncation
     Terminated on arrival or a terminal event (``infos[agent]["event"]`` = collision,
     off_road, route_deviation, red_light, speed_limit; the vehicle leaves SUMO). All live
@@ -45,9 +45,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import sys
 import tempfile
-import types
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from functools import cached_property
@@ -60,15 +58,14 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
-from mixed_traffic import reward as rw
-from mixed_traffic.action import action_space, stack_actions, to_physical
-from mixed_traffic.backend import SumoBackend, TrafficSnapshot
-from mixed_traffic.boundary import PeriodicBoundary
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.control import BicycleController
-from mixed_traffic.metrics import AVMetrics, AVStep, FlowRecorder
-from mixed_traffic.observation import ObservationBuilder, observation_space
-from mixed_traffic.perception import (
+from mixed_traffic.env import reward as rw
+from mixed_traffic.env.action import action_space, stack_actions, to_physical
+from mixed_traffic.env.control import BicycleController
+from mixed_traffic.env.metrics import AVMetrics, AVStep, FlowRecorder
+from mixed_traffic.schema import METRICS
+from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
+from mixed_traffic.sensing.perception import (
     CURRENT,
     Neighbours,
     Perception,
@@ -76,14 +73,16 @@ from mixed_traffic.perception import (
     bumper_gap,
     ttc,
 )
-from mixed_traffic.scenario import (
+from mixed_traffic.world.backend import SumoBackend
+from mixed_traffic.world.boundary import PeriodicBoundary
+from mixed_traffic.world.registry import (
     check_density,
     load_scenario,
     make_demand,
     sumo_args,
     write_demand,
 )
-from mixed_traffic.schema import METRICS
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 FOLLOW = 1
 
@@ -559,7 +558,7 @@ class MixedTrafficEnv(ParallelEnv):
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._snap is None:
             return None
-        from mixed_traffic.render import Renderer
+        from mixed_traffic.env.render import Renderer
 
         if not hasattr(self, "_renderer"):
             self._renderer = Renderer(self.hdmap)
@@ -665,7 +664,7 @@ def _take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
 
 
 def _check_gui() -> None:
-    from mixed_traffic.backend import binary
+    from mixed_traffic.world.backend import binary
 
     if not os.environ.get("DISPLAY"):
         raise ValueError("render_mode='human' needs sumo-gui and a display (DISPLAY is not set); "
@@ -681,15 +680,3 @@ def parallel_env(**kwargs: Any) -> MixedTrafficEnv:
 def env(**kwargs: Any):
     """The AEC version of ``parallel_env`` (via ``parallel_to_aec``)."""
     return parallel_to_aec(parallel_env(**kwargs))
-
-
-class _CallableModule(types.ModuleType):
-    """``mixed_traffic.env`` is both this module and, PettingZoo-style, the AEC constructor:
-    importing the submodule rebinds the package attribute to the module, so the module itself
-    forwards calls to ``env()``."""
-
-    def __call__(self, **kwargs: Any):
-        return env(**kwargs)
-
-
-sys.modules[__name__].__class__ = _CallableModule

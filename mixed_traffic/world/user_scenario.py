@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mixed_traffic.scenario import OwnVehicle, Route, Scenario
+from mixed_traffic.world.registry import OwnVehicle, Route, Scenario
 
 #: Fringe origin/destination pairs kept for a bare network (enough for route choice, few routes).
 MAX_OD_PAIRS = 12

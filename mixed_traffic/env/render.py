@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from mixed_traffic.backend import TrafficSnapshot
-from mixed_traffic.hdmap import HDMap
+from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 AV_COLOUR = (220, 40, 40)
 HV_COLOUR = (150, 170, 200)

@@ -1,6 +1,6 @@
 """RBP-DQN learner (paper §IV-F eq. train_actor / train_critic) and the batched inference policy.
 
-Batch layout (what :meth:`agents.replay.ReplayBuffer.sample` returns), B = batch size:
+Batch layout (what :meth:`agents.learning.replay.ReplayBuffer.sample` returns), B = batch size:
 
 - ``obs``, ``next_obs``: dicts of float tensors (B, ...) per DESIGN §6 (``next_obs`` includes
   ``action_mask`` (B, 3), used to mask the TD target);
@@ -31,9 +31,9 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from agents.fused import FusedActorCritic
-from agents.lca import LCAConfig
-from agents.networks import FOLLOW, Actor, Critic, masked_q, select
+from agents.nets.fused import FusedActorCritic
+from agents.nets.lca import LCAConfig
+from agents.nets.networks import FOLLOW, Actor, Critic, masked_q, select
 
 
 @dataclass(frozen=True)
@@ -228,7 +228,7 @@ def obs_to_torch(obs: dict[str, np.ndarray]) -> dict[str, Tensor]:
 class Policy:
     """Batched inference for all agents of a step: one forward of actor + critic + selection.
 
-    Uses the fused path (:mod:`agents.fused`) for the default LCA and the reference modules for
+    Uses the fused path (:mod:`agents.nets.fused`) for the default LCA and the reference modules for
     ablations. Holds a snapshot of the weights: call :meth:`sync` after the learner updates.
     """
 

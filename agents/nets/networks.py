@@ -9,7 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from agents.lca import LCA, N_LANES, LCAConfig, fast_tanh
+from agents.nets.lca import LCA, N_LANES, LCAConfig, fast_tanh
 
 N_DECISIONS = 3
 """Parameterized-action decisions (left change, follow, right change)."""

@@ -32,7 +32,7 @@ from collections.abc import Iterable, Mapping, Sequence
 import numpy as np
 
 from mixed_traffic.config import RewardConfig
-from mixed_traffic.hdmap import HDMap
+from mixed_traffic.world.hdmap import HDMap
 
 TERM_NAMES = (
     "r1_ttc",

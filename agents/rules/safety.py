@@ -3,10 +3,10 @@
 The paper's related work (§VI) notes that industrial driving stacks always place a safety module
 behind the learned decision maker: it checks whether the action is safe and, if not, the vehicle
 enters a safe mode in which a rule-based method computes the action. This is that module, with
-ACC-LC (``agents.acc_lc``) as the rule-based method. Per agent and step:
+ACC-LC (``agents.rules.acc_lc``) as the rule-based method. Per agent and step:
 
 * **lateral** (safe mode): the learned (steering, accel) is held for ``horizon`` seconds in the
-  env's kinematic bicycle model (``mixed_traffic.control``). If the predicted lateral offset
+  env's kinematic bicycle model (``mixed_traffic.env.control``). If the predicted lateral offset
   leaves the corridor of the chosen decision and moves outwards, the agent takes ACC-LC's whole
   action (decision and parameters). The corridor is the current lane, plus the target lane when
   ACC-LC accepts the gap there, minus room kept clear of vehicles alongside. In its lane, the
@@ -30,10 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agents.acc_lc import FOLLOW, LEFT, RIGHT, AccLcPlan, AccLcPolicy, lane_curvature
-from mixed_traffic.action import to_accel_brake, to_physical
+from agents.rules.acc_lc import FOLLOW, LEFT, RIGHT, AccLcPlan, AccLcPolicy, lane_curvature
 from mixed_traffic.config import VehicleConfig
-from mixed_traffic.control import bicycle_frenet_step
+from mixed_traffic.env.api import bicycle_frenet_step, to_accel_brake, to_physical
 
 
 @dataclass(frozen=True)

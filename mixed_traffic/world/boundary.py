@@ -13,10 +13,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mixed_traffic.backend import SumoBackend, TrafficSnapshot
 from mixed_traffic.config import VehicleConfig
-from mixed_traffic.hdmap import HDMap
-from mixed_traffic.scenario import Demand, QueuedVehicle, Scenario
+from mixed_traffic.world.backend import SumoBackend
+from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.registry import Demand, QueuedVehicle, Scenario
+from mixed_traffic.world.snapshot import TrafficSnapshot
 
 
 @dataclass

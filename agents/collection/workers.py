@@ -1,7 +1,7 @@
 """Rollout workers (paper §IV-F, Algorithm 1: worker with a LocalBuffer) and their transports.
 
 A :class:`RolloutWorker` owns one env (libsumo allows one simulation per process), a local
-copy of the actor/critic wrapped in a single-threaded :class:`agents.rbpdqn.Policy`, and a
+copy of the actor/critic wrapped in a single-threaded :class:`agents.learning.rbpdqn.Policy`, and a
 :class:`LocalBuffer`. :meth:`RolloutWorker.collect` drives the env until at least ``n``
 transitions are buffered and returns them as one :data:`Chunk` (the LocalBuffer flush). The
 episode in progress carries over between calls.
@@ -11,7 +11,7 @@ seed from ``np.random.default_rng([seed, worker_id, run, incarnation, episode])`
 generator drives exploration, so a worker's trajectory is a pure function of those numbers and
 the weights it is given.
 
-Transports (the learner side lives in :mod:`agents.trainer`):
+Transports (the learner side lives in :mod:`agents.learning.trainer`):
 
 - in-process: the learner calls ``collect`` directly (``--workers 1``: deterministic);
 - :func:`process_main`: a spawned process sends chunks through its own pipe and reads weights
@@ -33,10 +33,10 @@ import numpy as np
 import torch
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from agents.lca import LCAConfig
-from agents.networks import Actor, Critic
+from agents.learning.rbpdqn import Policy
+from agents.nets.lca import LCAConfig
+from agents.nets.networks import Actor, Critic
 from agents.policies import make_policy, stack_obs, to_actions
-from agents.rbpdqn import Policy
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
 
@@ -47,7 +47,7 @@ Chunk = dict[str, Any]
 """A LocalBuffer flush: ``obs``/``next_obs`` dicts of float32 (n, ...) arrays, ``decision``
 (n,) int64, ``params`` (n, 3, 2) float32, ``reward`` (n,) float32, ``done`` (n,) float32, the
 expert labels ``labelled`` (n,) float32, ``label_decision`` (n,) int64, ``label_params``
-(n, 3, 2) float32 (see :class:`agents.replay.ReplayBuffer`), plus ``worker_id``,
+(n, 3, 2) float32 (see :class:`agents.learning.replay.ReplayBuffer`), plus ``worker_id``,
 ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo`` (transitions in
 the chunk driven by the demonstrator), ``sim_steps`` (env steps taken),
 ``trips``/``terminals``/``collisions`` (AV trips that ended in the chunk: arrived or terminal;

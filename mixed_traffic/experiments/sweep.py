@@ -1,0 +1,340 @@
+"""Scalability sweeps over AV penetration, traffic density or weather (paper §V-G).
+
+``python -m mixed_traffic.sweep --penetration`` runs every (policy, value, seed) cell in parallel
+worker processes, appends each episode's record to ``RESULTS/records.jsonl`` as soon as it
+finishes (atomically; a re-run skips cells already recorded by the same code), then writes
+figures and a PDF report. Each cell runs in its own process: libsumo allows one simulation per
+process, and a SUMO segfault then costs one cell (recorded as failed with its exit code), not
+the sweep.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import multiprocessing as mp
+import sys
+import time
+import traceback
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from tqdm import tqdm
+
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.experiments.cli import add_config_args, config_dest, config_from_args
+from mixed_traffic.provenance import (
+    current_code_key,
+    read_records,
+    record_meta,
+    write_record_atomic,
+)
+from mixed_traffic.schema import CELL_KEYS, POLICIES
+
+PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
+DENSITIES = (60.0, 120.0, 180.0)
+WEATHERS = ("normal", "rain", "fog", "night")
+AXES = ("penetration", "density", "weather")
+
+
+@dataclass(frozen=True)
+class SweepConfig:
+    """One sweep: which axis, which cells, where results go. The CLI is built from it."""
+
+    axis: str = "penetration"
+    """penetration | density | weather."""
+    scenario: str = "straight"
+    """Scenario name or .net.xml/.sumocfg path (see ``python -m mixed_traffic.scenario --list``)."""
+    at_density: float = 120.0
+    """Density for the penetration and weather sweeps [veh/km]."""
+    at_penetration: float = 0.2
+    """AV penetration for the density and weather sweeps [0-1]."""
+    values: tuple[float | str, ...] = ()
+    """Values of the swept axis (default: penetration 0.2 .. 1.0, density 60 120 180 veh/km, or
+    every weather)."""
+    reference: bool = True
+    """Add the all-IDM 0 % reference cells to a penetration sweep."""
+    policies: tuple[str, ...] = ("auto", "acc-lc")
+    """Policies to compare: auto (AUTO behind its safety module), auto-raw, acc-lc, idm, random."""
+    seeds: tuple[int, ...] = (0, 1, 2)
+    """Root seeds; each cell runs once per seed."""
+    episode_length: float = 150.0
+    """Simulated time per episode [s]."""
+    warmup: float = 30.0
+    """Time before flow metrics are recorded [s]."""
+    checkpoint: Path | None = None
+    """AUTO checkpoint (default: the shipped agents/checkpoints/auto.pt)."""
+    workers: int = 2
+    """Parallel worker processes (or Ray tasks at a time)."""
+    backend: str = "process"
+    """process (local worker processes) | ray (Ray tasks, local or on a cluster)."""
+    address: str = ""
+    """With backend ray: cluster address for ray.init, e.g. auto (default: start Ray locally)."""
+    out: Path | None = None
+    """Results folder for records.jsonl (default: results/<axis>)."""
+    report: bool = True
+    """Write figures and the PDF report after the cells."""
+    pdf: Path | None = None
+    """PDF report path, figures beside it (default: reports/<axis>.pdf)."""
+
+    def __post_init__(self) -> None:
+        def bad(name: str, why: str) -> None:
+            raise ValueError(f"--{name.replace('_', '-')}={getattr(self, name)!r}: {why}")
+
+        if self.axis not in AXES:
+            bad("axis", f"choose from {AXES}")
+        unknown = [p for p in self.policies if p not in POLICIES]
+        if unknown or not self.policies:
+            bad("policies", f"unknown policies {unknown}; choose from {list(POLICIES)}")
+        if not self.seeds:
+            bad("seeds", "give at least one seed")
+        if self.workers < 1:
+            bad("workers", "must be >= 1")
+        if self.backend not in ("process", "ray"):
+            bad("backend", "choose from process, ray")
+        if self.address and self.backend != "ray":
+            bad("address", "--address needs --backend ray")
+        if not 0 <= self.warmup < self.episode_length:
+            bad("warmup", f"must be in [0, episode length {self.episode_length})")
+        EnvConfig(scenario=self.scenario, density=self.at_density,
+                  penetration=self.at_penetration, episode_length=self.episode_length)  # fmt: skip
+        try:
+            for v in self.axis_values():  # each value must make a valid config
+                EnvConfig(**{"density": self.at_density, "penetration": self.at_penetration,
+                             self.axis: v})  # fmt: skip
+        except ValueError as e:
+            bad("values", str(e))
+
+    def axis_values(self) -> tuple:
+        """The swept values: numbers for penetration and density, names for weather."""
+        if not self.values:
+            return {"penetration": PENETRATIONS, "density": DENSITIES, "weather": WEATHERS}[
+                self.axis
+            ]
+        return self.values if self.axis == "weather" else tuple(float(v) for v in self.values)
+
+    @property
+    def results(self) -> Path:
+        """Folder of records.jsonl."""
+        return self.out or Path("results") / self.axis
+
+    @property
+    def report_pdf(self) -> Path | None:
+        """Where the PDF goes, or None without a report."""
+        return (self.pdf or Path("reports") / f"{self.axis}.pdf") if self.report else None
+
+
+@dataclass(frozen=True)
+class Cell:
+    policy: str
+    scenario: str
+    density: float
+    penetration: float
+    weather: str
+    seed: int
+
+    def key(self) -> tuple:
+        return tuple(getattr(self, k) for k in CELL_KEYS)
+
+
+def cells(sweep: SweepConfig) -> list[Cell]:
+    """Every cell of the sweep, in a stable order (seed-major, so early results span the axis)."""
+    base = dict(
+        scenario=sweep.scenario,
+        density=sweep.at_density,
+        penetration=sweep.at_penetration,
+        weather="normal",
+    )
+    out: list[Cell] = []
+    for seed in sweep.seeds:
+        if sweep.axis == "penetration" and sweep.reference:
+            out.append(Cell("idm", **{**base, "penetration": 0.0}, seed=seed))
+        for value in sweep.axis_values():
+            out += [Cell(p, **{**base, sweep.axis: value}, seed=seed) for p in sweep.policies]
+    return out
+
+
+def cell_config(cell: Cell, sweep: SweepConfig) -> EnvConfig:
+    return EnvConfig(
+        scenario=cell.scenario,
+        density=cell.density,
+        penetration=cell.penetration,
+        weather=cell.weather,
+        seed=cell.seed,
+        episode_length=sweep.episode_length,
+    )
+
+
+def episode_record(cell: Cell, sweep: SweepConfig) -> dict:
+    """One episode of ``cell``: its record, or a failed record carrying the error."""
+    try:
+        from mixed_traffic.experiments.evaluate import run_episode
+
+        config = cell_config(cell, sweep)
+        record = run_episode(config, cell.policy, sweep.warmup, checkpoint=sweep.checkpoint)
+    except Exception as e:  # any failure becomes a failed record; the sweep carries on
+        return _failed(cell, sweep, f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=3)}")
+    record["cell"] = asdict(cell)
+    return record
+
+
+def _failed(cell: Cell, sweep: SweepConfig, error: str) -> dict:
+    record = {**record_meta(cell_config(cell, sweep)), "status": "failed", "metrics": {}}
+    record.update(error=error, cell=asdict(cell))
+    return record
+
+
+def _run_cell(cell: Cell, sweep: SweepConfig, queue: mp.Queue) -> None:
+    """Worker process: one episode's record onto the queue."""
+    queue.put(episode_record(cell, sweep))
+
+
+def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
+    """Run the missing cells of ``sweep``; returns the records file."""
+    sweep.results.mkdir(parents=True, exist_ok=True)
+    records_path = sweep.results / "records.jsonl"
+    done = {_cell_key(r) for r in _records_of_this_code(records_path)}
+    todo = [c for c in cells(sweep) if c.key() not in done]
+    bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode", disable=not progress)
+    if sweep.backend == "ray":
+        _run_ray(todo, sweep, records_path, bar)
+    else:
+        _run_processes(todo, sweep, records_path, bar)
+    bar.close()
+    return records_path
+
+
+def _records_of_this_code(path: Path) -> list[dict]:
+    """The records in ``path``, or none if any was written by other code (another ``code``
+    hash, or none): those would count as done and mix into the report, so the file is moved
+    aside as ``records.code-<theirs>.jsonl`` (nothing is lost) and every cell runs again."""
+    records, ours = read_records(path), current_code_key()
+    codes = {r.get("code") or "unknown" for r in records}
+    if codes <= {ours}:
+        return records
+    tag = "-".join(sorted(codes - {ours}))[:40]
+    aside = path.with_name(f"records.code-{tag}.jsonl")
+    n = 1
+    while aside.exists():
+        n += 1
+        aside = path.with_name(f"records.code-{tag}.{n}.jsonl")
+    path.replace(aside)
+    print(f"{path}: records from other code ({tag}) moved to {aside.name}; running every cell "
+          "again", file=sys.stderr)  # fmt: skip
+    return []
+
+
+def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm) -> None:
+    """At most ``workers`` cells at a time, each in its own spawned process."""
+    ctx = mp.get_context("spawn")
+    queue: mp.Queue = ctx.Queue()
+    running: dict[int, tuple[mp.Process, Cell, float]] = {}
+    pending = list(todo)
+    while pending or running:
+        while pending and len(running) < sweep.workers:
+            cell = pending.pop(0)
+            proc = ctx.Process(target=_run_cell, args=(cell, sweep, queue), daemon=True)
+            proc.start()
+            running[proc.pid] = (proc, cell, time.time())
+        _collect(queue, running, records_path, bar, sweep)
+
+
+def _collect(
+    queue: mp.Queue, running: dict, records_path: Path, bar: tqdm, sweep: SweepConfig
+) -> None:
+    """Write records that arrived; turn dead workers without a record into failed records."""
+    try:
+        record = queue.get(timeout=0.5)
+    except Exception:
+        record = None
+    if record is not None:
+        write_record_atomic(records_path, record)
+        key = _cell_key(record)
+        for pid, (proc, cell, _) in list(running.items()):
+            if cell.key() == key:
+                proc.join(timeout=10)
+                del running[pid]
+        _advance(bar, record)
+        return
+    for pid, (proc, cell, _) in list(running.items()):
+        if not proc.is_alive() and proc.exitcode not in (None, 0) and queue.empty():
+            failed = _failed(cell, sweep, f"worker process died with exit code {proc.exitcode}")
+            write_record_atomic(records_path, failed)
+            del running[pid]
+            _advance(bar, failed)
+
+
+def _run_ray(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm) -> None:
+    """Each cell a Ray task (one CPU, no retries); a task whose worker dies is a failed record."""
+    import ray
+
+    owns = not ray.is_initialized()
+    if owns:
+        local_cpus = None if sweep.address else sweep.workers
+        ray.init(address=sweep.address or None, num_cpus=local_cpus, log_to_driver=False)
+    task = ray.remote(num_cpus=1, max_retries=0)(episode_record)
+    try:
+        futures = {task.remote(c, sweep): c for c in todo}
+        while futures:
+            ready, _ = ray.wait(list(futures), num_returns=1)
+            cell = futures.pop(ready[0])
+            try:
+                record = ray.get(ready[0])
+            except Exception as e:  # the worker process died (e.g. a SUMO segfault)
+                record = _failed(cell, sweep, f"Ray task failed: {type(e).__name__}: {e}")
+            write_record_atomic(records_path, record)
+            _advance(bar, record)
+    finally:
+        if owns:
+            ray.shutdown()
+
+
+def _advance(bar: tqdm, record: dict) -> None:
+    cell = record["cell"]
+    bar.update(1)
+    bar.set_postfix_str(f"{cell['policy']} p={cell['penetration']} {record['status']}")
+
+
+def _cell_key(record: dict) -> tuple:
+    cell = record.get("cell", {})
+    return tuple(cell.get(k) for k in CELL_KEYS)
+
+
+# --------------------------------------------------------------------------- CLI
+def parse_args(argv: list[str] | None) -> SweepConfig:
+    """SweepConfig from the command line; exits with a message naming a bad option."""
+    p = argparse.ArgumentParser(
+        prog="python -m mixed_traffic.sweep",
+        description="Penetration / density / weather sweeps with figures and a PDF report.",
+    )
+    axis = p.add_mutually_exclusive_group()
+    dest = config_dest("axis")  # the config field `axis`, set by one of three flags
+    axis.add_argument("--penetration", dest=dest, action="store_const", const="penetration",
+                      help=f"sweep AV penetration {PENETRATIONS} plus an all-IDM 0 %% reference (default)")  # fmt: skip
+    axis.add_argument("--density", dest=dest, action="store_const", const="density",
+                      help=f"sweep density {DENSITIES} veh/km")  # fmt: skip
+    axis.add_argument("--weather", dest=dest, action="store_const", const="weather",
+                      help=f"sweep the weather presets {WEATHERS}")  # fmt: skip
+    fields = [f.name for f in dataclasses.fields(SweepConfig) if f.name != "axis"]
+    add_config_args(p, SweepConfig, only=fields)
+    try:
+        return config_from_args(p.parse_args(argv), SweepConfig)
+    except ValueError as e:
+        p.error(str(e))
+
+
+def main(argv: list[str] | None = None) -> int:
+    sweep = parse_args(argv)
+    t0 = time.time()
+    records = run_sweep(sweep)
+    print(f"records: {records} ({time.time() - t0:.0f} s)")
+    if sweep.report_pdf is not None:
+        from analysis.report import build_report
+
+        pdf = build_report(sweep.results, sweep.report_pdf)
+        print(f"report: {pdf}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,117 @@
+"""``python -m mixed_traffic.train``: multi-worker RBP-DQN training (paper §IV-F, DESIGN §10).
+
+The options are built from :class:`agents.learning.trainer.TrainConfig` (field docstrings carry the
+units). This module composes: it resolves and validates the scenarios (train split only) and
+the density range per scenario before any worker starts, then runs :class:`Trainer`.
+
+Examples::
+
+    python -m mixed_traffic.train --workers 2 --env-steps 2000000 --out runs/auto
+    python -m mixed_traffic.train --workers 2 --minutes 60 --out runs/auto --resume
+    python -m mixed_traffic.train --workers 10 --backend ray --address auto --env-steps 5e6
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shlex
+import sys
+from collections.abc import Sequence
+from typing import Any
+
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.experiments import cli
+from mixed_traffic.experiments.cli import add_config_args
+
+_SHORT = {"workers", "backend", "address", "scenarios", "densities", "penetrations", "weathers",
+          "env_steps", "minutes", "out", "seed", "demo_steps", "ablation", "bp_dqn"}  # fmt: skip
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from agents.learning.trainer import TrainConfig
+
+    p = argparse.ArgumentParser(
+        prog="python -m mixed_traffic.train",
+        description="Train the AUTO agent (LCA + RBP-DQN) with N rollout workers and one learner. "
+        "Writes OUT/curves.csv, OUT/checkpoint.pt, OUT/replay.pt, OUT/state.json and, at the "
+        "end, OUT/auto.pt + OUT/auto.json; each periodic checkpoint is also kept in OUT/snapshots/.",
+    )
+    names = [f.name for f in dataclasses.fields(TrainConfig)]
+    add_config_args(p, TrainConfig, only=[n for n in names if n in _SHORT])
+    add_config_args(p, TrainConfig, only=[n for n in names if n not in _SHORT],
+                    group_title="advanced")  # fmt: skip
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the run in --out from its checkpoint, replay and counters",
+    )
+    sensors = EnvConfig().sensors
+    p.add_argument("--history", type=int, default=sensors.history,
+                   help=f"observation history z [steps] (default: {sensors.history})")  # fmt: skip
+    p.add_argument("--waypoints", type=int, default=sensors.waypoints,
+                   help=f"lane waypoints m per lane [count] (default: {sensors.waypoints})")  # fmt: skip
+    return p
+
+
+def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Any:
+    """TrainConfig from the options; validates scenarios and densities (parser.error on bad)."""
+    from agents.learning.trainer import TrainConfig
+    from mixed_traffic.world.registry import (
+        check_density,
+        list_scenarios,
+        train_scenarios,
+        train_split_scenario,
+    )
+
+    try:
+        cfg = cli.config_from_args(args, TrainConfig)
+    except ValueError as e:
+        parser.error(str(e))
+    scen = tuple(s for s in cfg.scenarios if s) or tuple(train_scenarios())
+    for s in scen:
+        if s not in list_scenarios():
+            parser.error(
+                f"--scenarios: unknown scenario {s!r}; known: {', '.join(list_scenarios())}"
+            )
+        try:
+            sc = train_split_scenario(s)
+        except ValueError as e:
+            parser.error(f"--scenarios: {e}")
+        for d in cfg.densities:
+            try:
+                check_density(sc, d)
+            except ValueError as e:
+                parser.error(f"--densities: {e}")
+    return dataclasses.replace(cfg, scenarios=scen)
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    cfg = config_from_args(args, parser)
+    base = EnvConfig()
+    try:
+        sensors = dataclasses.replace(base.sensors, history=args.history, waypoints=args.waypoints)
+    except ValueError as e:
+        parser.error(str(e))
+    env_base = dataclasses.replace(base, sensors=sensors)
+    from agents.learning.trainer import Trainer
+
+    argv_list = list(sys.argv[1:] if argv is None else argv)
+    command = shlex.join(["python", "-m", "mixed_traffic.train", *argv_list])
+    try:
+        trainer = Trainer(cfg, env_base=env_base, resume=args.resume, command=command)
+    except (FileExistsError, FileNotFoundError, ValueError) as e:
+        parser.error(str(e))
+    info = trainer.run()
+    print(
+        f"done: {info['env_steps']} env steps, {info['updates']} updates, "
+        f"{info['episodes']} episodes in {info['wall_time_s']:.0f} s; "
+        f"worker restarts {info['worker_restarts']}; wrote {cfg.out}/auto.pt"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
