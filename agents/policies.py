@@ -3,18 +3,31 @@ random.
 
 Every policy maps a *batch* of observations (each key stacked over the A agents of a step) to
 ``(decision (A,), params (A, 3, 2))`` in one call, so inference is one batched pass per step.
+``OBS_KEYS``, ``stack_obs`` and ``to_actions`` live in :mod:`agents.rules.obs_batch` (below every
+policy, so ACC-LC does not import this module) and are re-exported here.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Protocol
 
 import numpy as np
 
-OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
+from agents.rules.obs_batch import OBS_KEYS, stack_obs, to_actions
+
 SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "auto.pt"
+
+__all__ = [
+    "OBS_KEYS",
+    "SHIPPED_CHECKPOINT",
+    "AutoPolicy",
+    "BatchPolicy",
+    "RandomPolicy",
+    "make_policy",
+    "stack_obs",
+    "to_actions",
+]
 
 
 class BatchPolicy(Protocol):
@@ -22,21 +35,6 @@ class BatchPolicy(Protocol):
 
     def act(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """obs (A, ...) per key -> (decision (A,) int, params (A, 3, 2) float in [-1, 1])."""
-
-
-def stack_obs(
-    obs: Mapping[str, Mapping[str, np.ndarray]], agents: list[str]
-) -> dict[str, np.ndarray]:
-    """{agent: {key: x}} -> {key: (A, ...)} in the order of ``agents``."""
-    return {k: np.stack([obs[a][k] for a in agents]) for k in OBS_KEYS}
-
-
-def to_actions(
-    agents: list[str], decision: np.ndarray, params: np.ndarray
-) -> dict[str, dict[str, Any]]:
-    """Batched policy output -> the env's per-agent action dicts."""
-    params = np.asarray(params, dtype=np.float32)
-    return {a: {"decision": int(decision[i]), "params": params[i]} for i, a in enumerate(agents)}
 
 
 class RandomPolicy:

@@ -12,15 +12,10 @@ import pytest
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.boundary import PeriodicBoundary
+from mixed_traffic.world.demand import Demand, make_demand, write_demand
 from mixed_traffic.world.hdmap import HDMap
-from mixed_traffic.world.registry import (
-    Demand,
-    Scenario,
-    load_scenario,
-    make_demand,
-    sumo_args,
-    write_demand,
-)
+from mixed_traffic.world.registry import load_scenario
+from mixed_traffic.world.scenario import Scenario, sumo_args
 
 
 @dataclass

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from agents.policies import OBS_KEYS, to_actions
-from agents.rules.acc_lc import AccLcConfig, AccLcPolicy, _idm
+from agents.rules.acc_lc import AccLcConfig, AccLcPolicy
+from agents.rules.acc_lc_longitudinal import _idm
 from mixed_traffic.config import EnvConfig, VehicleConfig
 from mixed_traffic.env.action import to_physical
 from mixed_traffic.sensing.observation import observation_space
@@ -266,10 +267,12 @@ def test_steady_following_is_smooth() -> None:
 def test_creeping_in_a_queue_does_not_swing_into_the_next_lane() -> None:
     """merge-eval, 120 veh/km, half AVs, seed 0: an AV centring itself while creeping in a queue
     turned 21 deg off its lane and, when the queue moved on, hit the car beside it (t = 98 s)."""
-    from agents.rules.acc_lc import _run_episode
+    from mixed_traffic.experiments.runner import run_episode
+    from mixed_traffic.experiments.safety_matrix import terminal_events
 
-    m, events, _ = _run_episode("merge-eval", 120, 0.5, 120.0, 0)
-    assert events == {} and int(m["collisions"] or 0) == 0, events
+    config = EnvConfig(scenario="merge-eval", density=120, penetration=0.5, episode_length=120.0)
+    m = run_episode(config, "acc-lc", warmup=0.0)["metrics"]
+    assert terminal_events(m) == {} and int(m["collisions"] or 0) == 0, terminal_events(m)
     assert m["route_completion"] >= 95.0
 
 

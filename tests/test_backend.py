@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from mixed_traffic.world.backend import SumoBackend, SumoError, libsumo_busy
-from mixed_traffic.world.registry import sumo_args
+from mixed_traffic.world.scenario import sumo_args
 from mixed_traffic.world.snapshot import rad_to_sumo_angle, sumo_angle_to_rad
 
 from .conftest import start_sim

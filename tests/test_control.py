@@ -13,8 +13,10 @@ import pytest
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.control import BicycleController, bicycle_frenet_step, measure_mechanisms
 from mixed_traffic.world.backend import SumoBackend
+from mixed_traffic.world.demand import make_demand, write_demand
 from mixed_traffic.world.hdmap import HDMap
-from mixed_traffic.world.registry import load_scenario, make_demand, sumo_args, write_demand
+from mixed_traffic.world.registry import load_scenario
+from mixed_traffic.world.scenario import sumo_args
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
 DT = 0.1
@@ -239,7 +241,9 @@ _SEGFAULT_SCRIPT = textwrap.dedent(
     from mixed_traffic.world.backend import SumoBackend
     from mixed_traffic.world.snapshot import rad_to_sumo_angle
     from mixed_traffic.config import EnvConfig
-    from mixed_traffic.world.registry import load_scenario, make_demand, sumo_args, write_demand
+    from mixed_traffic.world.registry import load_scenario
+    from mixed_traffic.world.demand import make_demand, write_demand
+    from mixed_traffic.world.scenario import sumo_args
 
     mode = sys.argv[1]
     cfg = EnvConfig(density=30.0, penetration=0.5, episode_length=30)

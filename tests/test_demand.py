@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.world.registry import load_scenario, make_demand
+from mixed_traffic.world.demand import make_demand
+from mixed_traffic.world.registry import load_scenario
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
 from .conftest import start_sim

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mixed_traffic.env.metrics import (
+from mixed_traffic.env.flow_metrics import (
     FlowRecorder,
     delay_index,
     density_per_km,

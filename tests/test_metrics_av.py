@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mixed_traffic.env.metrics import AVMetrics, AVStep
+from mixed_traffic.env.av_metrics import AVMetrics, AVStep
 
 
 def _step(**kw) -> AVStep:

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from mixed_traffic.config import EnvConfig, SensorConfig
+from mixed_traffic.sensing.lane_graph import next_route_edge
 from mixed_traffic.sensing.observation import (
     LEFT_CHANGE,
     RIGHT_CHANGE,
@@ -13,7 +14,7 @@ from mixed_traffic.sensing.observation import (
     ObservationBuilder,
     observation_space,
 )
-from mixed_traffic.sensing.perception import Perception, next_route_edge
+from mixed_traffic.sensing.perception import Perception
 
 from .conftest import start_sim
 from .test_perception import brute_force, drop_network, routes_of, start_drop

@@ -9,24 +9,17 @@ import numpy as np
 import pytest
 
 from mixed_traffic.config import SensorConfig
-from mixed_traffic.sensing.perception import (
-    CURRENT,
-    GREEN,
-    NO_LIGHT,
-    RED,
-    RIGHT,
-    VEHICLE_NOISE_FLOOR,
-    WEATHER_PRESETS,
-    Perception,
-    bumper_gap,
-    find_neighbours,
-    next_route_edge,
-    ttc,
-    vehicle_features,
-)
+from mixed_traffic.sensing.camera import GREEN, NO_LIGHT, RED
+from mixed_traffic.sensing.geometry import bumper_gap, ttc
+from mixed_traffic.sensing.lane_graph import CURRENT, RIGHT, next_route_edge
+from mixed_traffic.sensing.lidar import vehicle_features
+from mixed_traffic.sensing.neighbours import find_neighbours
+from mixed_traffic.sensing.noise import VEHICLE_NOISE_FLOOR, WEATHER_PRESETS
+from mixed_traffic.sensing.perception import Perception
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.hdmap import HDMap, load_hdmap
-from mixed_traffic.world.registry import build_network, load_scenario
+from mixed_traffic.world.network import build_network
+from mixed_traffic.world.registry import load_scenario
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
 from .conftest import start_sim

@@ -13,20 +13,22 @@ from mixed_traffic.env.control import BicycleController
 from mixed_traffic.env.reward import (
     TERM_NAMES,
     centreline_distance,
-    collided_mask,
     lane_change_completed,
+    reward_terms,
+    total_reward,
+)
+from mixed_traffic.env.termination import (
+    collided_mask,
     off_road_mask,
     overlap_mask,
     red_light_mask,
-    reward_terms,
     route_deviation_mask,
     speed_limit_mask,
     terminal_events,
-    total_reward,
 )
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.hdmap import load_hdmap
-from mixed_traffic.world.registry import build_network
+from mixed_traffic.world.network import build_network
 
 from .test_control import DT, isolate, pick_av, start_straight
 

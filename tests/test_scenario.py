@@ -13,13 +13,10 @@ from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.scenarios import main
 from mixed_traffic.paths import SCENARIOS_DIR
 from mixed_traffic.world.backend import SumoBackend, SumoError
-from mixed_traffic.world.registry import (
-    build_network,
-    list_scenarios,
-    load_scenario,
-    make_demand,
-    sumo_args,
-)
+from mixed_traffic.world.demand import make_demand
+from mixed_traffic.world.network import build_network
+from mixed_traffic.world.registry import list_scenarios, load_scenario
+from mixed_traffic.world.scenario import sumo_args
 
 from .conftest import start_sim
 
@@ -94,7 +91,7 @@ def test_unknown_scenario_is_named() -> None:
 def test_density_out_of_range(density: float) -> None:
     with pytest.raises(ValueError, match="density"):
         config = EnvConfig(density=density)
-        make_demand(load_scenario(config.scenario), config, np.random.default_rng(0))
+        load_scenario(config.scenario).check_density(config.density)
 
 
 @pytest.mark.parametrize("penetration", [-0.1, 1.5])

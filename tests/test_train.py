@@ -16,7 +16,8 @@ import torch
 
 from agents.checkpoint import load_checkpoint
 from agents.collection.workers import RolloutWorker
-from agents.learning.trainer import TrainConfig, Trainer
+from agents.learning.config import TrainConfig
+from agents.learning.trainer import Trainer
 from agents.rules.acc_lc import AccLcPolicy
 from mixed_traffic.experiments.train import main
 

@@ -36,11 +36,10 @@ from torch.nn.utils import parameters_to_vector, vector_to_parameters
 from agents.learning.rbpdqn import Policy
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
-from agents.policies import make_policy, stack_obs, to_actions
+from agents.policies import OBS_KEYS, make_policy, stack_obs, to_actions
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
 
-OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
 TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
 
 Chunk = dict[str, Any]
@@ -200,11 +199,13 @@ class RolloutWorker:
 
     # ------------------------------------------------------------------ episodes
     def _demonstrator(self) -> Any:
+        """The demonstrator policy (built on first use)."""
         if self._demo is None:
             self._demo = make_policy(self.spec.demo_policy, seed=self.spec.seed)
         return self._demo
 
     def _start_episode(self) -> None:
+        """Sample the next episode's env config and seed, and reset a fresh env."""
         s = self.spec
         self.rng = np.random.default_rng([s.seed, s.worker_id, s.run, s.incarnation, self.episode])
         self.episode += 1
@@ -234,50 +235,67 @@ class RolloutWorker:
         if not agents:  # AVs queued upstream: let the simulation run on
             self.obs, *_ = env.step({})
         else:
-            batch = stack_obs(self.obs, agents)
-            # the demonstrator drives until this worker's quota is met (switching mid-episode),
-            # and whole episodes with probability demo_share afterwards
-            is_demo = self.demo_episode or self.demo_done < self.spec.demo_quota
-            self.any_demo |= is_demo
-            if not is_demo and not self.has_weights:
-                raise RuntimeError("worker has no weights from the learner yet")
-            if is_demo:
-                dec, par = self._demonstrator().act(batch)
-                label = dec, par
-            else:
-                dec, par = self.policy.act(batch, explore=True, rng=self.rng)
-                label = self._demonstrator().act(batch) if self.spec.expert_labels else None
-            obs2, rew, term, _, info = env.step(to_actions(agents, dec, par))
-            for a in agents:  # trips that ended this step, by reason (curves need no episode end)
-                ev = info.get(a, {}).get("event", "")
-                if ev == "arrived" or ev in TERMINAL_REASONS:
-                    self._trips += 1
-                    self._terminals += ev in TERMINAL_REASONS
-                    self._collisions += ev == "collision"
-            r = np.array([rew[a] for a in agents], np.float32)
-            done = np.array([bool(term[a]) for a in agents], np.float32)
-            self._buf.add(batch, dec, par, r, stack_obs(obs2, agents), done, label)
-            self.acted.update(agents)
-            self.ep_reward += float(r.sum())
-            self.ep_actions += len(agents)
-            if is_demo:
-                self.demo_done += len(agents)
-                self._demo_in_buf += len(agents)
-            self.obs = obs2
+            self._step_agents(env, agents)
         self._sim_steps += 1
-        if not env.agents and env._snap.time >= env.config.episode_length - 1e-6:
-            self._episodes.append(
-                episode_stats(
-                    env,
-                    self.ep_reward,
-                    self.ep_actions,
-                    len(self.acted),
-                    self.any_demo,
-                    self.env_cfg,
-                )
+        if not env.agents and env.sim_time >= env.config.episode_length - 1e-6:
+            self._end_episode(env)
+
+    def _choose(self, batch: dict[str, np.ndarray]) -> tuple[Any, Any, Any, bool]:
+        """(decision, params, expert label or None, driven by the demonstrator) for ``batch``:
+        the demonstrator drives until this worker's quota is met (switching mid-episode), and
+        whole episodes with probability demo_share afterwards."""
+        is_demo = self.demo_episode or self.demo_done < self.spec.demo_quota
+        self.any_demo |= is_demo
+        if not is_demo and not self.has_weights:
+            raise RuntimeError("worker has no weights from the learner yet")
+        if is_demo:
+            dec, par = self._demonstrator().act(batch)
+            label = dec, par
+        else:
+            dec, par = self.policy.act(batch, explore=True, rng=self.rng)
+            label = self._demonstrator().act(batch) if self.spec.expert_labels else None
+        return dec, par, label, is_demo
+
+    def _step_agents(self, env: Any, agents: list[str]) -> None:
+        """Act for ``agents``, step the env and buffer their transitions."""
+        batch = stack_obs(self.obs, agents)
+        dec, par, label, is_demo = self._choose(batch)
+        obs2, rew, term, _, info = env.step(to_actions(agents, dec, par))
+        self._count_trips(agents, info)
+        r = np.array([rew[a] for a in agents], np.float32)
+        done = np.array([bool(term[a]) for a in agents], np.float32)
+        self._buf.add(batch, dec, par, r, stack_obs(obs2, agents), done, label)
+        self.acted.update(agents)
+        self.ep_reward += float(r.sum())
+        self.ep_actions += len(agents)
+        if is_demo:
+            self.demo_done += len(agents)
+            self._demo_in_buf += len(agents)
+        self.obs = obs2
+
+    def _count_trips(self, agents: list[str], info: dict) -> None:
+        """Trips that ended this step, by reason (curves need no episode end)."""
+        for a in agents:
+            ev = info.get(a, {}).get("event", "")
+            if ev == "arrived" or ev in TERMINAL_REASONS:
+                self._trips += 1
+                self._terminals += ev in TERMINAL_REASONS
+                self._collisions += ev == "collision"
+
+    def _end_episode(self, env: Any) -> None:
+        """Record the finished episode's stats and close its env."""
+        self._episodes.append(
+            episode_stats(
+                env,
+                self.ep_reward,
+                self.ep_actions,
+                len(self.acted),
+                self.any_demo,
+                self.env_cfg,
             )
-            self.env.close()
-            self.env = None
+        )
+        self.env.close()
+        self.env = None
 
     def collect(self, n: int) -> Chunk:
         """Step until ≥ n transitions are buffered → the flushed :data:`Chunk`."""
@@ -306,6 +324,7 @@ class RolloutWorker:
         return self.collect(n)
 
     def close(self) -> None:
+        """Close the env of the episode in progress."""
         if self.env is not None:
             self.env.close()
             self.env = None

@@ -37,7 +37,9 @@ Metrics
 
 Arguments: every field of ``EnvConfig`` as a keyword (``parallel_env(density=180, ...)``) or a
 whole ``config=EnvConfig(...)``; ``render_mode`` ``"rgb_array"`` (headless bird's-eye view) or
-``"human"`` (sumo-gui, needs a display); ``warmup`` [s] before flow metrics count.
+``"human"`` (sumo-gui, needs a display); ``warmup`` [s] before flow metrics count;
+``sumo_drives_avs=True`` hands the AVs back to SUMO's own car-following and lane-change models
+(they are then no agents: the all-human reference of the studies drives this way).
 """
 
 from __future__ import annotations
@@ -46,8 +48,7 @@ import contextlib
 import os
 import shutil
 import tempfile
-from collections.abc import Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from functools import cached_property
 from itertools import compress, repeat
 from pathlib import Path
@@ -59,69 +60,31 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.env import reward as rw
 from mixed_traffic.env.action import action_space, stack_actions, to_physical
+from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
+from mixed_traffic.env.av_metrics import AVMetrics, AVStep
 from mixed_traffic.env.control import BicycleController
-from mixed_traffic.env.metrics import AVMetrics, AVStep, FlowRecorder
-from mixed_traffic.schema import METRICS
-from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
-from mixed_traffic.sensing.perception import (
-    CURRENT,
-    Neighbours,
-    Perception,
-    PerceptionFrame,
-    bumper_gap,
-    ttc,
+from mixed_traffic.env.flow_metrics import FlowRecorder
+from mixed_traffic.env.reward import agent_rewards
+from mixed_traffic.env.termination import agent_events
+from mixed_traffic.env.truth import (
+    FrontView,
+    SpeedView,
+    gather,
+    rear_conventional,
+    take_or_nan,
 )
+from mixed_traffic.schema import METRICS
+from mixed_traffic.sensing.frame import PerceptionFrame
+from mixed_traffic.sensing.geometry import ttc
+from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
+from mixed_traffic.sensing.perception import Perception
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.boundary import PeriodicBoundary
-from mixed_traffic.world.registry import (
-    check_density,
-    load_scenario,
-    make_demand,
-    sumo_args,
-    write_demand,
-)
+from mixed_traffic.world.demand import av_count, make_demand, write_demand
+from mixed_traffic.world.registry import load_scenario
+from mixed_traffic.world.scenario import sumo_args
 from mixed_traffic.world.snapshot import TrafficSnapshot
-
-FOLLOW = 1
-
-
-@dataclass
-class _AgentState:
-    """Ground truth of the live agents kept from one step to the next, aligned with ``ids``."""
-
-    ids: list[str] = field(default_factory=list)
-    slots: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    """(A,) agent number of each id (``av_i`` -> i)."""
-    accel: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    lane: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    edge: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    next_edge: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    front_gap: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    rear_ids: list[str] = field(default_factory=list)
-    rear_speed: np.ndarray = field(default_factory=lambda: np.zeros(0))
-
-
-class _Rows(dict):
-    """Agent -> snapshot row of the live agents (in agent order), with the same as arrays.
-
-    Built once per (snapshot, agent set) so the stages index arrays instead of looping over ids.
-    """
-
-    def __init__(self, items: dict[str, int], slot: dict[str, int], pos: list[int]) -> None:
-        super().__init__(items)
-        n = len(items)
-        self.ids: list[str] = list(items)
-        self.r = np.fromiter(items.values(), np.int64, n)
-        """(A,) snapshot rows."""
-        self.slots = np.fromiter(map(slot.__getitem__, self.ids), np.int64, n)
-        """(A,) agent numbers."""
-        self.pos = np.asarray(pos, np.int64)
-        """(A,) position of each agent in ``env.agents`` (the order of stacked actions)."""
-
-    def subset(self, ids: list[str], slot: dict[str, int]) -> _Rows:
-        return _Rows({a: self[a] for a in ids}, slot, [])
 
 
 class MixedTrafficEnv(ParallelEnv):
@@ -137,6 +100,7 @@ class MixedTrafficEnv(ParallelEnv):
         config: EnvConfig | None = None,
         render_mode: str | None = None,
         warmup: float = 0.0,
+        sumo_drives_avs: bool = False,
         **kwargs: Any,
     ) -> None:
         if config is not None and kwargs:
@@ -151,14 +115,14 @@ class MixedTrafficEnv(ParallelEnv):
         if render_mode == "human":
             _check_gui()
         self.render_mode = render_mode
-        self.scenario = load_scenario(cfg.scenario)
-        check_density(self.scenario, cfg.density)
-        self.hdmap = self.scenario.hdmap
+        check_warmup(warmup, cfg.episode_length)
         self.warmup = warmup
-        demand = make_demand(self.scenario, cfg, np.random.default_rng(cfg.seed))
-        self.possible_agents = sorted(demand.av_ids, key=lambda a: int(a[3:]))
-        # agent number: index into the per-agent tables (route table, per-slot scratch arrays)
-        self._slot = {a: i for i, a in enumerate(self.possible_agents)}
+        self.sumo_drives_avs = sumo_drives_avs
+        self.scenario = load_scenario(cfg.scenario)
+        self.scenario.check_density(cfg.density)
+        self.hdmap = self.scenario.hdmap
+        self.possible_agents = [f"av_{i}" for i in range(av_count(self.scenario, cfg))]
+        self._table = AgentTable(self.possible_agents)
         self._obs_space = observation_space(cfg)
         self._act_space = action_space()
         self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
@@ -169,8 +133,23 @@ class MixedTrafficEnv(ParallelEnv):
         self._backend.set_lane_table(self.hdmap.lane_ids, self.hdmap.lane_edge)
         self._tmp = tempfile.mkdtemp(prefix="mixed_traffic_")
         self._episode_rng = np.random.default_rng(cfg.seed)
-        self.agents: list[str] = []
+        # per episode, set by reset()
         self._snap: TrafficSnapshot | None = None
+        self._boundary: PeriodicBoundary | None = None
+        self._noise_rng: np.random.Generator | None = None
+        self._flow: FlowRecorder | None = None
+        self._av: AVMetrics | None = None
+        self._tls: dict[str, str] = {}
+        self._tls_prev: dict[str, str] = {}
+        self._memory = StepMemory()
+        self._step_truth: tuple[Rows, PerceptionFrame] | None = None
+        self._last_obs: dict[str, dict] = {}
+        self._renderer: Any = None
+
+    @property
+    def agents(self) -> list[str]:
+        """The live agents (PettingZoo)."""
+        return self._table.agents
 
     @property
     def sim_time(self) -> float:
@@ -204,18 +183,9 @@ class MixedTrafficEnv(ParallelEnv):
             self.hdmap, self.scenario.measurement, cfg.step_length, self.warmup
         )
         self._av = AVMetrics(cfg.step_length, cfg.reward.rear_speed_drop)
-        self._routes: dict[str, np.ndarray] = {}
-        # routes by agent number, -1 padded (filled on admission, so no per-step padding)
-        n = len(self.possible_agents)
-        self._route_table = np.full((n, 1), -1, dtype=np.int64)
-        self._route_len = np.zeros(n, dtype=np.int64)
-        self._rows_key: tuple = ()
-        self._rows_cache: _Rows | None = None
-        self._decision_by_slot = np.full(n, FOLLOW, dtype=np.int64)
-        self._finished: set[str] = set()
-        self._last_obs: dict[str, dict] = {}
-        self._state = _AgentState()
-        self.agents = list(self.possible_agents) if cfg.fixed_fleet else []
+        self._table.reset(list(self.possible_agents) if cfg.fixed_fleet else [])
+        self._last_obs = {}
+        self._memory = StepMemory()
         snap = self._advance()
         self._backend.drop_pending(demand.placed_ids)
         return self._start_from(snap), {a: {} for a in self.agents}
@@ -223,7 +193,7 @@ class MixedTrafficEnv(ParallelEnv):
     def _start_from(self, snap: TrafficSnapshot) -> dict[str, dict]:
         """Admit the AVs of ``snap`` and observe them, as at the start of an episode."""
         self._admit(snap)
-        rows = self._live_rows(snap)
+        rows = self._table.live_rows(snap)
         truth, sensed = self._sense(snap, rows)
         self._remember(snap, rows, truth)
         obs = self._observe(snap, rows, sensed)
@@ -236,7 +206,7 @@ class MixedTrafficEnv(ParallelEnv):
         steer, accel = to_physical(decision, params, self.config.vehicle)
         cmd = self._control(steer, accel, decision)  # control
         snap = self._advance()  # SUMO step + density boundary
-        rows = self._live_rows(snap)
+        rows = self._table.live_rows(snap)
         truth, sensed = self._sense(snap, rows)  # perception
         events = self._events(snap, rows, cmd)  # termination
         rewards, terms, changed = self._rewards(snap, rows, truth, events)  # reward
@@ -249,10 +219,10 @@ class MixedTrafficEnv(ParallelEnv):
     # ------------------------------------------------------------------ stages
     def _control(self, steer: np.ndarray, accel: np.ndarray, decision: np.ndarray):
         """Bicycle model -> SUMO for every agent present in the simulation."""
-        rows = self._live_rows(self._snap)
+        rows = self._table.live_rows(self._snap)
         acting = rows.pos  # agents in the simulation, in agent order
-        self._decision_by_slot.fill(FOLLOW)  # agents that did not act count as following
-        self._decision_by_slot[rows.slots] = decision[acting]
+        self._table.decision.fill(FOLLOW)  # agents that did not act count as following
+        self._table.decision[rows.slots] = decision[acting]
         return self._controller.step(
             self._backend, self._snap, rows.ids, steer[acting], accel[acting]
         )
@@ -268,177 +238,52 @@ class MixedTrafficEnv(ParallelEnv):
 
     def _admit(self, snap: TrafficSnapshot) -> list[str]:
         """Start controlling AVs that (re-)entered the network; returns their ids."""
+        table = self._table
         avs = list(compress(snap.ids, snap.is_av.tolist()))
-        fresh = set(avs).difference(self._controller.tracked, self._finished)
+        fresh = set(avs).difference(self._controller.tracked, table.finished, table.released)
         if not fresh:  # the usual step: set operations only, no per-vehicle Python loop
             return []
         new = [v for v in avs if v in fresh]  # in snapshot order
+        if self.sumo_drives_avs:
+            self._backend.release_control(new)
+            table.released.update(new)
+            return []
         self._controller.add_from_snapshot(snap, new, self._backend)
         for a in new:
             edges = self._backend.vehicle_route(a)
-            route = np.array([self.hdmap.edge_row.get(e, -1) for e in edges], dtype=np.int64)
-            self._routes[a] = route
-            self._set_route(self._slot[a], route)
+            table.set_route(a, np.array([self.hdmap.edge_row.get(e, -1) for e in edges], np.int64))
         self._builder.drop(new)
         if not self.config.fixed_fleet:
-            self.agents += new
+            table.agents += new
         return new
 
-    def _set_route(self, slot: int, route: np.ndarray) -> None:
-        """Store an admitted agent's route in the table (widened when a route is longer)."""
-        table = self._route_table
-        if len(route) > table.shape[1]:
-            wider = np.full((len(table), len(route)), -1, dtype=np.int64)
-            wider[:, : table.shape[1]] = table
-            self._route_table = table = wider
-        table[slot] = -1
-        table[slot, : len(route)] = route
-        self._route_len[slot] = len(route)
-
-    def _next_edge(self, slots: np.ndarray, route_index: np.ndarray) -> np.ndarray:
-        """``next_route_edge`` from the route table: (A,) next edge row, -1 on the last edge."""
-        k = np.asarray(route_index, np.int64) + 1
-        ok = (k >= 0) & (k < self._route_len[slots])
-        width = self._route_table.shape[1]
-        return np.where(ok, self._route_table[slots, np.clip(k, 0, width - 1)], -1)
-
-    def _live_rows(self, snap: TrafficSnapshot) -> _Rows:
-        """Snapshot row of every admitted agent present in the simulation, in agent order.
-
-        With ``fixed_fleet`` an AV that was still waiting to enter at reset is an agent before
-        ``_admit`` has seen it: it only counts once admitted (its route is known). Cached until
-        the snapshot, the agent list or the admitted set changes (several stages ask per step).
-        """
-        agents, routes = self.agents, self._routes
-        # by content: _finish rebuilds the agent list every step, usually with the same agents
-        key = (tuple(agents), len(routes))
-        if self._rows_key and self._rows_key[0] is snap and self._rows_key[1:] == key:
-            return self._rows_cache
-        index = snap.index_of()
-        pos = [i for i, a in enumerate(agents) if a in index and a in routes]
-        rows = _Rows({agents[i]: index[agents[i]] for i in pos}, self._slot, pos)
-        self._rows_key, self._rows_cache = (snap, *key), rows
-        return rows
-
-    def _sense(self, snap: TrafficSnapshot, rows: _Rows) -> tuple[PerceptionFrame, PerceptionFrame]:
+    def _sense(self, snap: TrafficSnapshot, rows: Rows) -> tuple[PerceptionFrame, PerceptionFrame]:
         r = rows.r
-        nxt = self._next_edge(rows.slots, snap.route_index[r])
+        nxt = self._table.next_edge(rows.slots, snap.route_index[r])
         tls = [self._tls[t] for t in self._perception.tls_ids]
         return self._perception.sense(snap, r, nxt, tls, self._noise_rng)
 
-    def _events(self, snap: TrafficSnapshot, rows: _Rows, cmd) -> dict[str, str]:
+    def _events(self, snap: TrafficSnapshot, rows: Rows, cmd) -> dict[str, str]:
         """'arrived', a terminal reason, or '' for every agent that acted."""
-        prev, hd = self._state, self.hdmap
-        crashed = (
-            rw.collided_mask(prev.ids, snap.collisions)
-            if snap.collisions
-            else repeat(False, len(prev.ids))
-        )
-        arrived = set(snap.arrived)
-        events = {
-            a: "collision" if c else "arrived" if a in arrived else ""
-            for a, c in zip(prev.ids, crashed)
-        }
-        if not events:
-            return events
-        now = self._by_slot(rows.slots, rows.r)[prev.slots]  # row now, -1 if gone
-        fine = np.fromiter(map(events.__getitem__, prev.ids), object, len(prev.ids)) == ""
-        p = np.flatnonzero((now >= 0) & fine)
-        if not len(p):
-            return events
-        ids = [prev.ids[i] for i in p.tolist()]
-        r = now[p]
-        # SUMO clamps lateral moves to the road: judge off-road by the commanded position
-        lateral = self._aligned(cmd.ids, cmd.intended_lateral, prev.slots[p], snap.lateral[r])
-        reasons = rw.terminal_events(
-            collision=np.zeros(len(r), bool),
-            off_road=rw.off_road_mask(hd, prev.lane[p], lateral),
-            route_deviation=rw.route_deviation_mask(hd, snap.edge[r], snap.lane[r], snap.lane_pos[r],
-                                                    self._route_table[prev.slots[p]], snap.route_index[r]),
-            red_light=rw.red_light_mask(hd, prev.lane[p], snap.lane[r], prev.next_edge[p], self._tls_prev),
-            speed_limit=rw.speed_limit_mask(snap.speed[r], hd.lane_speed[snap.lane[r]], self.config.speed_tolerance),
-        )  # fmt: skip
-        events.update(zip(ids, reasons.tolist()))
-        return events
+        return agent_events(self.hdmap, self._memory, self._table, snap, rows, cmd,
+                            self._tls_prev, self.config.speed_tolerance)  # fmt: skip
 
-    def _by_slot(self, slots: np.ndarray, values: np.ndarray, fill: Any = -1) -> np.ndarray:
-        """(n_agents,) table with ``values`` at ``slots`` and ``fill`` elsewhere (id lookups
-        become array indexing)."""
-        values = np.asarray(values)
-        out = np.full(len(self.possible_agents), fill, dtype=values.dtype)
-        out[slots] = values
-        return out
-
-    def _aligned(
-        self, cmd_ids: list[str], values: np.ndarray, slots: np.ndarray, default: np.ndarray
-    ) -> np.ndarray:
-        """``values`` (ordered as ``cmd_ids``) at the agents ``slots``; ``default`` where absent."""
-        cmd = np.fromiter(map(self._slot.__getitem__, cmd_ids), np.int64, len(cmd_ids))
-        at = self._by_slot(cmd, np.arange(len(cmd)))[slots]
-        vals = np.asarray(values, np.float64)
-        out = np.array(default, dtype=np.float64, copy=True)
-        out[at >= 0] = vals[at[at >= 0]]
-        return out
-
-    def _rewards(
-        self,
-        snap: TrafficSnapshot,
-        rows: _Rows,
-        truth: PerceptionFrame,
-        events: dict[str, str],
-    ):
+    def _rewards(self, snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame,
+                 events: dict[str, str]):  # fmt: skip
         """Reward, named terms and completed lane changes (bool per agent number) of every
         agent that acted."""
-        prev, cfg, hd = self._state, self.config, self.hdmap
-        rewards: dict[str, float] = {}
-        terms_out: dict[str, dict[str, float]] = {}
-        failed = {a for a, e in events.items() if e not in ("", "arrived")}
-        now = self._by_slot(rows.slots, rows.r)[prev.slots]  # row now, -1 if gone
-        for i in np.flatnonzero(now < 0).tolist():
-            # left the network this step: only the terminal penalty applies
-            a = prev.ids[i]
-            t = dict.fromkeys(rw.TERM_NAMES, 0.0)
-            t["r1_terminal"] = cfg.reward.terminal_penalty if a in failed else 0.0
-            terms_out[a], rewards[a] = t, cfg.reward.w_safety * t["r1_terminal"]
-        p = np.flatnonzero(now >= 0)
-        if not len(p):
-            return rewards, terms_out, self._by_slot(p, np.zeros(0, bool), False)
-        ids = [prev.ids[i] for i in p.tolist()]
-        r = now[p]
-        # truth was sensed in the order of rows
-        k = self._by_slot(rows.slots, np.arange(len(rows.r)))[prev.slots[p]]
-        front = _FrontView(snap, truth, k, r)
-        rear_now = _speeds_of(snap, [prev.rear_ids[i] for i in p.tolist()])
-        lane = snap.lane[r]
-        changed = rw.lane_change_completed(prev.lane[p], lane, prev.edge[p], snap.edge[r])
-        terms = rw.reward_terms(
-            cfg.reward, cfg.step_length,
-            front_distance=front.distance, closing_speed=front.closing, length=snap.length[r],
-            front_length=front.length,
-            centre_distance=rw.centreline_distance(hd, lane, snap.lane_pos[r], snap.x[r], snap.y[r]),
-            lane_width=hd.lane_width[lane], terminal=np.fromiter(map(failed.__contains__, ids), bool, len(ids)),
-            speed=snap.speed[r], speed_limit=hd.lane_speed[lane],
-            lane_changed=changed, gap_new=front.gap, gap_old=prev.front_gap[p],
-            lidar_range=cfg.sensors.lidar_range, accel=snap.accel[r], prev_accel=prev.accel[p],
-            rear_speed_prev=prev.rear_speed[p], rear_speed_now=rear_now, rear_same=~np.isnan(rear_now),
-        )  # fmt: skip
-        total = rw.total_reward(terms, cfg.reward)
-        names = list(terms)
-        columns = [np.asarray(v, np.float64).tolist() for v in terms.values()]
-        # one {term: value} dict per agent, built by C-level maps (hundreds of agents per step)
-        terms_out.update(zip(ids, map(dict, map(zip, repeat(names), zip(*columns)))))
-        rewards.update(zip(ids, np.asarray(total, np.float64).tolist()))
-        return rewards, terms_out, self._by_slot(prev.slots[p], np.asarray(changed, bool), False)
+        return agent_rewards(self.config, self.hdmap, self._memory, self._table, snap, rows,
+                             truth, events)  # fmt: skip
 
-    def _record(self, snap, rows: _Rows, truth: PerceptionFrame, rewards: dict[str, float],
+    def _record(self, snap, rows: Rows, truth: PerceptionFrame, rewards: dict[str, float],
                 changed: np.ndarray) -> None:  # fmt: skip
         """Per-AV metrics of this step (flow metrics are recorded in ``_advance``)."""
         ids, r, n = rows.ids, rows.r, len(rows.ids)
-        front = _FrontView(snap, truth, np.arange(len(r)), r)
-        rear_ids, rear_speed = _rear_conventional(snap, truth)
-        prev = self._state
-        pi = self._by_slot(prev.slots, np.arange(len(prev.ids)))[rows.slots]  # -1: new agent
-        prev_accel = np.where(pi >= 0, _take(prev.accel, pi), snap.accel[r])
+        front = FrontView(snap, truth, np.arange(len(r)), r)
+        rear_ids, rear_speed = rear_conventional(snap, truth)
+        prev, table = self._memory, self._table
+        pi = table.by_slot(prev.slots, np.arange(len(prev.ids)))[rows.slots]  # -1: new agent
+        prev_accel = np.where(pi >= 0, take_or_nan(prev.accel, pi), snap.accel[r])
         # the same conventional vehicle C behind the agent as at the previous step
         rear_now = np.array(rear_ids, dtype=object)
         rear_before = np.array([*prev.rear_ids, ""], dtype=object)[pi]  # pi = -1 -> ""
@@ -446,46 +291,40 @@ class MixedTrafficEnv(ParallelEnv):
         self._av.step(
             AVStep(ids=ids, speed=snap.speed[r], accel=snap.accel[r], prev_accel=prev_accel,
                    lateral=snap.lateral[r],
-                   following=self._decision_by_slot[rows.slots] == FOLLOW,
+                   following=table.decision[rows.slots] == FOLLOW,
                    lane_changed=changed[rows.slots],
                    ttc=np.where(front.exists, ttc(front.gap, front.closing), np.inf),
                    rear_ids=rear_ids, rear_speed=np.nan_to_num(rear_speed),
-                   rear_prev_speed=np.where(same, _take(prev.rear_speed, pi), np.nan),
+                   rear_prev_speed=np.where(same, take_or_nan(prev.rear_speed, pi), np.nan),
                    reward=np.fromiter(map(rewards.get, ids, repeat(0.0)), np.float64, n)),
             snap.time,
-            _SpeedView(snap),
+            SpeedView(snap),
         )  # fmt: skip
 
-    def _remember(self, snap: TrafficSnapshot, rows: _Rows, truth: PerceptionFrame) -> None:
+    def _remember(self, snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame) -> None:
         """Ground truth of this step that the next step's events and rewards compare against."""
         r = rows.r
-        rear_ids, rear_speed = _rear_conventional(snap, truth)
-        self._state = _AgentState(
+        rear_ids, rear_speed = rear_conventional(snap, truth)
+        self._memory = StepMemory(
             ids=rows.ids, slots=rows.slots, accel=snap.accel[r].copy(), lane=snap.lane[r].astype(np.int64),
             edge=snap.edge[r].astype(np.int64),
-            next_edge=self._next_edge(rows.slots, snap.route_index[r]),
-            front_gap=_FrontView(snap, truth, np.arange(len(r)), r).gap, rear_ids=rear_ids, rear_speed=rear_speed,
+            next_edge=self._table.next_edge(rows.slots, snap.route_index[r]),
+            front_gap=FrontView(snap, truth, np.arange(len(r)), r).gap, rear_ids=rear_ids, rear_speed=rear_speed,
         )  # fmt: skip
         self._tls_prev = dict(self._tls)
 
-    def _observe(self, snap, rows: _Rows, sensed: PerceptionFrame) -> dict[str, dict]:
+    def _observe(self, snap, rows: Rows, sensed: PerceptionFrame) -> dict[str, dict]:
         ids = rows.ids
-        routes = list(map(self._routes.__getitem__, ids))
+        routes = list(map(self._table.routes.__getitem__, ids))
         obs = self._builder.build(snap, ids, rows.r, sensed, routes) if ids else {}
         self._last_obs.update(obs)
         return obs
 
     def _finish(self, snap, obs, rewards, terms, events):
         """Retire finished agents, admit new ones, and assemble the PettingZoo dicts."""
-        cfg = self.config
+        cfg, table = self.config, self._table
         done = sorted(a for a, e in events.items() if e)
-        for a in done:
-            self._av.end_trip(a, events[a])
-            if events[a] not in ("arrived", "collision"):
-                self._backend.remove(a)  # SUMO already removed arrived and collided vehicles
-        removed = [a for a in done if events[a] not in ("arrived", "collision")]
-        self._boundary.replace(self._backend, removed)
-        self._controller.remove(done)
+        self._retire(done, events)
         truncate = snap.time >= cfg.episode_length - 1e-9
         agents = list(self.agents)
         # per-agent dicts of the API, filled by C-level maps and patched where an event happened
@@ -501,42 +340,57 @@ class MixedTrafficEnv(ParallelEnv):
             obs_out[a] = self._last_obs.get(a, self._empty_obs)
         rew_out = dict(zip(agents, map(rewards.get, agents, repeat(0.0))))
         if not cfg.fixed_fleet:
-            self._finished.update(done)
-            self.agents = [a for a in agents if not terminated[a]]
+            table.finished.update(done)
+            table.agents = [a for a in agents if not terminated[a]]
         new = [] if truncate else self._admit(snap)  # nobody enters at the time limit
         if new:
-            rows = self._live_rows(snap).subset(new, self._slot)
-            truth, sensed = self._sense(snap, rows)
-            new_obs = self._observe(snap, rows, sensed)
-            self._remember_new(snap, rows, truth)
+            new_obs = self._observe_new(snap, new)
             for a in new:
                 if a not in obs_out or cfg.fixed_fleet:
                     obs_out[a], rew_out[a] = new_obs[a], rew_out.get(a, 0.0)
                     terminated[a], truncated[a] = False, False
                     infos.setdefault(a, {"reward_terms": {}, "event": ""})["event"] = "entered"
         if truncate:
-            self.agents = []
+            table.agents = []
             summary = self.episode_metrics()
             for info in infos.values():
                 info["episode"] = summary
         self._snap = snap
         return obs_out, rew_out, terminated, truncated, infos
 
-    def _remember_new(self, snap: TrafficSnapshot, rows: _Rows, truth: PerceptionFrame) -> None:
-        """Add entering agents (``rows``, their ground truth ``truth``) to the per-agent memory
-        (they act from the next step on).
+    def _retire(self, done: list[str], events: dict[str, str]) -> None:
+        """End the trips of ``done`` agents; SUMO already removed arrived and collided ones."""
+        for a in done:
+            self._av.end_trip(a, events[a])
+            if events[a] not in ("arrived", "collision"):
+                self._backend.remove(a)
+        removed = [a for a in done if events[a] not in ("arrived", "collision")]
+        self._boundary.replace(self._backend, removed)
+        self._controller.remove(done)
+
+    def _observe_new(self, snap: TrafficSnapshot, new: list[str]) -> dict[str, dict]:
+        """Observations of agents that entered this step (they act from the next step on)."""
+        rows = self._table.live_rows(snap).subset(new, self._table.slot)
+        truth, sensed = self._sense(snap, rows)
+        new_obs = self._observe(snap, rows, sensed)
+        self._remember_new(snap, rows, truth)
+        return new_obs
+
+    def _remember_new(self, snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame) -> None:
+        """Add entering agents (``rows``, their ground truth ``truth``) to the memory.
 
         Ground truth is per agent (same snapshot, same route), so the other agents' rows come
         from this step's perception instead of sensing everyone again; the noise generator
         still advances as that second full ``sense`` did, so later noise is unchanged.
         """
-        all_rows = self._live_rows(snap)
+        table = self._table
+        all_rows = table.live_rows(snap)
         self._perception.skip_noise(len(all_rows), self._noise_rng)
         step_rows, step_truth = self._step_truth
         n_step = len(step_rows.ids)
-        at = self._by_slot(step_rows.slots, np.arange(n_step))
+        at = table.by_slot(step_rows.slots, np.arange(n_step))
         at[rows.slots] = n_step + np.arange(len(rows.ids))  # entering: their new route wins
-        self._remember(snap, all_rows, _gather(step_truth, truth, at[all_rows.slots]))
+        self._remember(snap, all_rows, gather(step_truth, truth, at[all_rows.slots]))
 
     @cached_property
     def _empty_obs(self) -> dict[str, np.ndarray]:
@@ -555,16 +409,21 @@ class MixedTrafficEnv(ParallelEnv):
         out["avg_di_c"] = float(np.mean(di)) if len(di) else None
         return out
 
+    def flow_diagnostics(self) -> dict[str, float | int | None]:
+        """Flow figures of the episode beyond the metric catalogue (delay indices, free-flow
+        time, vehicles seen, steps)."""
+        return self._flow.diagnostics()
+
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._snap is None:
             return None
-        from mixed_traffic.env.render import Renderer
+        if self._renderer is None:
+            from mixed_traffic.env.render import Renderer
 
-        if not hasattr(self, "_renderer"):
             self._renderer = Renderer(self.hdmap)
         snap = self._snap
         centre = None
-        rows = self._live_rows(snap)
+        rows = self._table.live_rows(snap)
         if rows:
             i = next(iter(rows.values()))
             centre = np.array([snap.x[i], snap.y[i]])
@@ -585,82 +444,10 @@ class MixedTrafficEnv(ParallelEnv):
         self._tmp = tempfile.mkdtemp(prefix="mixed_traffic_")
 
 
-class _FrontView:
-    """Ground-truth front vehicle in the current lane for agents at truth rows ``k``, snapshot rows ``r``."""
-
-    def __init__(
-        self, snap: TrafficSnapshot, truth: PerceptionFrame, k: np.ndarray, r: np.ndarray
-    ) -> None:
-        nb = truth.neighbours
-        row = nb.front[k, CURRENT]
-        self.exists = row >= 0
-        self.distance = nb.front_dist[k, CURRENT]
-        # from the ground-truth features: a vehicle across the path is measured in its frame
-        feats = truth.vehicles[k, CURRENT, 0]
-        self.length = np.where(self.exists, feats[:, 3], 0.0)
-        self.closing = np.where(self.exists, -feats[:, 1], snap.speed[r])
-        self.gap = bumper_gap(self.distance, snap.length[r], self.length)
-
-
-def _gather(a: PerceptionFrame, b: PerceptionFrame, idx: np.ndarray) -> PerceptionFrame:
-    """Rows ``idx`` of the frames ``a`` and ``b`` stacked (a's agents first)."""
-    if (idx < 0).any():
-        raise RuntimeError("an agent's ground truth is missing")  # would be a bug in _finish
-
-    def cat(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return np.concatenate([x, y])[idx]
-
-    na, nb = a.neighbours, b.neighbours
-    return PerceptionFrame(
-        Neighbours(cat(na.lane, nb.lane), cat(na.vehicle, nb.vehicle), cat(na.distance, nb.distance)),
-        cat(a.vehicles, b.vehicles), cat(a.ego, b.ego), cat(a.light_state, b.light_state),
-        cat(a.light_dist, b.light_dist),
-    )  # fmt: skip
-
-
-def _rear_conventional(
-    snap: TrafficSnapshot, truth: PerceptionFrame
-) -> tuple[list[str], np.ndarray]:
-    """C, the conventional vehicle behind each agent in its lane ('' if none or an AV), and its speed."""
-    rear = truth.neighbours.rear[:, CURRENT]
-    ok = (rear >= 0) & ~snap.is_av[np.maximum(rear, 0)]
-    ids = [""] * len(rear)
-    for k in np.flatnonzero(ok).tolist():
-        ids[k] = snap.ids[rear[k]]
-    return ids, np.where(ok, snap.speed[np.maximum(rear, 0)], np.nan)
-
-
-def _speeds_of(snap: TrafficSnapshot, ids: list[str]) -> np.ndarray:
-    """Speed of each vehicle id now, nan if it is not in the network (or '')."""
-    k = np.fromiter(map(snap.index_of().get, ids, repeat(-1)), np.int64, len(ids))
-    return np.where(k >= 0, snap.speed[np.maximum(k, 0)], np.nan) if len(k) else np.zeros(0)
-
-
-class _SpeedView(Mapping):
-    """Vehicle id -> speed now [m/s], read from the snapshot on demand (no per-step dict)."""
-
-    def __init__(self, snap: TrafficSnapshot) -> None:
-        self._index, self._speed = snap.index_of(), snap.speed
-
-    def __getitem__(self, vid: str) -> float:
-        return float(self._speed[self._index[vid]])
-
-    def __contains__(self, vid: object) -> bool:
-        return vid in self._index
-
-    def __iter__(self):
-        return iter(self._index)
-
-    def __len__(self) -> int:
-        return len(self._index)
-
-
-def _take(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
-    """values[idx] with idx = -1 giving nan (also for an empty ``values``)."""
-    out = np.full(len(idx), np.nan)
-    ok = idx >= 0
-    out[ok] = values[idx[ok]]
-    return out
+def check_warmup(warmup: float, episode_length: float) -> None:
+    """Raise ``ValueError`` unless 0 <= ``warmup`` < ``episode_length`` [s]."""
+    if not 0 <= warmup < episode_length:
+        raise ValueError(f"warmup={warmup} s must be in [0, episode_length={episode_length}) s")
 
 
 def _check_gui() -> None:

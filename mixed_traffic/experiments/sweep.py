@@ -168,7 +168,7 @@ def cell_config(cell: Cell, sweep: SweepConfig) -> EnvConfig:
 def episode_record(cell: Cell, sweep: SweepConfig) -> dict:
     """One episode of ``cell``: its record, or a failed record carrying the error."""
     try:
-        from mixed_traffic.experiments.evaluate import run_episode
+        from mixed_traffic.experiments.runner import run_episode
 
         config = cell_config(cell, sweep)
         record = run_episode(config, cell.policy, sweep.warmup, checkpoint=sweep.checkpoint)

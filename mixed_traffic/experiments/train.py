@@ -29,7 +29,7 @@ _SHORT = {"workers", "backend", "address", "scenarios", "densities", "penetratio
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from agents.learning.trainer import TrainConfig
+    from agents.learning.config import TrainConfig
 
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.train",
@@ -56,13 +56,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Any:
     """TrainConfig from the options; validates scenarios and densities (parser.error on bad)."""
-    from agents.learning.trainer import TrainConfig
-    from mixed_traffic.world.registry import (
-        check_density,
-        list_scenarios,
-        train_scenarios,
-        train_split_scenario,
-    )
+    from agents.learning.config import TrainConfig
+    from mixed_traffic.world.registry import list_scenarios, train_scenarios, train_split_scenario
 
     try:
         cfg = cli.config_from_args(args, TrainConfig)
@@ -80,7 +75,7 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
             parser.error(f"--scenarios: {e}")
         for d in cfg.densities:
             try:
-                check_density(sc, d)
+                sc.check_density(d)
             except ValueError as e:
                 parser.error(f"--densities: {e}")
     return dataclasses.replace(cfg, scenarios=scen)

@@ -60,14 +60,10 @@ import gymnasium as gym
 import numpy as np
 
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.sensing.perception import (
-    CURRENT,
-    NO_LIGHT,
-    PerceptionFrame,
-    lane_graph,
-    next_route_edge,
-    wrap_angle,
-)
+from mixed_traffic.sensing.camera import NO_LIGHT
+from mixed_traffic.sensing.frame import PerceptionFrame
+from mixed_traffic.sensing.geometry import wrap_angle
+from mixed_traffic.sensing.lane_graph import CURRENT, lane_graph, next_route_edge
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
 

@@ -18,8 +18,8 @@ import subprocess
 import warnings
 from collections.abc import Collection, Sequence
 from pathlib import Path
+from typing import Any
 
-import libsumo
 import numpy as np
 import traci
 import traci.constants as tc
@@ -48,8 +48,17 @@ _libsumo_owner: SumoBackend | None = None
 _ITEM = tuple(operator.itemgetter(i) for i in range(5))
 
 
+def _libsumo() -> Any:
+    """The libsumo module, loaded when a simulation starts (it is large, and importing the
+    project, e.g. for analysis, should not load it)."""
+    import libsumo
+
+    return libsumo
+
+
 def _libsumo_getters() -> tuple:
     """libsumo's C-level vehicle getters in snapshot order (bypassing the Python wrappers)."""
+    libsumo = _libsumo()
     ls = getattr(libsumo, "_libsumo", None)
     names = ("getPosition3D", "getAngle", "getSpeed", "getAcceleration", "getLaneID",
              "getLanePosition", "getLateralLanePosition")  # fmt: skip
@@ -185,6 +194,7 @@ class SumoBackend:
             else [binary("sumo"), *args]
         )
         self._check_libsumo_free()  # another env may have started since this one was made
+        libsumo = _libsumo()
         try:
             if self.kind == "libsumo":
                 libsumo.start(cmd)
@@ -211,7 +221,7 @@ class SumoBackend:
         self._flush_pending_move()
         try:
             self._api.load(list(args))
-        except (libsumo.TraCIException, traci.exceptions.TraCIException) as e:
+        except (_libsumo().TraCIException, traci.exceptions.TraCIException) as e:
             raise SumoError(f"SUMO failed to load ({' '.join(args)}): {e}") from e
         self._after_load()
 

@@ -15,8 +15,9 @@ import numpy as np
 
 from mixed_traffic.config import VehicleConfig
 from mixed_traffic.world.backend import SumoBackend
+from mixed_traffic.world.demand import Demand, QueuedVehicle
 from mixed_traffic.world.hdmap import HDMap
-from mixed_traffic.world.registry import Demand, QueuedVehicle, Scenario
+from mixed_traffic.world.scenario import Scenario
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
 

@@ -9,19 +9,23 @@ lane's end along its *primary successor* (straight on, else the first connection
 
 from __future__ import annotations
 
+import gzip
 import hashlib
 import heapq
 import xml.etree.ElementTree as ET
+import zlib
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from xml.sax import SAXException, SAXParseException
 
 import numpy as np
+import sumolib.net
 
 from mixed_traffic.paths import cache_dir
 
 SPACING = 1.0  # waypoint spacing along the centreline [m]
-_CACHE_VERSION = "hdmap-v1"
+_CACHE_VERSION = "hdmap-v2"  # v2: read with sumolib
 
 
 @dataclass
@@ -199,110 +203,129 @@ def load_hdmap(net_file: str | Path) -> HDMap:
     return hdmap
 
 
-def build_hdmap(net_file: str | Path) -> HDMap:
-    """Parse a .net.xml and sample every lane centreline at 1 m."""
+class NetFileError(ValueError):
+    """Not a readable SUMO network; ``kind``: "xml", "root", "edges" or "content"."""
+
+    def __init__(self, message: str, kind: str, detail: str) -> None:
+        super().__init__(message)
+        self.kind, self.detail = kind, detail
+
+
+def read_net(net_file: str | Path, with_internal: bool = True) -> sumolib.net.Net:
+    """sumolib network of a .net.xml or .net.xml.gz (with macro connectors, and with internal,
+    crossing and walking-area edges if ``with_internal``); ``NetFileError`` naming the file if
+    it is malformed or its root is not ``<net>``, ``FileNotFoundError`` if it is missing."""
     try:
-        root = ET.parse(net_file).getroot()
-    except ET.ParseError as e:
-        raise ValueError(f"network file {net_file} is not valid XML: {e}") from e
-    if root.tag != "net":
-        raise ValueError(
-            f"{net_file} is not a SUMO network (root element <{root.tag}>, expected <net>)"
-        )
-    lane_ids: list[str] = []
-    lane_edge, lane_index, lane_length, lane_width, lane_speed, shapes = [], [], [], [], [], []
+        tag, empty = _root_of(net_file)
+        net = None
+        if tag == "net" and not empty:
+            net = sumolib.net.readNet(
+                str(net_file), withInternal=with_internal, withMacroConnectors=True, withFoes=False
+            )
+    except (SyntaxError, SAXException, EOFError, zlib.error, gzip.BadGzipFile) as e:
+        detail = str(e)
+        if isinstance(e, SAXParseException):  # as ElementTree words it, without the file name
+            detail = f"{e.getMessage()}: line {e.getLineNumber()}, column {e.getColumnNumber()}"
+        raise NetFileError(
+            f"network file {net_file} is not valid XML: {detail}", "xml", detail
+        ) from e
+    except (KeyError, IndexError, TypeError, AttributeError, ValueError) as e:
+        msg = f"network file {net_file} is not a valid SUMO network ({type(e).__name__}: {e})"
+        raise NetFileError(msg, "content", str(e)) from e
+    if tag != "net":
+        msg = f"{net_file} is not a SUMO network (root element <{tag}>, expected <net>)"
+        raise NetFileError(msg, "root", tag)
+    if net is None:
+        raise NetFileError(f"network file {net_file} contains no edges", "edges", "")
+    return net
+
+
+def _root_of(net_file: str | Path) -> tuple[str, bool]:
+    """Tag of the root element, and whether it has no child element (reads only the start)."""
+    with open(net_file, "rb") as f:
+        gz = f.read(2) == b"\x1f\x8b"
+    with (gzip.open if gz else open)(net_file, "rb") as f:
+        events = ET.iterparse(f, events=("start", "end"))
+        _, root = next(events)
+        event, elem = next(events)
+        return root.tag, event == "end" and elem is root
+
+
+def build_hdmap(net_file: str | Path) -> HDMap:
+    """Read a .net.xml (or .net.xml.gz) with sumolib and sample every lane centreline at 1 m."""
+    net = read_net(net_file)
+    lanes: list = []  # sumolib lanes, one per lane row
+    lane_edge: list[int] = []
     edge_ids: list[str] = []
     edge_lane_rows: list[list[int]] = []
-    edge_length: list[float] = []
-    for edge in root.iter("edge"):
-        internal = edge.get("function") == "internal"
-        if edge.get("function") in ("walkingarea", "crossing"):
+    edge_row: dict = {}  # sumolib edge -> edge row
+    for edge in net.getEdges(withInternal=True):
+        function = edge.getFunction()
+        if function in ("walkingarea", "crossing"):
             continue
+        internal = function == "internal"
         erow = -1 if internal else len(edge_ids)
-        rows = []
-        for lane in edge.iter("lane"):
-            rows.append(len(lane_ids))
-            lane_ids.append(lane.get("id"))
-            lane_edge.append(erow)
-            lane_index.append(int(lane.get("index")))
-            lane_length.append(float(lane.get("length")))
-            lane_width.append(float(lane.get("width", 3.2)))
-            lane_speed.append(float(lane.get("speed")))
-            shapes.append(_parse_shape(lane.get("shape")))
+        rows = list(range(len(lanes), len(lanes) + len(edge.getLanes())))
+        lanes += edge.getLanes()
+        lane_edge += [erow] * len(rows)
         if not internal:
-            edge_ids.append(edge.get("id"))
-            order = sorted(rows, key=lambda r: lane_index[r])
-            edge_lane_rows.append(order)
-            edge_length.append(lane_length[order[0]] if order else 0.0)
+            edge_row[edge] = erow
+            edge_ids.append(edge.getID())
+            edge_lane_rows.append(rows)  # sumolib keeps lanes by index, 0 = rightmost
     if not edge_ids:
-        raise ValueError(f"network file {net_file} contains no edges")
+        raise NetFileError(f"network file {net_file} contains no edges", "edges", "")
+    lane_ids = [lane.getID() for lane in lanes]
+    lane_length = [lane.getLength() for lane in lanes]
     lane_row = {lid: i for i, lid in enumerate(lane_ids)}
-    edge_row = {eid: i for i, eid in enumerate(edge_ids)}
     kmax = max(len(r) for r in edge_lane_rows)
     edge_lanes = np.full((len(edge_ids), kmax), -1, dtype=np.int32)
     for e, rows in enumerate(edge_lane_rows):
         edge_lanes[e, : len(rows)] = rows
 
-    lane_next = np.full(len(lane_ids), -1, dtype=np.int32)
+    lane_next = np.full(len(lanes), -1, dtype=np.int32)
     conn_to: dict[tuple[int, int], int] = {}
     tls_links: dict[tuple[int, int], tuple[str, int]] = {}
-    straight: set[int] = set()
-    for c in root.iter("connection"):
-        frm, to = c.get("from"), c.get("to")
-        src = lane_row.get(f"{frm}_{c.get('fromLane')}")
-        dst = lane_row.get(f"{to}_{c.get('toLane')}")
-        if src is None or dst is None:
-            continue
-        via = c.get("via")
-        first = lane_row.get(via, dst) if via else dst
-        if frm in edge_row and to in edge_row:
-            conn_to.setdefault((src, edge_row[to]), first)
-            if c.get("tl"):
-                tls_links[(src, edge_row[to])] = (c.get("tl"), int(c.get("linkIndex", -1)))
-        if c.get("dir") == "s" and src not in straight:  # straight on is the primary successor
-            lane_next[src] = first
-            straight.add(src)
-        elif lane_next[src] < 0:
-            lane_next[src] = first
+    for src, lane in enumerate(lanes):
+        straight = False
+        for c in lane.getOutgoing():  # in file order
+            dst = lane_row.get(c.getToLane().getID())
+            if dst is None:  # onto a crossing or walking area
+                continue
+            via = c.getViaLaneID()
+            first = lane_row.get(via, dst) if via else dst
+            to = edge_row.get(c.getTo())
+            if lane_edge[src] >= 0 and to is not None:
+                conn_to.setdefault((src, to), first)
+                if c.getTLSID():
+                    tls_links[(src, to)] = (c.getTLSID(), c.getTLLinkIndex())
+            if c.getDirection() == "s" and not straight:  # straight on: the primary successor
+                lane_next[src] = first
+                straight = True
+            elif lane_next[src] < 0:
+                lane_next[src] = first
 
-    offsets, counts, xyz, heading, wlane = [], [], [], [], []
-    total = 0
-    for row, shape in enumerate(shapes):
-        pts, hdg = _sample(shape, lane_length[row])
-        offsets.append(total)
-        counts.append(len(pts))
-        total += len(pts)
-        xyz.append(pts)
-        heading.append(hdg)
-        wlane.append(np.full(len(pts), row, dtype=np.int32))
+    samples = [_sample(np.reshape(ln.getShape3D(), (-1, 3)), ln.getLength()) for ln in lanes]
+    counts = np.array([len(pts) for pts, _ in samples], dtype=np.int64)
     return HDMap(
         net_file=str(net_file),
         lane_ids=lane_ids,
         lane_edge=np.array(lane_edge, dtype=np.int32),
-        lane_index=np.array(lane_index, dtype=np.int16),
+        lane_index=np.array([lane.getIndex() for lane in lanes], dtype=np.int16),
         lane_length=np.array(lane_length),
-        lane_width=np.array(lane_width),
-        lane_speed=np.array(lane_speed),
+        lane_width=np.array([lane.getWidth() for lane in lanes]),
+        lane_speed=np.array([lane.getSpeed() for lane in lanes]),
         lane_next=lane_next,
         edge_ids=edge_ids,
         edge_lanes=edge_lanes,
-        edge_length=np.array(edge_length),
+        edge_length=np.array([lane_length[rows[0]] if rows else 0.0 for rows in edge_lane_rows]),
         conn_to=conn_to,
         tls_links=tls_links,
-        wp_offset=np.array(offsets, dtype=np.int64),
-        wp_count=np.array(counts, dtype=np.int64),
-        wp_xyz=np.concatenate(xyz),
-        wp_heading=np.concatenate(heading),
-        wp_lane=np.concatenate(wlane),
+        wp_offset=np.cumsum(counts) - counts,
+        wp_count=counts,
+        wp_xyz=np.concatenate([pts for pts, _ in samples]),
+        wp_heading=np.concatenate([hdg for _, hdg in samples]),
+        wp_lane=np.repeat(np.arange(len(lanes), dtype=np.int32), counts),
     )
-
-
-def _parse_shape(text: str | None) -> np.ndarray:
-    pts = [tuple(float(v) for v in p.split(",")) for p in (text or "").split()]
-    arr = np.zeros((len(pts), 3))
-    for i, p in enumerate(pts):
-        arr[i, : len(p)] = p
-    return arr
 
 
 def _sample(shape: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:

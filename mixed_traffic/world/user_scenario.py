@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from mixed_traffic.world.registry import OwnVehicle, Route, Scenario
+from mixed_traffic.world.hdmap import NetFileError, read_net
+from mixed_traffic.world.scenario import OwnVehicle, Route, Scenario
 
 #: Fringe origin/destination pairs kept for a bare network (enough for route choice, few routes).
 MAX_OD_PAIRS = 12
@@ -44,27 +45,36 @@ def _parse(path: Path, what: str) -> ET.Element:
 
 
 class _Net:
-    """Normal edges and their successor graph, read from a .net.xml."""
+    """Normal edges and their successor graph, read with sumolib from a .net.xml."""
 
     def __init__(self, path: Path) -> None:
-        root = _parse(path, "network file")
-        if root.tag != "net":
-            raise ValueError(f"{path} is not a SUMO network (root <{root.tag}>, expected <net>)")
+        if not path.is_file():
+            raise ValueError(f"network file {path} does not exist")
+        try:
+            net = read_net(path, with_internal=False)
+        except NetFileError as e:
+            if e.kind == "xml":
+                raise ValueError(f"network file {path} is malformed XML: {e.detail}") from e
+            if e.kind == "root":
+                msg = f"{path} is not a SUMO network (root <{e.detail}>, expected <net>)"
+                raise ValueError(msg) from e
+            raise
+        edges = [
+            e
+            for e in net.getEdges(withInternal=True)
+            if e.getFunction() not in ("internal", "walkingarea", "crossing")
+        ]
         self.path = path
-        self.lanes: dict[str, int] = {}
-        self.nodes: dict[str, tuple[str, str]] = {}
-        for e in root.iter("edge"):
-            if e.get("function") in ("internal", "walkingarea", "crossing"):
-                continue
-            self.lanes[e.get("id")] = len(e.findall("lane"))
-            self.nodes[e.get("id")] = (e.get("from"), e.get("to"))
+        self.lanes: dict[str, int] = {e.getID(): len(e.getLanes()) for e in edges}
+        self.nodes: dict[str, tuple[str, str]] = {
+            e.getID(): (e.getFromNode().getID(), e.getToNode().getID()) for e in edges
+        }
         if not self.lanes:
             raise ValueError(f"network file {path} contains no edges")
-        self.succ: dict[str, set[str]] = {e: set() for e in self.lanes}
-        for c in root.iter("connection"):
-            a, b = c.get("from"), c.get("to")
-            if a in self.succ and b in self.lanes:
-                self.succ[a].add(b)
+        self.succ: dict[str, set[str]] = {
+            e.getID(): {t.getID() for t in e.getOutgoing() if t.getID() in self.lanes}
+            for e in edges
+        }
 
     def reachable(self, start: str) -> set[str]:
         seen, todo = {start}, deque([start])

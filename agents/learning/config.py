@@ -1,0 +1,221 @@
+"""Training run settings (:class:`TrainConfig`) and the env / encoder configs derived from them.
+
+``python -m mixed_traffic.train`` builds its options from the fields of :class:`TrainConfig` (their
+docstrings carry the units); :class:`agents.learning.trainer.Trainer` runs one.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields, replace
+from typing import Any, NoReturn
+
+from agents.nets.lca import LCAConfig
+from mixed_traffic.config import WEATHERS, EnvConfig
+
+BACKENDS = ("process", "ray")
+ABLATIONS = ("none", "nohis", "nolane", "nostar", "noimp", "nomul", "novec")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Training run settings; ``python -m mixed_traffic.train`` builds its options from these."""
+
+    workers: int = 2
+    """Rollout worker processes N (1 = in-process, synchronous, deterministic)."""
+    backend: str = "process"
+    """Worker transport: process (multiprocessing spawn) | ray (Ray core actors)."""
+    address: str = ""
+    """Ray cluster address for ray.init(address=...), e.g. 'auto' or 'host:6379' ('' = local)."""
+    scenarios: tuple[str, ...] = ()
+    """Training scenarios sampled per episode ('' = every train-split scenario)."""
+    densities: tuple[float, ...] = (60.0, 120.0, 180.0)
+    """Traffic densities sampled per episode [veh/km]."""
+    penetrations: tuple[float, ...] = (0.2, 0.5, 1.0)
+    """AV penetration rates sampled per episode [0-1]."""
+    weathers: tuple[str, ...] = WEATHERS
+    """Weather presets sampled per episode."""
+    episode_length: float = 120.0
+    """Simulated time per training episode [s]."""
+    env_steps: int = 0
+    """Budget: total transitions (AV actions) over the run including resumed parts (0 = none)."""
+    minutes: float = 0.0
+    """Budget: wall time of this invocation [min] (0 = none). At least one budget is needed."""
+    seed: int = 0
+    """Root seed: learner init, replay sampling, per-worker episode configs and exploration."""
+    out: str = "runs/auto"
+    """Output directory (checkpoints, curves, final auto.pt/auto.json)."""
+    demo_steps: int = 20000
+    """Transitions first driven by the demonstrator (ACC-LC) to seed the replay (0 = off)."""
+    demo_share: float = 0.05
+    """Probability that a later episode is also driven by the demonstrator [0-1]."""
+    pretrain_updates: int = 0
+    """Learner updates on the demonstrations alone, as soon as the demonstration phase ends
+    (all ``demo_steps`` arrived, or a worker switched to its own policy), before the learned
+    weights are published (0 = none)."""
+    demo_policy: str = "acc-lc"
+    """Demonstrator policy name for agents.policies.make_policy."""
+    expert_labels: bool = True
+    """Label every transition the learning policy drives with the demonstrator's action for
+    the same observation; behaviour cloning and the DQfD margin then target it (DAgger-style
+    deviation from the paper, see agents.learning.rbpdqn; off = BC on the taken action)."""
+    alpha: float = 0.6
+    """Weight α of the normalised Q term in the actor loss after pretraining [-] (paper 0.6)."""
+    lr: float = 1e-3
+    """Adam learning rate of actor and critic [-] (paper 1e-3)."""
+    lr_final: float = 0.0
+    """Learning rate reached at the end of the ``env_steps`` budget by cosine decay from
+    ``lr``, a function of transitions received, so it survives --resume and keeps one-worker
+    runs deterministic [-] (0 = constant ``lr``)."""
+    bc_accel_weight: float = 1.0
+    """Weight of accel_brake errors in the behaviour-cloning term, relative to 1 per unit²
+    (steering: ``LearnerConfig.bc_steer_weight``) [-] (1 = the paper's loss)."""
+    bc_accel_expectile: float = 0.5
+    """Expectile τ of the accel_brake fit: errors below the label weigh 2τ, above it 2(1 − τ)
+    [-] (0.5 = the paper's squared error; see ``LearnerConfig.bc_accel_expectile``)."""
+    init: str = ""
+    """Checkpoint whose networks (and optimiser states) start a new run: fine-tuning with a
+    fresh replay and counters ('' = random init; ignored by --resume). A paper-form checkpoint
+    (no ego fusion) is widened with zero weights on the ego input, so the run starts from the
+    same policy."""
+    ablation: str = "none"
+    """Paper §V-A variant: none | nohis | nolane | nostar | noimp | nomul | novec."""
+    ego_fusion: bool = True
+    """The ego embedding joins LCA's lane-wise fusion (``LCAConfig.ego_fusion``); False trains
+    the paper's fusion of the three lane vectors only."""
+    bp_dqn: bool = False
+    """Train the BP-DQN baseline (no behaviour-cloning regulariser) instead of RBP-DQN."""
+    local_buffer: int = 256
+    """B_l: transitions a worker buffers before flushing them to the learner [transitions]."""
+    replay_capacity: int = 200_000
+    """B_g: GlobalBuffer capacity [transitions] (about 7 kB each)."""
+    batch_size: int = 128
+    """Learner mini-batch b [transitions]."""
+    update_ratio: float = 1 / 32
+    """Learner updates per transition received (1/32 with b=128 replays each sample ~4 times)."""
+    learning_starts: int = 2000
+    """Transitions in the replay before the first update."""
+    max_lag: int = 64
+    """Process/Ray backends: updates the learner may owe before it stops reading chunks."""
+    sync_every: int = 50
+    """K: learner updates between weight broadcasts to the workers."""
+    epsilon: float = 0.2
+    """Base ε of the Ape-X ladder: worker i uses ε^(1 + spread·i/(N−1)) [-]."""
+    noise_std: float = 0.3
+    """Base exploration noise σ of the ladder (same exponent) [action units]."""
+    ladder_spread: float = 3.0
+    """Exponent spread of the exploration ladder over the workers [-]."""
+    checkpoint_every: float = 300.0
+    """Seconds between checkpoints [s]."""
+    keep_snapshots: bool = True
+    """Also keep each periodic checkpoint's weights as ``snapshots/<env steps>.pt`` (≈ 1 MB
+    each), so a run's intermediate networks can be compared afterwards."""
+    log_every: int = 20000
+    """Transitions between learning-curve rows."""
+    learner_threads: int = 1
+    """torch threads of the learner process."""
+    progress: bool = True
+    """Show a tqdm progress bar."""
+    max_worker_restarts: int = 50
+    """Give up when one worker slot has been restarted this many times."""
+    crash_after_chunks: int = 0
+    """Test hook: worker 0 SIGKILLs itself after sending this many chunks (0 = off)."""
+
+    def __post_init__(self) -> None:
+        """Validate the fields (ValueError naming the first bad one)."""
+        self._check_topology()
+        self._check_sampling()
+        self._check_budgets()
+        self._check_optimiser()
+        self._check_learner_loop()
+
+    def _bad(self, name: str, why: str) -> NoReturn:
+        raise ValueError(f"TrainConfig.{name}={getattr(self, name)!r}: {why}")
+
+    def _check_topology(self) -> None:
+        """Workers, backend, address and ablation."""
+        if self.workers < 1:
+            self._bad("workers", "need at least 1 worker")
+        if self.backend not in BACKENDS:
+            self._bad("backend", f"choose from {BACKENDS}")
+        if self.address and self.backend != "ray":
+            self._bad("address", "only meaningful with backend='ray'")
+        if self.ablation not in ABLATIONS:
+            self._bad("ablation", f"choose from {ABLATIONS}")
+        if self.ablation == "novec":
+            self._bad("ablation", "NoVEC (rasterised BEV + CNN encoder) is not implemented")
+        if self.ablation == "nomul" and self.workers != 1:
+            self._bad("ablation", "NoMUL is the single-worker variant: pass --workers 1")
+
+    def _check_sampling(self) -> None:
+        """The per-episode densities, penetrations and weathers."""
+        if not self.densities or any(d <= 0 for d in self.densities):
+            self._bad("densities", "need positive densities")
+        if not self.penetrations or any(not 0 < p <= 1 for p in self.penetrations):
+            self._bad("penetrations", "need penetrations in (0, 1]")
+        if not self.weathers or any(w not in WEATHERS for w in self.weathers):
+            self._bad("weathers", f"choose from {WEATHERS}")
+
+    def _check_budgets(self) -> None:
+        """The run's budgets and the demonstration phase."""
+        if self.env_steps < 0 or self.minutes < 0:
+            self._bad("env_steps", "budgets must be >= 0")
+        if self.env_steps == 0 and self.minutes == 0:
+            self._bad("env_steps", "give a budget: env_steps > 0 and/or minutes > 0")
+        if not 0 <= self.demo_share <= 1:
+            self._bad("demo_share", "must be in [0, 1]")
+        if self.demo_steps < 0:
+            self._bad("demo_steps", "must be >= 0")
+        if self.pretrain_updates < 0:
+            self._bad("pretrain_updates", "must be >= 0")
+
+    def _check_optimiser(self) -> None:
+        """The actor loss weights and the learning-rate schedule."""
+        if not self.alpha >= 0:
+            self._bad("alpha", "must be >= 0")
+        if not self.lr > 0:
+            self._bad("lr", "must be > 0")
+        if not 0 <= self.lr_final <= self.lr:
+            self._bad("lr_final", "must be in [0, lr] (0 = no decay)")
+        if self.lr_final and not self.env_steps:
+            self._bad("lr_final", "the decay runs over the env_steps budget: give env_steps > 0")
+        if not self.bc_accel_weight >= 0:
+            self._bad("bc_accel_weight", "must be >= 0")
+        if not 0 < self.bc_accel_expectile < 1:
+            self._bad("bc_accel_expectile", "must be in (0, 1)")
+
+    def _check_learner_loop(self) -> None:
+        """Buffer sizes, the update ratio and the checkpoint period."""
+        for name in ("local_buffer", "replay_capacity", "batch_size", "sync_every", "log_every"):
+            if getattr(self, name) < 1:
+                self._bad(name, "must be >= 1")
+        if self.update_ratio < 0 or self.learning_starts < 0 or self.max_lag < 1:
+            self._bad("update_ratio", "update_ratio/learning_starts must be >= 0, max_lag >= 1")
+        if self.checkpoint_every <= 0:
+            self._bad("checkpoint_every", "must be > 0")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-friendly fields (tuples as lists)."""
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TrainConfig:
+        """The config of :meth:`to_dict` (unknown keys ignored)."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()
+                      if k in names})  # fmt: skip
+
+
+def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:
+    """Encoder config from the env's history/waypoints and the ablation."""
+    flags = {"nohis": {"history": False}, "nolane": {"lane_wise": False},
+             "nostar": {"star": False}}.get(cfg.ablation, {})  # fmt: skip
+    return LCAConfig(z=env_base.sensors.history, m=env_base.sensors.waypoints,
+                     ego_fusion=cfg.ego_fusion, **flags)  # fmt: skip
+
+
+def env_base_config(cfg: TrainConfig, env_base: EnvConfig | None = None) -> EnvConfig:
+    """Fixed env fields for every episode: episode length and, for NoIMP, w_impact = 0."""
+    base = replace(env_base or EnvConfig(), episode_length=cfg.episode_length)
+    if cfg.ablation == "noimp":
+        base = replace(base, reward=replace(base.reward, w_impact=0.0))
+    return base

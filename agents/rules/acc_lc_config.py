@@ -1,0 +1,85 @@
+"""ACC-LC's parameters and index constants (shared by its longitudinal, lateral and planning
+parts; see :mod:`agents.rules.acc_lc` for what the driver does)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from mixed_traffic.config import SensorConfig, VehicleConfig
+from mixed_traffic.env.api import DEAD_END_DISTANCE
+
+#: decisions (rows of ``params``): left change, follow, right change
+LEFT, FOLLOW, RIGHT = 0, 1, 2
+#: lane columns in the observation (left, current, right)
+LANE_L, LANE_C, LANE_R = 0, 1, 2
+
+
+@dataclass
+class AccLcConfig:
+    """Parameters of the rule-based driver (SI units)."""
+
+    # the env's sensor ranges and vehicle limits (one source: mixed_traffic.config)
+    lidar_range: float = SensorConfig.lidar_range
+    camera_range: float = SensorConfig.camera_range
+    wheelbase: float = VehicleConfig.wheelbase
+    max_steer_deg: float = VehicleConfig.max_steer_deg
+    max_accel: float = VehicleConfig.max_accel
+    max_decel: float = VehicleConfig.max_decel
+    # IDM
+    a: float = 1.5
+    b: float = 2.0
+    T: float = 1.3
+    s0: float = 3.0
+    speed_factor: float = 0.95
+    # lights and junctions
+    yellow_stop_decel: float = 3.5
+    stop_margin: float = 1.5
+    junction_speed: float = 3.3
+    curve_accel: float = 2.0
+    # a target speed ahead this much below the present one is braked for kinematically [m/s]
+    limit_deadband: float = 0.5
+    # lane change
+    lane_shift: float = 3.4
+    lane_width_min: float = 3.2
+    lc_threshold: float = 0.4
+    keep_right_bias: float = 0.1
+    rear_headway: float = 0.6
+    rear_decel: float = 2.0
+    lc_start_offset: float = 0.3
+    # forced merge (mandatory change): the rear vehicle of the target lane, assumed to follow
+    # IDM (hv parameters), may need to brake at most ``force_rear_decel`` for the ego
+    force_rear_decel: float = 3.0
+    force_front_decel: float = 3.0
+    hv_a: float = 1.5
+    hv_b: float = 2.0
+    hv_T: float = 1.2
+    hv_s0: float = 2.0
+    # lateral envelope: clearance kept to vehicles alongside (longitudinal overlap)
+    side_margin: float = 0.4
+    side_long_margin: float = 2.0
+    # hidden vehicle: one may sit right ahead of a slower visible neighbour (bumper gap
+    # ``hidden_gap``) and pull into our lane; pass slow neighbours only as fast as we could stop
+    hidden_gap: float = 1.0
+    hidden_decel: float = 4.0
+    # cooperation: a waiting mandatory changer signals with a lateral offset towards the target
+    # lane; a vehicle ahead in a neighbouring lane offset towards us by ``signal_min`` is yielded
+    # to (a leader) when we can stop for it braking at most ``yield_decel``
+    signal_offset: float = 0.6
+    signal_min: float = 0.4
+    yield_decel: float = 2.5
+    # a mandatory change waits this far before the end of its lane (room to swing out), and
+    # creeps this close to it once the change is under way
+    end_wait: float = 6.0
+    # (the env ends a trip stuck within DEAD_END_DISTANCE of a dead end as a route deviation)
+    end_s0: float = DEAD_END_DISTANCE + 0.5
+    # lateral
+    lat_accel: float = 2.0
+    lat_speed: float = 1.0
+    lat_gain: float = 0.8
+    heading_gain: float = 1.0
+    # in its lane (follow), the course is never steeper than one that can be turned straight
+    # at this curvature [1/m] within the remaining offset: creeping in a queue, a course set
+    # from the lateral speed alone reached 21 deg, and when the queue moved on the ego swung
+    # past its lane centre into the next lane (a fixed small cap instead left egos straddling
+    # two lanes when the queue stopped)
+    follow_curvature: float = 0.1

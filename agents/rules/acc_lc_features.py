@@ -1,0 +1,125 @@
+"""ACC-LC's view of the observation: the stacked observation decoded into SI features.
+
+:func:`features` returns a dict of (A, ...) arrays (the layout of DESIGN §6, normalisation
+constants of ``mixed_traffic.sensing.observation`` via ``mixed_traffic.env.api``):
+
+- ego: ``v``, ``h`` (heading), ``len``, ``wid``, ``d`` (lateral offset), ``vlat_hist`` (lateral
+  velocity from the offset history, unwrapped across lane switches);
+- waypoints: ``wp_speed``, ``wp_orient`` (A, 3, m);
+- neighbours of the latest frame (A, 3, 2: lane column x front/rear): ``present``, ``vdist``,
+  ``vrel``, ``vlen``, ``vwid``, ``vlat``;
+- front vehicles of the last frames since the last lane switch (A, 3, K): ``h_dist`` (extrapolated
+  to now), ``h_rel``, ``h_len``, ``h_wid``, ``h_lat``;
+- ``exists`` (A, 3) lanes, ``mask`` (A, 3) allowed decisions, ``light`` (A, 3) majority state
+  (0 red, 1 yellow, 2 green, -1 none) and ``light_dist`` (A, 3).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from agents.rules.acc_lc_config import LANE_C as _C
+from agents.rules.acc_lc_config import AccLcConfig
+from mixed_traffic.env.api import CURVATURE_WINDOW, EGO_SCALE, SPEED_SCALE, WAYPOINT_SCALE
+
+
+def lane_curvature(f: Mapping[str, np.ndarray]) -> np.ndarray:
+    """(A,) curvature of the current lane where the ego is [1/m, + = left], from the waypoint
+    orientations (``AccLcPolicy._features``) over the env's ``CURVATURE_WINDOW``; 0 where the
+    lane is missing."""
+    o = f["wp_orient"][:, _C]
+    w = min(CURVATURE_WINDOW, o.shape[1] - 1)
+    kappa = (o[:, w] - o[:, 0]) / max(w, 1)
+    return np.where(f["exists"][:, _C], kappa, 0.0)
+
+
+def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarray]:
+    """Stacked observation ``ob`` (A, ...) per key -> the SI features of the module docstring."""
+    ego = np.asarray(ob["ego"], np.float64)  # (A, z, 5)
+    lanes = np.asarray(ob["lanes"], np.float64)  # (A, 3, z, 4m)
+    veh = np.asarray(ob["vehicles"], np.float64)  # (A, 3, z, 12)
+    lights = np.asarray(ob["lights"], np.float64)  # (A, 3, z, 4)
+    A = ego.shape[0]
+    f, dh, valid = _ego_features(ego)
+    m = lanes.shape[-1] // 4
+    wp = lanes[:, :, -1].reshape(A, 3, m, 4) * WAYPOINT_SCALE
+    f["wp_speed"] = wp[..., 3]  # (A, 3, m)
+    f["wp_orient"] = wp[..., 2]
+    scale = np.array([c.lidar_range, SPEED_SCALE, np.pi, 10.0, 5.0, 2.0])
+    _neighbour_features(f, veh, scale, A)
+    _history_features(f, veh, scale, dh, valid)
+    nm = np.asarray(ob["node_mask"])
+    f["exists"] = nm[:, :, 0] > 0
+    f["mask"] = np.asarray(ob["action_mask"]) > 0
+    _light_features(f, lights, c)
+    return f
+
+
+def _ego_features(ego: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """Ego features of the latest frame and ``vlat_hist``; also the offset history ``dh`` [m]
+    (A, z) and the ``valid`` frames (A, z) that the neighbour history needs."""
+    e = ego[:, -1] * EGO_SCALE
+    f = {"v": np.maximum(e[:, 0], 0.0), "h": e[:, 1], "len": e[:, 2], "wid": e[:, 3]}
+    f["d"] = e[:, 4]
+    # lateral offset history, unwrapped across lane switches (jumps > 1.5 m)
+    dh = ego[:, :, 4] * EGO_SCALE[4]
+    valid = ego[:, :, 2] > 0
+    k = max(0, ego.shape[1] - 3)
+    diffs = np.diff(dh[:, k:], axis=1)
+    ok = valid[:, k + 1 :] & valid[:, k:-1] & (np.abs(diffs) < 1.5)
+    f["vlat_hist"] = np.where(ok, diffs, 0.0).sum(1) / np.maximum(ok.sum(1), 1) / 0.1
+    return f, dh, valid
+
+
+def _neighbour_features(
+    f: dict[str, np.ndarray], veh: np.ndarray, scale: np.ndarray, A: int
+) -> None:
+    """Front and rear vehicle of each lane column in the latest frame (into ``f``; ``A``
+    agents)."""
+    vv = veh[:, :, -1].reshape(A, 3, 2, 6)
+    vv = vv * scale
+    present = vv[..., 4] > 0
+    f["present"] = present
+    f["vdist"] = np.where(present, vv[..., 0], np.array([np.inf, -np.inf]))
+    f["vrel"] = vv[..., 1]
+    f["vlen"] = vv[..., 3]
+    f["vwid"] = vv[..., 4]
+    f["vlat"] = vv[..., 5]
+
+
+def _history_features(
+    f: dict[str, np.ndarray], veh: np.ndarray, scale: np.ndarray, dh: np.ndarray, valid: np.ndarray
+) -> None:
+    """Front vehicles of the last K frames (into ``f``; object permanence: a leader hidden
+    behind a nearer vehicle of the same lane, or gone into a junction lane the ego does not
+    follow, is extrapolated from its last sighting), only since the last lane switch."""
+    A = dh.shape[0]
+    K = min(5, veh.shape[2])
+    hv = veh[:, :, -K:, :6] * scale  # (A, 3, K, 6)
+    age = (K - 1 - np.arange(K)) * 0.1
+    hp = hv[..., 4] > 0
+    jump = np.abs(np.diff(dh[:, -K:], axis=1)) >= 1.5  # (A, K-1)
+    since = np.flip(np.cumsum(np.flip(jump, 1), axis=1), 1) == 0  # no switch after k
+    hvalid = np.concatenate([since, np.ones((A, 1), bool)], axis=1) & valid[:, -K:]
+    hp &= hvalid[:, None, :]
+    f["h_dist"] = np.where(hp, hv[..., 0] + hv[..., 1] * age, np.inf)
+    f["h_rel"], f["h_len"] = hv[..., 1], hv[..., 3]
+    f["h_wid"], f["h_lat"] = hv[..., 4], hv[..., 5]
+
+
+def _light_features(f: dict[str, np.ndarray], lights: np.ndarray, c: AccLcConfig) -> None:
+    """Light state per lane column, a majority of the last 3 frames with a detection, and its
+    distance (the last detected one when the latest frame lost the light), into ``f``."""
+    lt = lights[:, :, -3:]
+    det = lt[..., :3].sum(-1) > 0.5
+    votes = (lt[..., :3] > 0.5).sum(2)  # (A, 3, 3) counts of r/y/g
+    state = np.where(det.any(2), votes.argmax(-1), -1)
+    f["light"] = state
+    f["light_dist"] = np.where(
+        det[..., -1], lights[:, :, -1, 3] * c.camera_range, np.where(det.any(2), 0, np.inf)
+    )
+    # fall back to the last detected distance when the latest frame lost the light
+    last = lights[:, :, -2, 3] * c.camera_range
+    f["light_dist"] = np.where(~det[..., -1] & det.any(2), last, f["light_dist"])

@@ -1,0 +1,263 @@
+"""ACC-LC's longitudinal control: IDM with a kinematic emergency term, the acceleration for a
+candidate lane (speed limits and curves ahead, leaders of that lane and overlapping ones,
+cooperation, traffic lights, junction approach), the hidden-vehicle cap and the acceleration of
+a mandatory change waiting for a gap (see :mod:`agents.rules.acc_lc` for the rules).
+
+``f`` is the feature dict of :func:`agents.rules.acc_lc_features.features`; every function is
+vectorised over the A agents.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from agents.rules.acc_lc_config import LANE_C as _C
+from agents.rules.acc_lc_config import LANE_L as _L
+from agents.rules.acc_lc_config import LANE_R as _R
+from agents.rules.acc_lc_config import AccLcConfig
+
+Features = Mapping[str, np.ndarray]
+
+
+def _idm(
+    v: np.ndarray,
+    v0: np.ndarray,
+    gap: np.ndarray,
+    dv: np.ndarray,
+    c: AccLcConfig,
+    s0: float | np.ndarray | None = None,
+) -> np.ndarray:
+    """IDM acceleration; dv = v - v_leader (closing speed), gap bumper gap [m] (inf = free);
+    ``s0`` standstill gap (default ``c.s0``)."""
+    s0 = c.s0 if s0 is None else s0
+    v0 = np.maximum(v0, 0.1)
+    free = 1.0 - (np.minimum(v, 2 * v0) / v0) ** 4
+    s_star = s0 + np.maximum(0.0, v * c.T + v * dv / (2.0 * np.sqrt(c.a * c.b)))
+    inter = np.where(np.isfinite(gap), (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
+    acc = c.a * (free - inter)
+    # kinematic emergency: brake hard enough to stop behind where the leader could stop
+    v_lead = np.maximum(v - dv, 0.0)
+    room = np.maximum(gap - np.minimum(1.0, 0.5 * s0) + v_lead**2 / (2 * c.max_decel), 0.05)
+    need = np.where(np.isfinite(gap), v**2 / (2 * room), 0.0)
+    # blended in from the comfortable decel to twice it: a switch at one threshold made
+    # steady following a noise-driven alternation of IDM's acceleration and hard braking
+    r = np.clip((need - c.b) / c.b, 0.0, 1.0)
+    return np.minimum(acc, (1.0 - r) * acc - r * 1.2 * need)
+
+
+def lane_accel(
+    f: Features,
+    c: AccLcConfig,
+    lane: int,
+    offset: np.ndarray,
+    memory: bool = True,
+    end_gap: np.ndarray | None = None,
+) -> np.ndarray:
+    """(A,) acceleration if driving in lane column ``lane`` (with the ego at lateral
+    ``offset`` relative to the current lane, for the overlap test of neighbours);
+    ``end_gap`` (A,) standstill gap to the virtual end-of-lane vehicle (default ``s0``);
+    ``memory=False`` uses the latest frame's leaders only."""
+    v = f["v"]
+    ln = np.where(f["exists"][:, lane], lane, _C)
+    lim_now, v0, a_lim = _speed_limits(f, c, ln, offset)
+    acc = _idm(v, v0, np.full_like(v, np.inf), np.zeros_like(v), c)
+    acc = np.minimum(acc, a_lim)
+    # leaders: front vehicle of this lane and overlapping front vehicles of the others
+    # (every history frame, extrapolated to now: shape (A, K))
+    kk = slice(None) if memory else slice(-1, None)
+    for j in (_L, _C, _R):
+        acc = np.minimum(acc, _leader_accel(f, c, lane, j, kk, offset, v0, end_gap))
+    return _light_accel(f, c, acc, v0, lim_now)
+
+
+def _speed_limits(
+    f: Features, c: AccLcConfig, ln: np.ndarray, offset: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(A,) speed limit where the ego is, IDM's desired speed ``v0`` and the kinematic
+    acceleration ``a_lim`` for lower targets ahead (inf = none) in lane columns ``ln``."""
+    v = f["v"]
+    ar = np.arange(len(v))
+    # speed limit: lowest ahead, and braking towards lower limits ahead
+    spd = f["wp_speed"][ar, ln]  # (A, m)
+    spd = np.where(spd > 0.5, spd, np.inf)
+    lim_now = np.where(np.isfinite(spd[:, 0]), spd[:, 0], np.min(spd, axis=1))
+    lim_now = np.where(np.isfinite(lim_now), lim_now, 13.9)
+    v0 = c.speed_factor * lim_now
+    dist_wp = np.arange(spd.shape[1], dtype=np.float64) + 1.0
+    target = _curve_target(f, c, ar, ln, spd, offset)
+    # the target where the ego is now is IDM's desired speed, whose free-road term is smooth
+    # in the noisy speed reading; braking to it over the 1 m to the first waypoint turned
+    # every reading above it into a hard brake. Kinematic braking only for lower targets.
+    v0 = np.minimum(v0, target[:, 0])
+    lower = (target < target[:, :1] - c.limit_deadband) & (target < v[:, None])
+    need = np.where(lower, (target**2 - v[:, None] ** 2) / (2 * dist_wp), np.inf)
+    a_lim = np.min(need, axis=1)
+    a_lim = np.where(a_lim < 0, 1.3 * a_lim, np.inf)
+    return lim_now, v0, a_lim
+
+
+def _curve_target(
+    f: Features,
+    c: AccLcConfig,
+    ar: np.ndarray,
+    ln: np.ndarray,
+    spd: np.ndarray,
+    offset: np.ndarray,
+) -> np.ndarray:
+    """(A, m) target speed at each waypoint: the speed limit ``spd`` bounded by the curves
+    (lateral acceleration bound, and the along-lane speed SUMO reports grows by
+    1 / (1 - kappa * d) on the inside of a curve)."""
+    o = f["wp_orient"][ar, ln]
+    # curvature over a 5 m window: internal (junction) lanes are coarse polylines whose
+    # orientation jumps by ~0.5 rad at a vertex, which per metre would read as a sharp bend
+    mw = o.shape[1]
+    w = min(5, mw - 1) if mw > 1 else 1
+    j0 = np.clip(np.arange(mw) - w // 2, 0, max(mw - 1 - w, 0))
+    j1 = np.minimum(j0 + w, mw - 1)
+    kap = np.abs((o[:, j1] - o[:, j0] + np.pi) % (2 * np.pi) - np.pi) / w
+    v_curve = np.sqrt(c.curve_accel / np.maximum(kap, 1e-4))
+    inside = np.maximum(1.0 - kap * (np.abs(offset)[:, None] + 0.3), 0.3)
+    return np.minimum(c.speed_factor * spd, v_curve) * inside
+
+
+def _leader_accel(
+    f: Features,
+    c: AccLcConfig,
+    lane: int,
+    j: int,
+    kk: slice,
+    offset: np.ndarray,
+    v0: np.ndarray,
+    end_gap: np.ndarray | None,
+) -> np.ndarray:
+    """(A,) IDM acceleration behind the relevant front vehicles of lane column ``j`` (history
+    frames ``kk``) when driving in ``lane``; inf where none is relevant."""
+    v = f["v"]
+    dist = f["h_dist"][:, j, kk]
+    gap = dist - f["h_len"][:, j, kk]
+    relevant = _relevant(f, c, lane, j, kk, offset, dist, gap)
+    vk = v[:, None]
+    s0 = c.s0
+    if end_gap is not None and j == _C:
+        s0 = np.where(f["h_len"][:, j, kk] < 0.1, end_gap[:, None], c.s0)
+    rel = -f["h_rel"][:, j, kk]
+    a_j = _idm(vk, v0[:, None], np.where(relevant, gap, np.inf), rel, c, s0)
+    return np.where(relevant, a_j, np.inf).min(axis=1)
+
+
+def _relevant(
+    f: Features,
+    c: AccLcConfig,
+    lane: int,
+    j: int,
+    kk: slice,
+    offset: np.ndarray,
+    dist: np.ndarray,
+    gap: np.ndarray,
+) -> np.ndarray:
+    """(A, K) the front vehicles of lane column ``j`` are leaders when driving in ``lane``:
+    those of the lane itself, of the others on lateral overlap, and neighbours to yield to."""
+    # lateral position of the other vehicle relative to the current lane centre
+    shift = (j - _C) * -c.lane_width_min  # left column = +width
+    lat_o = f["h_lat"][:, j, kk] + shift
+    lat_ego = offset[:, None]
+    half = 0.5 * (f["wid"][:, None] + f["h_wid"][:, j, kk]) + 0.4
+    if j == lane:
+        relevant = np.isfinite(dist)
+    else:
+        relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half)
+    # own lane of the lane column: the chosen lane; others only on overlap
+    relevant &= (f["exists"][:, j] | (j == _C))[:, None]
+    if j != lane and lane != _C and j == _C:
+        # moving to another lane: the current lane's leader matters while we overlap it
+        relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half + 0.6)
+    if lane == _C and j != _C:
+        relevant |= _yield_to(f, c, j, kk, dist, gap)
+    return relevant
+
+
+def _yield_to(
+    f: Features, c: AccLcConfig, j: int, kk: slice, dist: np.ndarray, gap: np.ndarray
+) -> np.ndarray:
+    """(A, K) cooperation: yield to a neighbour ahead (lane column ``j``) signalling a change
+    into our lane, unless we are already closer than the rear gap its forced merge needs (then
+    waiting deadlocks both; passing lets it merge behind us)."""
+    towards = f["h_lat"][:, j, kk] * (j - _C) > c.signal_min
+    close = np.maximum(-f["h_rel"][:, j, kk], 0.0)
+    can = close**2 / (2 * np.maximum(gap - 1.0, 0.1)) <= c.yield_decel
+    return np.isfinite(dist) & towards & (gap > c.hv_s0) & can
+
+
+def _light_accel(
+    f: Features, c: AccLcConfig, acc: np.ndarray, v0: np.ndarray, lim_now: np.ndarray
+) -> np.ndarray:
+    """``acc`` (A,) bounded by the traffic light of the current lane (a change does not escape
+    the light) and by the junction approach speed at a signalised stop line."""
+    v = f["v"]
+    ld = f["light_dist"][:, _C]
+    st = f["light"][:, _C]
+    stop_room = np.maximum(ld - c.stop_margin, 0.05)
+    need_stop = v**2 / (2 * stop_room)
+    stop = ((st == 0) & (need_stop < c.max_decel * 1.1)) | (
+        (st == 1) & (need_stop < c.yellow_stop_decel)
+    )
+    a_stop = _idm(v, v0, stop_room, v, c)
+    a_stop = np.minimum(a_stop, np.where(need_stop > 1.0, -need_stop * 1.1, a_stop))
+    acc = np.where(stop, np.minimum(acc, a_stop), acc)
+    # junction approach speed at a signalised stop line (turns behind it are slow)
+    lightish = (st >= 0) & np.isfinite(ld)
+    # (the waypoints see only 10 m ahead along the primary successor, not the route's turn;
+    # the tightest turns of the urban nets are limited to ~3.6 m/s)
+    vj = np.minimum(c.junction_speed, v0)
+    a_j = np.where(v > vj, (vj**2 - v**2) / (2 * np.maximum(ld - 1.0, 0.5)), np.inf)
+    return np.where(lightish & (lim_now < 20.0), np.minimum(acc, a_j), acc)
+
+
+def hidden_cap(f: Features, c: AccLcConfig) -> np.ndarray:
+    """(A,) acceleration cap for passing slower neighbours: the sensors report one front
+    vehicle per lane, so a vehicle right ahead of it (e.g. stuck half-way in a change into
+    our lane) is hidden; keep the closing speed to it, and to the visible one while its rear
+    is still ahead (its lateral offset may be misread), stoppable at ``hidden_decel``."""
+    v = f["v"]
+    cap = np.full_like(v, np.inf)
+    for j in (_L, _R):
+        fd = f["vdist"][:, j, 0]
+        v_o = np.maximum(v + f["vrel"][:, j, 0], 0.0)
+        rear = fd - f["vlen"][:, j, 0]
+        room = np.minimum(fd + c.hidden_gap, np.where(rear > 0, rear, np.inf)) - 0.5
+        v_max = v_o + np.sqrt(2 * c.hidden_decel * np.maximum(room, 0.0))
+        on = f["exists"][:, j] & np.isfinite(fd) & (f["vlen"][:, j, 0] > 0.1)
+        # (tracked within 0.25 s: the bound tightens as fast as we close in)
+        cap = np.where(on, np.minimum(cap, 4.0 * (v_max - v)), cap)
+    return cap
+
+
+def wait_accel(f: Features, c: AccLcConfig, side: int, acc_cur: np.ndarray) -> np.ndarray:
+    """(A,) acceleration of a mandatory change waiting for (or forcing into) a gap: aim at
+    the slot between the target lane's front and rear vehicles when it is long enough
+    (match their speed, centre the slack), else let the rear vehicle pass; never beyond the
+    current lane's own limits (``acc_cur``: its leaders and the lane's end)."""
+    v = f["v"]
+    fd, rd = f["vdist"][:, side, 0], -f["vdist"][:, side, 1]
+    has_f, has_r = np.isfinite(fd), np.isfinite(rd)
+    fgap = np.where(has_f, fd - f["vlen"][:, side, 0], 1e3)
+    rgap = np.where(has_r, rd - f["len"], 1e3)
+    v_f = np.maximum(v + f["vrel"][:, side, 0], 0.0)
+    v_r = np.maximum(v + f["vrel"][:, side, 1], 0.0)
+    need_r = (c.hv_s0 + c.hv_T * v_r) / np.sqrt(1.0 + c.force_rear_decel / c.hv_a) + 0.5
+    need_f = 1.5 + 0.3 * v
+    slack = fgap + rgap - need_r - need_f
+    fits = slack > 0
+    e = fgap - (need_f + 0.5 * np.minimum(slack, 20.0))  # > 0: too far back
+    v_ref = np.where(has_f, v_f, np.where(has_r, v_r + 1.0, v))
+    acc_gap = 0.4 * e + 1.0 * (v_ref - v)
+    acc_pass = 1.0 * (np.maximum(v_r - 2.0, 0.0) - v)
+    acc = np.clip(np.where(fits, acc_gap, acc_pass), -c.force_front_decel, c.a)
+    return np.minimum(acc, acc_cur)
+
+
+def to_ab(acc: np.ndarray, c: AccLcConfig) -> np.ndarray:
+    """Physical acceleration [m/s²] (A,) -> the normalised accel_brake in [-1, 1]."""
+    return np.clip(np.where(acc > 0, acc / c.max_accel, acc / c.max_decel), -1.0, 1.0)

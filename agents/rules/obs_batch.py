@@ -1,0 +1,30 @@
+"""Batching between the env's per-agent dicts and batched policies (re-exported by
+:mod:`agents.policies`): one observation batch per step in, one action dict per agent out.
+
+It lives below every policy (ACC-LC's :meth:`~agents.rules.acc_lc.AccLcPolicy.actions`
+uses it too), so no policy module needs :mod:`agents.policies`, which builds policies by name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+
+OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
+
+
+def stack_obs(
+    obs: Mapping[str, Mapping[str, np.ndarray]], agents: list[str]
+) -> dict[str, np.ndarray]:
+    """{agent: {key: x}} -> {key: (A, ...)} in the order of ``agents``."""
+    return {k: np.stack([obs[a][k] for a in agents]) for k in OBS_KEYS}
+
+
+def to_actions(
+    agents: list[str], decision: np.ndarray, params: np.ndarray
+) -> dict[str, dict[str, Any]]:
+    """Batched policy output -> the env's per-agent action dicts."""
+    params = np.asarray(params, dtype=np.float32)
+    return {a: {"decision": int(decision[i]), "params": params[i]} for i, a in enumerate(agents)}

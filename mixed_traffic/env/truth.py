@@ -1,0 +1,94 @@
+"""Ground-truth views the reward and metric stages read: the front vehicle of each agent, the
+conventional vehicle C behind it, speeds by vehicle id (all from one snapshot and one
+``PerceptionFrame`` of ground truth)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from itertools import repeat
+
+import numpy as np
+
+from mixed_traffic.sensing.frame import PerceptionFrame
+from mixed_traffic.sensing.geometry import bumper_gap
+from mixed_traffic.sensing.lane_graph import CURRENT
+from mixed_traffic.sensing.neighbours import Neighbours
+from mixed_traffic.world.snapshot import TrafficSnapshot
+
+
+class FrontView:
+    """Ground-truth front vehicle in the current lane for agents at truth rows ``k``, snapshot rows ``r``."""
+
+    def __init__(
+        self, snap: TrafficSnapshot, truth: PerceptionFrame, k: np.ndarray, r: np.ndarray
+    ) -> None:
+        nb = truth.neighbours
+        row = nb.front[k, CURRENT]
+        self.exists = row >= 0
+        self.distance = nb.front_dist[k, CURRENT]
+        # from the ground-truth features: a vehicle across the path is measured in its frame
+        feats = truth.vehicles[k, CURRENT, 0]
+        self.length = np.where(self.exists, feats[:, 3], 0.0)
+        self.closing = np.where(self.exists, -feats[:, 1], snap.speed[r])
+        self.gap = bumper_gap(self.distance, snap.length[r], self.length)
+
+
+def gather(a: PerceptionFrame, b: PerceptionFrame, idx: np.ndarray) -> PerceptionFrame:
+    """Rows ``idx`` of the frames ``a`` and ``b`` stacked (a's agents first)."""
+    if (idx < 0).any():
+        raise RuntimeError("an agent's ground truth is missing")  # would be a bug in _finish
+
+    def cat(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.concatenate([x, y])[idx]
+
+    na, nb = a.neighbours, b.neighbours
+    return PerceptionFrame(
+        Neighbours(cat(na.lane, nb.lane), cat(na.vehicle, nb.vehicle), cat(na.distance, nb.distance)),
+        cat(a.vehicles, b.vehicles), cat(a.ego, b.ego), cat(a.light_state, b.light_state),
+        cat(a.light_dist, b.light_dist),
+    )  # fmt: skip
+
+
+def rear_conventional(
+    snap: TrafficSnapshot, truth: PerceptionFrame
+) -> tuple[list[str], np.ndarray]:
+    """C, the conventional vehicle behind each agent in its lane ('' if none or an AV), and its speed."""
+    rear = truth.neighbours.rear[:, CURRENT]
+    ok = (rear >= 0) & ~snap.is_av[np.maximum(rear, 0)]
+    ids = [""] * len(rear)
+    for k in np.flatnonzero(ok).tolist():
+        ids[k] = snap.ids[rear[k]]
+    return ids, np.where(ok, snap.speed[np.maximum(rear, 0)], np.nan)
+
+
+def speeds_of(snap: TrafficSnapshot, ids: list[str]) -> np.ndarray:
+    """Speed of each vehicle id now, nan if it is not in the network (or '')."""
+    k = np.fromiter(map(snap.index_of().get, ids, repeat(-1)), np.int64, len(ids))
+    return np.where(k >= 0, snap.speed[np.maximum(k, 0)], np.nan) if len(k) else np.zeros(0)
+
+
+class SpeedView(Mapping):
+    """Vehicle id -> speed now [m/s], read from the snapshot on demand (no per-step dict)."""
+
+    def __init__(self, snap: TrafficSnapshot) -> None:
+        self._index, self._speed = snap.index_of(), snap.speed
+
+    def __getitem__(self, vid: str) -> float:
+        return float(self._speed[self._index[vid]])
+
+    def __contains__(self, vid: object) -> bool:
+        return vid in self._index
+
+    def __iter__(self):
+        return iter(self._index)
+
+    def __len__(self) -> int:
+        return len(self._index)
+
+
+def take_or_nan(values: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """values[idx] with idx = -1 giving nan (also for an empty ``values``)."""
+    out = np.full(len(idx), np.nan)
+    ok = idx >= 0
+    out[ok] = values[idx[ok]]
+    return out

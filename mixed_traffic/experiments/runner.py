@@ -1,0 +1,166 @@
+"""The one episode runner: evaluate, sweep, compare and the safety table run every policy here,
+the all-human reference included, with the same seeding, warm-up and metrics path.
+
+    record = run_episode(EnvConfig(scenario="straight", penetration=0.5, seed=0), "acc-lc")
+
+A policy maps the batched observations of all agents of a step to their actions in one call
+(``agents.policies``). The ``idm`` reference is no policy: the env hands the AV-typed vehicles
+back to SUMO (``sumo_drives_avs``), so they drive by SUMO's car-following and lane-change
+models with the AV vType's parameters, and at 0 % AVs every vehicle is a human driver.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+from tqdm import tqdm
+
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.env.parallel import MixedTrafficEnv, check_warmup
+from mixed_traffic.provenance import json_safe, record_meta
+from mixed_traffic.schema import CELL_KEYS, METRICS, POLICIES
+from mixed_traffic.world.registry import load_scenario
+from mixed_traffic.world.scenario import Scenario
+
+DEFAULT_WARMUP = 30.0
+"""Simulated time before density and speed are averaged [s]."""
+SUMO_DRIVEN = ("idm",)
+"""Policies under which SUMO drives the AVs (no agent acts)."""
+
+
+def validate(config: EnvConfig, warmup: float, policy: str | None = None) -> Scenario:
+    """Everything an episode needs checked before any work starts: the policy name, the
+    scenario, the density against its jam density and the warm-up. Raises ``ValueError``."""
+    if policy is not None:
+        check_policy(policy)
+    scenario = load_scenario(config.scenario)
+    scenario.check_density(config.density)
+    check_warmup(warmup, config.episode_length)
+    return scenario
+
+
+def check_policy(policy: str) -> None:
+    """Raise ``ValueError`` unless ``policy`` is one of ``schema.POLICIES``."""
+    if policy not in POLICIES:
+        raise ValueError(f"policy {policy!r} is not available; choose from {list(POLICIES)}")
+
+
+def run_episode(
+    config: EnvConfig,
+    policy: str = "idm",
+    warmup: float = DEFAULT_WARMUP,
+    *,
+    checkpoint: str | Path | None = None,
+    gif: str | Path | None = None,
+    progress: bool = False,
+) -> dict[str, Any]:
+    """Run one episode of ``config`` under ``policy`` and return its record (``schema`` layout).
+
+    Inference is one batched call per step for all agents; AvgIT is its wall time per decision.
+
+    Args:
+        config: the environment; ``config.seed`` seeds demand, SUMO and sensor noise.
+        policy: a name from ``schema.POLICIES``.
+        warmup: simulated time before flow metrics are averaged [s].
+        checkpoint: AUTO checkpoint for ``auto``/``auto-raw`` (default: the shipped one).
+        gif: record the episode as an animated GIF here.
+        progress: show a per-step progress bar.
+
+    Raises:
+        ValueError: bad policy, scenario, density, warm-up or checkpoint (before SUMO starts).
+        SumoError: SUMO failed to start.
+    """
+    check_policy(policy)
+    meta, t0 = record_meta(config), time.perf_counter()
+    # the env validates the config against its scenario before anything else is done
+    env = MixedTrafficEnv(config=config, warmup=warmup, sumo_drives_avs=policy in SUMO_DRIVEN,
+                          render_mode="rgb_array" if gif else None)  # fmt: skip
+    frames = _Gif(gif)
+    try:
+        agent = _make_policy(policy, config, checkpoint)
+        infer_s, decisions = _drive(env, agent, frames, progress)
+        metrics: dict[str, Any] = dict.fromkeys(METRICS)
+        metrics.update(env.episode_metrics())
+        diagnostics = env.flow_diagnostics()
+    finally:
+        env.close()
+    frames.save(fps=1.0 / config.step_length)
+    metrics["avg_it"] = 1000.0 * infer_s / decisions if decisions else None
+    if getattr(agent, "safety", None) is not None:
+        metrics["sm_share"] = agent.safety.share
+    record = {
+        "cell": cell_of(config, policy),
+        "status": "ok",
+        "error": None,
+        **meta,
+        "warmup": warmup,
+        "wall_time": round(time.perf_counter() - t0, 3),
+        "metrics": json_safe(metrics),
+        "diagnostics": json_safe(diagnostics),
+    }
+    if policy.startswith("auto"):
+        record["checkpoint"] = str(getattr(agent, "checkpoint", ""))
+    return record
+
+
+def cell_of(config: EnvConfig, policy: str) -> dict[str, Any]:
+    """The record's ``cell``: the policy and the config's cell keys."""
+    return {"policy": policy, **{k: getattr(config, k) for k in CELL_KEYS if k != "policy"}}
+
+
+def _make_policy(name: str, config: EnvConfig, checkpoint: str | Path | None) -> Any:
+    """The batched policy, or None when SUMO drives the AVs."""
+    if name in SUMO_DRIVEN:
+        return None
+    from agents.policies import make_policy  # torch only for learned policies
+
+    return make_policy(name, seed=config.seed, checkpoint=checkpoint,
+                       z=config.sensors.history, m=config.sensors.waypoints)  # fmt: skip
+
+
+def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tuple[float, int]:
+    """Step ``env`` to its time limit under ``agent``; (inference time [s], decisions)."""
+    from agents.policies import stack_obs, to_actions
+
+    config = env.config
+    infer, decisions = 0.0, 0
+    obs, _ = env.reset(seed=config.seed)
+    frames.add(env)
+    steps = range(config.steps_per_episode)
+    for _ in tqdm(steps, desc="steps", leave=False, disable=not progress):
+        agents = list(env.agents)
+        actions: dict[str, Any] = {}
+        if agents:
+            batch = stack_obs(obs, agents)
+            t = time.perf_counter()
+            decision, params = agent.act(batch)
+            infer += time.perf_counter() - t
+            decisions += len(agents)
+            actions = to_actions(agents, decision, params)
+        obs, *_ = env.step(actions)
+        frames.add(env)
+        if env.sim_time >= config.episode_length - 1e-9:
+            break
+    return infer, decisions
+
+
+class _Gif:
+    """Collects every 2nd rendered frame of an episode and writes it as a GIF (or does nothing)."""
+
+    def __init__(self, path: str | Path | None) -> None:
+        from mixed_traffic.env.render import FrameCollector
+
+        self.path = path
+        self.frames = FrameCollector(every=2)
+
+    def add(self, env: MixedTrafficEnv) -> None:
+        if self.path is not None:
+            self.frames.add(env.render())
+
+    def save(self, fps: float) -> None:
+        if self.path is not None and self.frames.frames:
+            from mixed_traffic.env.render import record_gif
+
+            record_gif(self.frames.frames, self.path, fps=fps / self.frames.every)

@@ -1,0 +1,55 @@
+"""Camera: the state of the next traffic light on each lane and the distance to its stop line."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from mixed_traffic.sensing.lane_graph import CURRENT, LaneGraph
+from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.snapshot import TrafficSnapshot
+
+#: Traffic-light state codes.
+NO_LIGHT, RED, YELLOW, GREEN = -1, 0, 1, 2
+
+
+_CODE = np.full(256, GREEN, dtype=np.int8)  # o/O (off) and unknown: no restriction
+for _c in "rRs":
+    _CODE[ord(_c)] = RED
+for _c in "yYu":
+    _CODE[ord(_c)] = YELLOW
+
+
+def _state_codes(state: str) -> np.ndarray:
+    """SUMO signal characters -> codes: r/R/s red, y/Y/u yellow, g/G/o/O green."""
+    return _CODE[np.frombuffer(state.encode("ascii"), dtype=np.uint8)]
+
+
+def traffic_lights(
+    g: LaneGraph, hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray,
+    next_edge: np.ndarray, tls_states: Sequence[str],
+) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(A, 3) ground-truth state code and stop-line distance of each lane's next signal."""
+    A = len(rows)
+    if not g.tls_ids or A == 0:
+        return np.full((A, 3), NO_LIGHT, dtype=np.int8), np.full((A, 3), np.inf)
+    if len(tls_states) != len(g.tls_ids):
+        raise ValueError(
+            f"tls_states has {len(tls_states)} strings, expected {len(g.tls_ids)} "
+            f"(one per Perception.tls_ids)"
+        )
+    lsafe = np.maximum(lanes, 0)
+    tl, link = g.signal(lanes, np.broadcast_to(next_edge[:, None], lanes.shape))
+    tl2, link2 = g.signal(lanes, g.next_edge[lsafe])  # lane's own way on
+    miss = tl < 0
+    tl, link = np.where(miss, tl2, tl), np.where(miss, link2, link)
+    codes = _state_codes("".join(tls_states))
+    offsets = np.concatenate([[0], np.cumsum([len(s) for s in tls_states])])
+    flat = offsets[np.maximum(tl, 0)] + link
+    ok = (tl >= 0) & (link >= 0) & (flat < len(codes))
+    state = np.where(ok, codes[np.minimum(flat, max(len(codes) - 1, 0))], NO_LIGHT)
+    ratio = hd.lane_length[lsafe] / np.maximum(hd.lane_length[lsafe[:, CURRENT]], 1e-9)[:, None]
+    pos = snap.lane_pos[rows][:, None] * ratio
+    dist = np.where(ok, np.maximum(hd.lane_length[lsafe] - pos, 0.0), np.inf)
+    return state.astype(np.int8), dist

@@ -1,0 +1,108 @@
+"""A scenario: network, routes, measurement segment, and the SUMO command line of an episode.
+
+A scenario is a bundled folder (``registry``) or a user's own ``.net.xml`` / ``.sumocfg``
+(``user_scenario``); both become a ``Scenario``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from mixed_traffic.config import JAM_DENSITY_PER_LANE, EnvConfig
+from mixed_traffic.world.hdmap import HDMap, load_hdmap
+
+
+@dataclass(frozen=True)
+class Route:
+    """A path through the network: explicit ``edges``, or ``from``/``to`` routed by SUMO."""
+
+    edges: tuple[str, ...] = ()
+    origin: str = ""
+    destination: str = ""
+    weight: float = 1.0
+    """Share of the inflow entering on this route (relative)."""
+
+    @property
+    def entry(self) -> str:
+        return self.edges[0] if self.edges else self.origin
+
+
+@dataclass(frozen=True)
+class OwnVehicle:
+    """A vehicle given by the user's own route files (``Scenario.own_vehicles``)."""
+
+    vid: str
+    depart: float
+    """Departure time [s]."""
+    route: int
+    """Index into ``Scenario.routes``."""
+
+
+@dataclass(frozen=True)
+class Scenario:
+    """A loadable scenario: network, routes, measurement segment."""
+
+    name: str
+    family: str
+    split: str
+    description: str
+    net_file: Path
+    routes: tuple[Route, ...]
+    measurement: tuple[str, ...]
+    """Consecutive edges of the measurement segment (DT-TF, measured density)."""
+    lanes: int
+    """Lanes of the main road: the reference for density (veh/km summed over lanes)."""
+    sumocfg: Path | None = None
+    extra_args: tuple[str, ...] = ()
+    placement_edges: tuple[str, ...] = field(default=())
+    """Edges on which vehicles are placed at reset (default: all edges of the routes)."""
+    periodic: bool = False
+    """Close the main road into a ring with a virtual leader (see ``boundary``)."""
+    own_vehicles: tuple[OwnVehicle, ...] = ()
+    """A user's .sumocfg vehicles: used instead of generated demand (see ``user_scenario``)."""
+
+    @property
+    def hdmap(self) -> HDMap:
+        return load_hdmap(self.net_file)
+
+    @property
+    def measurement_length(self) -> float:
+        """Length of the measurement segment [m]."""
+        hd = self.hdmap
+        return float(sum(hd.edge_length[hd.edge_of(e)] for e in self.measurement))
+
+    @property
+    def max_density(self) -> float:
+        """Jam density of the main road [veh/km summed over lanes]."""
+        return self.lanes * JAM_DENSITY_PER_LANE
+
+    def check_density(self, density: float) -> None:
+        """Raise ``ValueError`` unless 0 < ``density`` [veh/km] <= the jam density."""
+        if not 0 < density <= self.max_density:
+            raise ValueError(
+                f"density={density} veh/km is outside (0, {self.max_density:.0f}] for scenario "
+                f"{self.name!r} ({self.lanes} lanes; jam density {JAM_DENSITY_PER_LANE:.0f} "
+                "veh/km per lane)"
+            )
+
+
+def sumo_args(scenario: Scenario, config: EnvConfig, route_file: Path, seed: int) -> list[str]:
+    """SUMO command line (without the binary) for one episode."""
+    return [
+        "--net-file", str(scenario.net_file),
+        "--route-files", str(route_file),
+        "--step-length", f"{config.step_length}",
+        "--lateral-resolution", f"{config.lateral_resolution}",
+        "--time-to-teleport", "-1",
+        "--collision.action", "remove",
+        "--collision.check-junctions", "true",
+        "--collision.mingap-factor", "0",
+        "--seed", str(seed),
+        "--no-step-log", "true",
+        "--no-warnings", "true",
+        "--duration-log.disable", "true",
+        "--eager-insert", "true",
+        "--default.speeddev", "0",
+        *scenario.extra_args,
+    ]  # fmt: skip

@@ -1,0 +1,127 @@
+"""The package's shape: documented commands answer --help, no import circles, libsumo and torch
+load only where they are needed, and modules stay small."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+COMMANDS = ("sweep", "evaluate", "train", "compare", "bench", "report", "scenario",
+            "experiments.safety_matrix")  # fmt: skip
+
+
+def _python(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, *args], capture_output=True, text=True, cwd=ROOT,
+                          timeout=120)  # fmt: skip
+
+
+def _modules(*folders: str, root: Path = ROOT) -> dict[str, Path]:
+    """Module name -> file of every module under ``folders``."""
+    files = [f for d in folders for f in sorted((root / d).rglob("*.py"))]
+    return {".".join(f.relative_to(root).with_suffix("").parts).removesuffix(".__init__"): f
+            for f in files}  # fmt: skip
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_every_documented_command_answers_help(command: str) -> None:
+    out = _python("-m", f"mixed_traffic.{command}", "--help")
+    assert out.returncode == 0, out.stderr
+    assert "usage:" in out.stdout
+
+
+def _imports(module: str, path: Path, known: set[str]) -> set[str]:
+    """Project modules that ``module`` imports anywhere in its file (functions included)."""
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        names: list[str] = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                up = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*up, base] if base else up)
+            names = [base] + [f"{base}.{a.name}" for a in node.names]
+        for name in names:
+            while name and name not in known:
+                name = name.rpartition(".")[0]
+            if name and name != module and not module.startswith(name + "."):
+                found.add(name)
+    return found
+
+
+def _circles(root: Path, *folders: str) -> list[str]:
+    """Modules that import themselves through a chain of project imports."""
+    paths = _modules(*folders, root=root)
+    graph = {m: _imports(m, p, set(paths)) for m, p in paths.items()}
+
+    def reaches(start: str) -> bool:
+        seen, todo = set(), list(graph[start])
+        while todo:
+            m = todo.pop()
+            if m == start:
+                return True
+            if m not in seen:
+                seen.add(m)
+                todo += graph.get(m, ())
+        return False
+
+    return sorted(m for m in graph if reaches(m))
+
+
+def test_the_circle_check_finds_a_circle(tmp_path: Path) -> None:
+    (tmp_path / "pkg").mkdir()
+    (tmp_path / "pkg" / "__init__.py").write_text("")
+    (tmp_path / "pkg" / "a.py").write_text("from pkg.b import x\n")
+    (tmp_path / "pkg" / "b.py").write_text("def x():\n    from pkg import a\n")
+    (tmp_path / "pkg" / "c.py").write_text("import pkg.a\n")
+    assert _circles(tmp_path, "pkg") == ["pkg.a", "pkg.b"]
+
+
+def test_no_import_circles() -> None:
+    assert _circles(ROOT, "mixed_traffic", "agents", "analysis") == []
+
+
+_PROBE = """
+import subprocess, sys
+heavy, modules = sys.argv[1], sys.argv[2:]
+check = "import sys, importlib; importlib.import_module(sys.argv[1]); print(sys.argv[2] in sys.modules)"
+bad = []
+for i in range(0, len(modules), 8):  # 8 interpreters at a time
+    procs = [(m, subprocess.Popen([sys.executable, "-c", check, m, heavy], stdout=subprocess.PIPE,
+                                  text=True)) for m in modules[i : i + 8]]
+    bad += [m for m, p in procs if p.communicate()[0].strip() != "False"]
+print("\\n".join(bad))
+"""
+
+
+def _loaded_after_import(modules: list[str], heavy: str) -> list[str]:
+    """The modules whose import loads ``heavy``, each checked in a fresh interpreter."""
+    out = _python("-c", _PROBE, heavy, *modules)
+    assert out.returncode == 0, out.stderr
+    return [line for line in out.stdout.splitlines() if line]
+
+
+def test_libsumo_loads_only_when_a_simulation_starts() -> None:
+    assert _loaded_after_import(["libsumo"], "libsumo") == ["libsumo"]  # the probe sees it
+    modules = list(_modules("mixed_traffic", "agents", "analysis"))
+    loading = _loaded_after_import(modules, "libsumo")
+    assert len(loading) <= len(modules) // 4, loading
+
+
+def test_analysis_loads_neither_libsumo_nor_torch() -> None:
+    modules = list(_modules("analysis"))
+    assert _loaded_after_import(modules, "libsumo") == []
+    assert _loaded_after_import(modules, "torch") == []
+
+
+def test_no_module_is_over_600_lines() -> None:
+    files = [f for d in ("mixed_traffic", "agents", "analysis") for f in (ROOT / d).rglob("*.py")]
+    lines = {f.relative_to(ROOT).as_posix(): len(f.read_text().splitlines()) for f in files}
+    assert {f: n for f, n in lines.items() if n > 600} == {}
