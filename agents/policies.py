@@ -9,6 +9,7 @@ policy, so ACC-LC does not import this module) and are re-exported here.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Protocol
 
@@ -33,8 +34,11 @@ __all__ = [
 class BatchPolicy(Protocol):
     name: str
 
-    def act(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """obs (A, ...) per key -> (decision (A,) int, params (A, 3, 2) float in [-1, 1])."""
+    def act(
+        self, obs: dict[str, np.ndarray], agents: Sequence[str] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """obs (A, ...) per key of the ``agents`` (ids, for policies with a memory per agent)
+        -> (decision (A,) int, params (A, 3, 2) float in [-1, 1])."""
 
 
 class RandomPolicy:
@@ -45,7 +49,9 @@ class RandomPolicy:
     def __init__(self, seed: int = 0) -> None:
         self.rng = np.random.default_rng(seed)
 
-    def act(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    def act(
+        self, obs: dict[str, np.ndarray], agents: Sequence[str] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         mask = obs["action_mask"].astype(bool)
         a = len(mask)
         scores = self.rng.random((a, 3)) + mask  # any allowed decision beats every masked one
@@ -72,7 +78,9 @@ class AutoPolicy:
         self._policy = load_policy(path, z=z, m=m, threads=1)
         self.safety = SafetyModule() if safety else None
 
-    def act(self, obs: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    def act(
+        self, obs: dict[str, np.ndarray], agents: Sequence[str] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         decision, params = self._policy.act(obs, explore=False)
         if self.safety is not None:
             decision, params, _ = self.safety.filter(obs, decision, params)
@@ -80,8 +88,9 @@ class AutoPolicy:
 
 
 def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = None, z: int | None = None,
-                m: int | None = None) -> BatchPolicy:  # fmt: skip
-    """A policy by name; ``z``/``m`` are the env's history and waypoint counts (checked for auto)."""
+                m: int | None = None, dt: float = 0.1) -> BatchPolicy:  # fmt: skip
+    """A policy by name; ``z``/``m`` are the env's history and waypoint counts (checked for
+    auto), ``dt`` the time between its decisions [s]."""
     if name == "random":
         return RandomPolicy(seed)
     if name == "acc-lc":
@@ -90,4 +99,10 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
         return AccLcPolicy()
     if name in ("auto", "auto-raw"):
         return AutoPolicy(checkpoint, z=z, m=m, safety=name == "auto")
-    raise ValueError(f"unknown policy {name!r}; choose from auto, auto-raw, acc-lc, random")
+    if name in ("follower-stopper", "pi-saturation"):
+        from agents.rules.stern import FollowerStopper, PISaturation, SternConfig
+
+        cls = FollowerStopper if name == "follower-stopper" else PISaturation
+        return cls(SternConfig(dt=dt))
+    raise ValueError(f"unknown policy {name!r}; choose from auto, auto-raw, acc-lc, random, "
+                     "follower-stopper, pi-saturation")  # fmt: skip

@@ -14,6 +14,7 @@ from functools import cache
 from typing import Any
 
 WEATHERS = ("normal", "rain", "fog", "night")
+CAR_FOLLOWING = ("EIDM", "IDM")
 BACKENDS = ("libsumo", "traci", "auto")
 SECOND_INSTANCE = ("traci", "error")
 #: Highest density accepted, veh/km per lane: a 5 m car plus a 2 m standstill gap.
@@ -116,7 +117,7 @@ class RewardConfig:
 
 @dataclass(frozen=True)
 class VehicleConfig:
-    """Vehicle dynamics shared by AVs and the conventional (IDM) vehicles."""
+    """Vehicle dimensions (every vehicle) and the AVs' limits."""
 
     length: float = 5.0
     """Vehicle length [m]."""
@@ -130,28 +131,69 @@ class VehicleConfig:
     """AV deceleration at accel_brake = -1 [m/s^2]."""
     max_steer_deg: float = 60.0
     """Steering angle at steering = +-1 [deg] (paper: -60..60)."""
-    idm_accel: float = 1.5
-    """IDM maximum acceleration a [m/s^2]."""
-    idm_decel: float = 2.0
-    """IDM comfortable deceleration b [m/s^2]."""
-    idm_headway: float = 1.2
-    """IDM desired time headway T (SUMO tau) [s]."""
-    idm_min_gap: float = 2.0
-    """IDM standstill gap s0 (SUMO minGap) [m]."""
-    idm_delta: float = 4.0
-    """IDM acceleration exponent delta [-]."""
-    speed_factor_dev: float = 0.05
-    """Standard deviation of the desired-speed factor around the speed limit [-]."""
 
     def __post_init__(self) -> None:
-        for name in ("length", "width", "wheelbase", "max_accel", "max_decel", "idm_accel"):
+        for name in ("length", "width", "wheelbase", "max_accel", "max_decel"):
             _check_range(self, name, 0.0, 30.0, lo_open=True)
-        _check_range(self, "idm_decel", 0.0, 30.0, lo_open=True)
-        _check_range(self, "idm_headway", 0.0, 10.0, lo_open=True)
-        _check_range(self, "idm_min_gap", 0.0, 20.0)
-        _check_range(self, "idm_delta", 0.5, 10.0)
         _check_range(self, "max_steer_deg", 0.0, 89.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class HumanConfig:
+    """Conventional (human) drivers: SUMO's Extended IDM with estimation and driving errors,
+    and a population of driver types (a SUMO vTypeDistribution) spread around the mean
+    parameters. Calibrated against the empirical fundamental diagram and stop-and-go waves in
+    docs/traffic.md; ``car_following="IDM"`` gives SUMO's deterministic IDM (no errors)."""
+
+    car_following: str = "EIDM"
+    """SUMO car-following model: EIDM (with the errors below) | IDM (deterministic)."""
+    accel: float = 0.9
+    """Mean maximum acceleration a [m/s^2]."""
+    decel: float = 2.0
+    """Comfortable deceleration b [m/s^2]."""
+    headway: float = 1.2
+    """Mean desired time headway T (SUMO tau) [s]."""
+    min_gap: float = 2.0
+    """Standstill gap s0 (SUMO minGap) [m]."""
+    delta: float = 4.0
+    """Acceleration exponent delta [-]."""
+    speed_factor_dev: float = 0.08
+    """Standard deviation of the desired-speed factor around the speed limit [-]."""
+    headway_dev: float = 0.15
+    """Relative standard deviation of T across driver types [-]."""
+    accel_dev: float = 0.2
+    """Relative standard deviation of a across driver types [-]."""
+    driver_types: int = 10
+    """Driver types in the distribution, at evenly spaced quantiles of T and a [count]."""
+    sigma_error: float = 0.05
+    """EIDM driving error: intensity of the random acceleration error [-] (sigmaerror)."""
+    sigma_gap: float = 0.05
+    """EIDM relative error of the estimated gap [-] (sigmagap)."""
+    sigma_leader: float = 0.05
+    """EIDM error of the estimated leader speed [-] (sigmaleader)."""
+    reaction_time: float = 0.5
+    """EIDM reaction time [s] (treaction; 0 = none)."""
+    coolness: float = 0.5
+    """EIDM coolness: weight of the constant-acceleration heuristic, which brakes less for a
+    leader that is braking but far enough [0-1] (ccoolness; 0 = plain IDM braking)."""
+    action_step: float = 0.3
+    """SUMO actionStepLength: how often a driver decides [s] (0 = every simulation step)."""
+
+    def __post_init__(self) -> None:
+        _check_choice(self, "car_following", CAR_FOLLOWING)
+        for name in ("accel", "decel", "headway"):
+            _check_range(self, name, 0.0, 30.0, lo_open=True)
+        _check_range(self, "min_gap", 0.0, 20.0)
+        _check_range(self, "delta", 0.5, 10.0)
         _check_range(self, "speed_factor_dev", 0.0, 0.5)
+        _check_range(self, "headway_dev", 0.0, 0.5)
+        _check_range(self, "accel_dev", 0.0, 0.5)
+        _check_range(self, "driver_types", 1, 100)
+        for name in ("sigma_error", "sigma_gap", "sigma_leader"):
+            _check_range(self, name, 0.0, 2.0)
+        _check_range(self, "reaction_time", 0.0, 3.0)
+        _check_range(self, "coolness", 0.0, 1.0)
+        _check_range(self, "action_step", 0.0, 2.0)
 
 
 @dataclass(frozen=True)
@@ -187,7 +229,9 @@ class EnvConfig:
     reward: RewardConfig = field(default_factory=RewardConfig)
     """Hybrid reward weights and thresholds."""
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
-    """Vehicle dimensions, AV limits and IDM parameters."""
+    """Vehicle dimensions and AV limits."""
+    human: HumanConfig = field(default_factory=HumanConfig)
+    """The conventional (human) drivers' model and population."""
 
     def __post_init__(self) -> None:
         if not isinstance(self.scenario, str) or not self.scenario:
@@ -215,7 +259,8 @@ class EnvConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> EnvConfig:
-        nested = {"sensors": SensorConfig, "reward": RewardConfig, "vehicle": VehicleConfig}
+        nested = {"sensors": SensorConfig, "reward": RewardConfig, "vehicle": VehicleConfig,
+                  "human": HumanConfig}  # fmt: skip
         known = {f.name for f in fields(cls)}
         unknown = set(data) - known
         if unknown:

@@ -46,6 +46,9 @@ METRICS: dict[str, Metric] = {
         Metric("measured_density", "density", "veh/km", "measured density in the measurement segment after warm-up"),
         Metric("mean_speed", "speed", "m/s", "mean speed of all vehicles in the measurement segment", "higher"),
         Metric("vehicles_crossed", "crossed", "veh", "vehicles that crossed the whole measurement segment"),
+        Metric("speed_std", "speed std", "m/s", "standard deviation of all (vehicle, step) speeds in the measurement segment after warm-up", "lower"),
+        Metric("flow", "flow", "veh/h/lane", "Edie's flow per lane in the measurement segment after warm-up"),
+        Metric("wave_speed", "wave speed", "km/h", "propagation speed of speed disturbances (stop-and-go waves travel upstream, < 0); empty without waves"),
         Metric("av_trips", "AV trips", "trips", "AV trips that ended (arrived or terminated)"),
         Metric("route_completion", "completion", "%", "share of ended AV trips that reached their destination", "higher"),
         Metric("collisions", "collisions", "count", "collisions (any vehicles)", "lower"),
@@ -73,7 +76,7 @@ SAFETY = (
 )
 TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
 CELL_KEYS = ("policy", "scenario", "density", "penetration", "weather", "seed")
-POLICIES = ("auto", "auto-raw", "acc-lc", "idm", "random")
+POLICIES = ("auto", "auto-raw", "acc-lc", "idm", "random", "follower-stopper", "pi-saturation")
 
 
 def label(key: str) -> str:

@@ -50,9 +50,7 @@ def start_sim(
     backend = SumoBackend(kind, cfg.second_instance)
     backend.set_lane_table(hd.lane_ids, hd.lane_edge)
     backend.start(sumo_args(sc, cfg, rf, seed=cfg.seed))
-    boundary = PeriodicBoundary.for_demand(
-        sc, demand, cfg.vehicle, cfg.step_length, cfg.fixed_fleet
-    )
+    boundary = PeriodicBoundary.for_demand(sc, demand, cfg.human, cfg.step_length, cfg.fixed_fleet)
     return Sim(cfg, sc, hd, demand, backend, boundary, rf)
 
 

@@ -57,7 +57,7 @@ current course is SUMO's heading, blended below 8 m/s into the measured lateral 
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -116,8 +116,11 @@ class AccLcPolicy:
         """Lateral bounds (:func:`agents.rules.acc_lc_lateral.lateral_bounds`)."""
         return lateral_bounds(f, self.c)
 
-    def act(self, obs_batch: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Decisions (A,) int64 and params (A, 3, 2) float32 for stacked observations."""
+    def act(
+        self, obs_batch: Mapping[str, np.ndarray], agents: Sequence[str] | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Decisions (A,) int64 and params (A, 3, 2) float32 for stacked observations (of
+        ``agents``; ACC-LC keeps no memory per agent)."""
         plan = self.plan(obs_batch)
         return plan.decision, plan.params
 

@@ -30,6 +30,9 @@ Definitions (all positions are the front bumper, as in the snapshot):
   [veh/km], averaged over the steps at or after ``warmup``.
 * **Mean speed**: mean over all (vehicle, step) samples inside the segment after warm-up,
   i.e. total distance / total time, the space-mean speed [m/s].
+* **Speed spread, flow, waves** (``space_time``): the standard deviation of all (vehicle,
+  step) speed samples inside the segment after warm-up [m/s]; Edie's flow per lane
+  [veh/h/lane]; the propagation speed of speed disturbances [km/h], NaN without waves.
 * **Collisions / teleports**: events reported by SUMO over the whole episode (counts).
 """
 
@@ -39,6 +42,7 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from mixed_traffic.env.space_time import SpaceTimeField
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -127,6 +131,9 @@ class FlowRecorder:
         self._offset[rows] = offsets
         self.length = float(hdmap.edge_length[rows].sum())
         """Segment length [m]."""
+        lane_metres = float((hdmap.edge_length[rows] * hdmap.edge_num_lanes[rows]).sum())
+        self.field = SpaceTimeField(self.length, lane_metres, self.dt, self.warmup)
+        """Edie's sums on a space-time grid over the segment (flow, speed spread, waves)."""
         self._first_edge, self._last_edge = rows[0], rows[-1]
         # lane speed limit by snapshot lane row; row -1 (unknown) -> NaN
         self._lane_speed = np.append(hdmap.lane_speed.astype(np.float64), np.nan)
@@ -241,6 +248,7 @@ class FlowRecorder:
         self._t_last[slot] = t
         self._state[slot] = st
 
+        self.field.add(t, s, v)
         if t >= self.warmup:
             n_in = int(inside.sum())
             self._density_sum += density_per_km(n_in, self.length)
@@ -343,6 +351,9 @@ class FlowRecorder:
             ),
             "mean_speed": self._speed_sum / self._speed_samples if self._speed_samples else None,
             "vehicles_crossed": len(tt),
+            "speed_std": self.field.speed_std(),
+            "flow": self.field.flow(),
+            "wave_speed": self.field.wave_speed(),
             "collisions": self.collisions,
             "teleports": self.teleports,
         }

@@ -49,7 +49,6 @@ import os
 import shutil
 import tempfile
 from dataclasses import replace
-from functools import cached_property
 from itertools import compress, repeat
 from pathlib import Path
 from typing import Any, ClassVar
@@ -125,6 +124,8 @@ class MixedTrafficEnv(ParallelEnv):
         self._table = AgentTable(self.possible_agents)
         self._obs_space = observation_space(cfg)
         self._act_space = action_space()
+        self._empty_obs = {k: np.zeros(s.shape, s.dtype) for k, s in self._obs_space.spaces.items()}
+        self._empty_obs["action_mask"][FOLLOW] = 1  # a waiting AV may only follow
         self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
         self._controller = BicycleController(cfg.vehicle, self.hdmap, cfg.step_length)
         self._builder = ObservationBuilder(cfg, self.hdmap)
@@ -171,10 +172,10 @@ class MixedTrafficEnv(ParallelEnv):
         demand_seed, sumo_seed, noise_seed = np.random.SeedSequence(int(seed)).generate_state(3)
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
         route_file = Path(self._tmp) / "demand.rou.xml"
-        write_demand(demand, cfg, route_file)
+        write_demand(demand, cfg, route_file, avs_as_humans=self.sumo_drives_avs)
         self._backend.start(sumo_args(self.scenario, cfg, route_file, seed=int(sumo_seed) % 2**31))
         self._boundary = PeriodicBoundary.for_demand(
-            self.scenario, demand, cfg.vehicle, cfg.step_length, cfg.fixed_fleet
+            self.scenario, demand, cfg.human, cfg.step_length, cfg.fixed_fleet
         )
         self._noise_rng = np.random.default_rng(noise_seed)
         self._controller.reset()
@@ -391,12 +392,6 @@ class MixedTrafficEnv(ParallelEnv):
         at = table.by_slot(step_rows.slots, np.arange(n_step))
         at[rows.slots] = n_step + np.arange(len(rows.ids))  # entering: their new route wins
         self._remember(snap, all_rows, gather(step_truth, truth, at[all_rows.slots]))
-
-    @cached_property
-    def _empty_obs(self) -> dict[str, np.ndarray]:
-        obs = {k: np.zeros(s.shape, s.dtype) for k, s in self._obs_space.spaces.items()}
-        obs["action_mask"][FOLLOW] = 1
-        return obs
 
     # ------------------------------------------------------------------ metrics, render, close
     def episode_metrics(self) -> dict[str, float | None]:

@@ -76,7 +76,7 @@ def start_straight(
     backend = SumoBackend(cfg.backend, cfg.second_instance)
     backend.set_lane_table(hd.lane_ids, hd.lane_edge)
     backend.start(sumo_args(sc, cfg, route_file, seed=seed))
-    boundary = PeriodicBoundary.for_demand(sc, demand, cfg.vehicle, cfg.step_length, False)
+    boundary = PeriodicBoundary.for_demand(sc, demand, cfg.human, cfg.step_length, False)
     return backend, boundary
 
 

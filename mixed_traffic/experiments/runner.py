@@ -116,8 +116,8 @@ def _make_policy(name: str, config: EnvConfig, checkpoint: str | Path | None) ->
         return None
     from agents.policies import make_policy  # torch only for learned policies
 
-    return make_policy(name, seed=config.seed, checkpoint=checkpoint,
-                       z=config.sensors.history, m=config.sensors.waypoints)  # fmt: skip
+    return make_policy(name, seed=config.seed, checkpoint=checkpoint, z=config.sensors.history,
+                       m=config.sensors.waypoints, dt=config.step_length)  # fmt: skip
 
 
 def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tuple[float, int]:
@@ -135,7 +135,7 @@ def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tu
         if agents:
             batch = stack_obs(obs, agents)
             t = time.perf_counter()
-            decision, params = agent.act(batch)
+            decision, params = agent.act(batch, agents)
             infer += time.perf_counter() - t
             decisions += len(agents)
             actions = to_actions(agents, decision, params)

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mixed_traffic.config import VehicleConfig
+from mixed_traffic.config import HumanConfig
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.demand import Demand, QueuedVehicle
 from mixed_traffic.world.hdmap import HDMap
@@ -41,7 +41,8 @@ class PeriodicBoundary:
     exit_edge: str
     queue: list[QueuedVehicle]
     road_length: float
-    vehicle: VehicleConfig
+    human: HumanConfig
+    """The drivers whose mean parameters the virtual leader's follower uses."""
     virtual_leader: bool = True
     fixed_fleet: bool = False
     dt: float = 0.1
@@ -104,11 +105,11 @@ class PeriodicBoundary:
         self._held = held_now
 
     def _idm_speed(self, v: float, v_lead: float, gap: float, v0: float) -> float:
-        c = self.vehicle
-        s_star = c.idm_min_gap + max(
-            0.0, v * c.idm_headway + v * (v - v_lead) / (2 * np.sqrt(c.idm_accel * c.idm_decel))
+        c = self.human
+        s_star = c.min_gap + max(
+            0.0, v * c.headway + v * (v - v_lead) / (2 * np.sqrt(c.accel * c.decel))
         )
-        acc = c.idm_accel * (1 - (v / v0) ** c.idm_delta - (s_star / max(gap, 0.1)) ** 2)
+        acc = c.accel * (1 - (v / v0) ** c.delta - (s_star / max(gap, 0.1)) ** 2)
         return float(max(0.0, v + max(acc, -9.0) * self.dt))
 
     @classmethod
@@ -116,7 +117,7 @@ class PeriodicBoundary:
         cls,
         scenario: Scenario,
         demand: Demand,
-        vehicle: VehicleConfig,
+        human: HumanConfig,
         dt: float,
         fixed_fleet: bool,
     ) -> PeriodicBoundary:
@@ -130,7 +131,7 @@ class PeriodicBoundary:
             exit_edge=main.edges[-1] if main.edges else "",
             queue=list(demand.queue),
             road_length=float(sum(hd.edge_length[hd.edge_of(e)] for e in main.edges)),
-            vehicle=vehicle,
+            human=human,
             virtual_leader=scenario.periodic,
             fixed_fleet=fixed_fleet,
             dt=dt,

@@ -12,12 +12,19 @@ from __future__ import annotations
 
 import math
 import xml.etree.ElementTree as ET
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
-from mixed_traffic.config import EnvConfig, VehicleConfig
+from mixed_traffic.config import EnvConfig, HumanConfig
+from mixed_traffic.world.drivers import (
+    AV_TYPE,
+    HUMAN_TYPE,
+    SPEED_FACTOR_RANGE,
+    add_vehicle_types,
+    cautious,
+)
 from mixed_traffic.world.placement import (
     Placed,
     cap_followers,
@@ -28,10 +35,8 @@ from mixed_traffic.world.placement import (
     suffix_route,
     upstream_lanes,
 )
+from mixed_traffic.world.ring import ring_counts, ring_lengths, ring_positions
 from mixed_traffic.world.scenario import Route, Scenario
-
-SPEED_FACTOR_RANGE = (0.8, 1.2)
-"""Truncation of conventional vehicles' speed factor (desired speed / speed limit) [-]."""
 
 
 @dataclass(frozen=True)
@@ -84,16 +89,17 @@ class Demand:
         return [v.vid for v in (*self.vehicles, *self.queue) if v.is_av]
 
 
-def idm_equilibrium_speed(spacing: float, v0: float, vehicle: VehicleConfig) -> float:
-    """Speed [m/s] at which IDM keeps a constant ``spacing`` [m] (front to front)."""
-    gap = spacing - vehicle.length
-    if gap <= vehicle.idm_min_gap:
+def idm_equilibrium_speed(spacing: float, v0: float, human: HumanConfig, length: float) -> float:
+    """Speed [m/s] at which IDM keeps a constant ``spacing`` [m] (front to front) between
+    vehicles of ``length`` [m]."""
+    gap = spacing - length
+    if gap <= human.min_gap:
         return 0.0
     lo, hi = 0.0, v0
     for _ in range(60):
         v = 0.5 * (lo + hi)
-        s_star = vehicle.idm_min_gap + v * vehicle.idm_headway
-        needed = s_star / math.sqrt(max(1e-12, 1.0 - (v / v0) ** vehicle.idm_delta))
+        s_star = human.min_gap + v * human.headway
+        needed = s_star / math.sqrt(max(1e-12, 1.0 - (v / v0) ** human.delta))
         lo, hi = (v, hi) if needed < gap else (lo, v)
     return lo
 
@@ -116,10 +122,25 @@ def _plan(scenario: Scenario, config: EnvConfig) -> _Plan:
     hd = scenario.hdmap
     per_lane = config.density / scenario.lanes / 1000.0  # veh/m per lane
     speed_limit = float(hd.lane_speed[hd.edge_lanes[hd.edge_of(scenario.routes[0].entry), 0]])
-    v_eq = idm_equilibrium_speed(1.0 / per_lane, speed_limit, config.vehicle)
+    v_eq = idm_equilibrium_speed(1.0 / per_lane, speed_limit, cautious(config.human),
+                                 config.vehicle.length)  # fmt: skip
+    if scenario.ring:  # closed: nobody enters
+        return _Plan(per_lane, v_eq, 0.0, 0)
     inflow = per_lane * scenario.lanes * v_eq if v_eq > 0 else 0.0
     n_queue = int(math.ceil(1.5 * inflow * config.episode_length)) + 4 * scenario.lanes
     return _Plan(per_lane, v_eq, inflow, n_queue)
+
+
+def _laps(scenario: Scenario, config: EnvConfig) -> Scenario:
+    """A ring scenario whose route repeats the loop for longer than anyone can drive in the
+    episode (at the fastest lane's limit x the highest speed factor, plus two laps)."""
+    hd, loop = scenario.hdmap, scenario.routes[0].edges
+    rows = [hd.edge_of(e) for e in loop]
+    length = float(hd.edge_length[rows].sum())
+    lanes = hd.edge_lanes[rows]
+    v_max = float(hd.lane_speed[lanes[lanes >= 0]].max()) * SPEED_FACTOR_RANGE[1]
+    laps = math.ceil(v_max * config.episode_length / length) + 2
+    return replace(scenario, routes=(Route(edges=loop * laps),))
 
 
 def _placement_edges(scenario: Scenario) -> tuple[str, ...]:
@@ -138,8 +159,8 @@ def av_count(scenario: Scenario, config: EnvConfig) -> int:
     if scenario.own_vehicles:
         return int(round(config.penetration * len(scenario.own_vehicles)))
     plan, hd = _plan(scenario, config), scenario.hdmap
-    n_init = 0
-    for edge in _placement_edges(scenario):
+    n_init = sum(ring_counts(scenario, plan.per_lane)) if scenario.ring else 0
+    for edge in () if scenario.ring else _placement_edges(scenario):
         e = hd.edge_of(edge)
         n_init += int(hd.edge_num_lanes[e]) * _lane_count(float(hd.edge_length[e]), plan.per_lane)
     if config.fixed_fleet:
@@ -152,6 +173,8 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
     the caller: ``Scenario.check_density``)."""
     if scenario.own_vehicles:
         return _own_demand(scenario, config, rng)
+    if scenario.ring:
+        scenario = _laps(scenario, config)
     plan = _plan(scenario, config)
     routes = list(scenario.routes)
     weights = np.array([r.weight for r in routes], dtype=float)
@@ -161,6 +184,11 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
     is_av = _draw_avs(len(placed.planned), plan.n_queue, config, rng)
     vehicles, queue = _vehicles(placed, queue_routes, is_av, config, rng)
     return Demand(tuple(routes), vehicles, queue, plan.v_eq, plan.inflow)
+
+
+END_ROOM = 40.0
+"""Nobody is placed within this distance of a lane's dead end [m]: a vehicle placed there
+would start at a standstill at the end of its lane, with no room to merge out of it."""
 
 
 class _Placement:
@@ -175,8 +203,26 @@ class _Placement:
         self.upstream = upstream_lanes(self.hd)
         self.tail: dict[int, float] = {}
         """Lane row -> distance [m] from its last placed vehicle to its end."""
+        if scenario.ring:
+            self._ring(scenario)
+            return
         for edge in _placement_edges(scenario):
             self._edge(edge)
+
+    def _ring(self, scenario: Scenario) -> None:
+        """Evenly spaced all around each lane of the loop, at the equilibrium speed."""
+        hd, human, car = self.hd, cautious(self.config.human), self.config.vehicle.length
+        for lane, n in enumerate(ring_counts(scenario, self.plan.per_lane)):
+            if n == 0:
+                continue
+            spots = ring_positions(scenario, lane, n, float(self.rng.random()))
+            limit = float(min(hd.lane_speed[row] for _, row, _ in spots))
+            spacing = ring_lengths(scenario)[lane] / n
+            v = idm_equilibrium_speed(spacing, limit, human, car)
+            for edge, row, pos in spots:
+                route = suffix_route(self.routes, 0, edge)
+                self.planned.append(Placed(route, pos, lane, row, v, [(0.0, limit)]))
+                self.tail[row] = float(hd.lane_length[row]) - pos  # the last one's stays
 
     def _edge(self, edge: str) -> None:
         hd, base = self.hd, self.base
@@ -192,7 +238,7 @@ class _Placement:
     def _lane(
         self, edge: str, length: float, lane: int, lane_row: int, candidates: list[int]
     ) -> None:
-        hd, veh = self.hd, self.config.vehicle
+        hd, human, car = self.hd, cautious(self.config.human), self.config.vehicle.length
         # routes this lane continues (SUMO refuses a vehicle that must change lanes to
         # reach its next edge before the edge ends: "too many lane changes required")
         paths = {i: lane_route(hd, lane_row, self.base[i], edge) for i in candidates}
@@ -201,11 +247,12 @@ class _Placement:
         n = _lane_count(length, self.plan.per_lane)
         if n == 0:
             return
-        spacing = length / n
+        usable = min(length - 1.0, self._dead_end(lane_row, fit) - END_ROOM)
+        spacing = min(length, max(usable, 1.0)) / n
         # rounding n up makes the spacing tighter than the target: SUMO refuses to insert
         # at a speed above the IDM equilibrium of the actual spacing
         lane_limit = float(hd.lane_speed[lane_row])  # e.g. a slower on-ramp
-        v_lane = min(self.plan.v_eq, idm_equilibrium_speed(spacing, lane_limit, veh))
+        v_lane = min(self.plan.v_eq, idm_equilibrium_speed(spacing, lane_limit, human, car))
         start = self._phase(lane_row, spacing)
         self.tail[lane_row] = length - min(start + (n - 1) * spacing, length - 1.0)
         for k in range(n):
@@ -218,6 +265,13 @@ class _Placement:
             )
             v, limits = self._speed(lane_row, length, pos, route, v_lane, lane_limit)
             self.planned.append(Placed(route, pos, lane, lane_row, v, limits))
+
+    def _dead_end(self, lane_row: int, fit: list[int]) -> float:
+        """Distance [m] from the lane's start to where it ends on the way of the routes ``fit``
+        (inf: it continues to their last edge)."""
+        hd = self.hd
+        last = [self.base[i].edges[-1] if self.base[i].edges else "" for i in fit]
+        return min(lane_ahead(hd, lane_row, 0.0, hd.edge_row.get(e, -1))[0] for e in last)
 
     def _phase(self, lane_row: int, spacing: float) -> float:
         """Position of the first vehicle [m]: continue the spacing of the lane before this one
@@ -238,7 +292,7 @@ class _Placement:
         d, slower = lane_ahead(hd, lane_row, pos, hd.edge_row.get(last, -1))
         if lane_row in self.signalised:  # the light ahead may be red
             d = min(d, length - pos)
-        v = min(v_lane, math.sqrt(max(0.0, self.config.vehicle.idm_decel * (d - 15.0))))
+        v = min(v_lane, math.sqrt(max(0.0, self.config.human.decel * (d - 15.0))))
         return v, [(0.0, lane_limit), *slower]
 
 
@@ -264,15 +318,14 @@ def _vehicles(placed: _Placement, queue_routes: np.ndarray, is_av: np.ndarray, c
     # A vehicle desires speed_factor × limit, and SUMO refuses one that departs faster or could
     # not slow down to it on a slower lane ahead ("slow lane ahead"): placed conventional
     # vehicles get their factor here, and every placed vehicle departs within what it allows.
-    dev = config.vehicle.speed_factor_dev
+    dev, human = config.human.speed_factor_dev, cautious(config.human)
     factor = np.round(np.clip(rng.normal(1.0, dev, n_init), *SPEED_FACTOR_RANGE), 4)
     factor[is_av[:n_init]] = 1.0
     speed = [
-        min(p.speed, departure_cap(float(f), p.limits, config.vehicle))
-        for p, f in zip(planned, factor)
+        min(p.speed, departure_cap(float(f), p.limits, human)) for p, f in zip(planned, factor)
     ]
     order = sorted(range(n_init), key=lambda i: -planned[i].pos)  # downstream first
-    cap_followers(planned, order, speed, placed.upstream, placed.tail, config.vehicle)
+    cap_followers(planned, order, speed, placed.upstream, placed.tail, human, config.vehicle.length)
     ids = _vehicle_ids(is_av[[*order, *range(n_init, n_total)]])
     vehicles = []
     for j, i in enumerate(order):
@@ -311,30 +364,22 @@ def _vehicle_ids(is_av: np.ndarray) -> list[str]:
     return [f"av_{a}" if av else f"hv_{h}" for av, a, h in zip(is_av, n_av, n_hv)]
 
 
-def write_demand(demand: Demand, config: EnvConfig, path: Path) -> None:
-    """Write vehicle types and the planned vehicles as a SUMO route file."""
-    veh = config.vehicle
-    lo, hi = SPEED_FACTOR_RANGE
+def write_demand(
+    demand: Demand, config: EnvConfig, path: Path, avs_as_humans: bool = False
+) -> None:
+    """Write vehicle types and the planned vehicles as a SUMO route file (``avs_as_humans``: the
+    AV-labelled vehicles get the human drivers' types, for the all-human reference)."""
     root = ET.Element("routes")
-    ET.SubElement(
-        root, "vType", id="hv", vClass="passenger", carFollowModel="IDM", accel=f"{veh.idm_accel}",
-        decel=f"{veh.idm_decel}", emergencyDecel="9.0", tau=f"{veh.idm_headway}",
-        minGap=f"{veh.idm_min_gap}", delta=f"{veh.idm_delta}", length=f"{veh.length}",
-        width=f"{veh.width}", speedFactor=f"normc(1,{veh.speed_factor_dev},{lo},{hi})",
-        laneChangeModel="SL2015", latAlignment="center", color="0.6,0.6,0.6",
-    )  # fmt: skip
-    ET.SubElement(
-        root, "vType", id="av", vClass="passenger", carFollowModel="IDM", accel=f"{veh.max_accel}",
-        decel=f"{veh.max_decel}", emergencyDecel="9.0", tau=f"{veh.idm_headway}",
-        minGap=f"{veh.idm_min_gap}", length=f"{veh.length}", width=f"{veh.width}",
-        speedFactor="1", laneChangeModel="SL2015", latAlignment="arbitrary", maxSpeedLat="30",
-        lcSublane="0", color="0.85,0.1,0.1",
-    )  # fmt: skip
+    add_vehicle_types(root, config.human, config.vehicle, avs_as_humans)
     for i, r in enumerate(demand.routes):
         ET.SubElement(root, "route", id=f"r{i}", edges=" ".join(r.edges or (r.origin,)))
     for v in demand.vehicles:
         r = demand.routes[v.route]
-        attrs = {"id": v.vid, "type": "av" if v.is_av else "hv", "depart": f"{v.depart:.2f}"}
+        attrs = {
+            "id": v.vid,
+            "type": AV_TYPE if v.is_av else HUMAN_TYPE,
+            "depart": f"{v.depart:.2f}",
+        }
         attrs["departPos"] = f"{v.depart_pos:.2f}" if v.depart_pos is not None else "base"
         attrs["departLane"] = str(v.depart_lane) if v.depart_lane is not None else "free"
         attrs["departSpeed"] = f"{v.depart_speed:.2f}" if v.depart_speed is not None else "last"

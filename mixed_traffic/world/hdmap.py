@@ -17,6 +17,7 @@ import zlib
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
+from typing import Any
 from xml.sax import SAXException, SAXParseException
 
 import numpy as np
@@ -253,57 +254,16 @@ def _root_of(net_file: str | Path) -> tuple[str, bool]:
 
 def build_hdmap(net_file: str | Path) -> HDMap:
     """Read a .net.xml (or .net.xml.gz) with sumolib and sample every lane centreline at 1 m."""
-    net = read_net(net_file)
-    lanes: list = []  # sumolib lanes, one per lane row
-    lane_edge: list[int] = []
-    edge_ids: list[str] = []
-    edge_lane_rows: list[list[int]] = []
-    edge_row: dict = {}  # sumolib edge -> edge row
-    for edge in net.getEdges(withInternal=True):
-        function = edge.getFunction()
-        if function in ("walkingarea", "crossing"):
-            continue
-        internal = function == "internal"
-        erow = -1 if internal else len(edge_ids)
-        rows = list(range(len(lanes), len(lanes) + len(edge.getLanes())))
-        lanes += edge.getLanes()
-        lane_edge += [erow] * len(rows)
-        if not internal:
-            edge_row[edge] = erow
-            edge_ids.append(edge.getID())
-            edge_lane_rows.append(rows)  # sumolib keeps lanes by index, 0 = rightmost
+    lanes, lane_edge, edge_ids, edge_lane_rows, edge_row = _lane_table(read_net(net_file))
     if not edge_ids:
         raise NetFileError(f"network file {net_file} contains no edges", "edges", "")
     lane_ids = [lane.getID() for lane in lanes]
     lane_length = [lane.getLength() for lane in lanes]
-    lane_row = {lid: i for i, lid in enumerate(lane_ids)}
     kmax = max(len(r) for r in edge_lane_rows)
     edge_lanes = np.full((len(edge_ids), kmax), -1, dtype=np.int32)
     for e, rows in enumerate(edge_lane_rows):
         edge_lanes[e, : len(rows)] = rows
-
-    lane_next = np.full(len(lanes), -1, dtype=np.int32)
-    conn_to: dict[tuple[int, int], int] = {}
-    tls_links: dict[tuple[int, int], tuple[str, int]] = {}
-    for src, lane in enumerate(lanes):
-        straight = False
-        for c in lane.getOutgoing():  # in file order
-            dst = lane_row.get(c.getToLane().getID())
-            if dst is None:  # onto a crossing or walking area
-                continue
-            via = c.getViaLaneID()
-            first = lane_row.get(via, dst) if via else dst
-            to = edge_row.get(c.getTo())
-            if lane_edge[src] >= 0 and to is not None:
-                conn_to.setdefault((src, to), first)
-                if c.getTLSID():
-                    tls_links[(src, to)] = (c.getTLSID(), c.getTLLinkIndex())
-            if c.getDirection() == "s" and not straight:  # straight on: the primary successor
-                lane_next[src] = first
-                straight = True
-            elif lane_next[src] < 0:
-                lane_next[src] = first
-
+    lane_next, conn_to, tls_links = _connections(lanes, lane_ids, lane_edge, edge_row)
     samples = [_sample(np.reshape(ln.getShape3D(), (-1, 3)), ln.getLength()) for ln in lanes]
     counts = np.array([len(pts) for pts, _ in samples], dtype=np.int64)
     return HDMap(
@@ -326,6 +286,59 @@ def build_hdmap(net_file: str | Path) -> HDMap:
         wp_heading=np.concatenate([hdg for _, hdg in samples]),
         wp_lane=np.repeat(np.arange(len(lanes), dtype=np.int32), counts),
     )
+
+
+def _lane_table(net: Any) -> tuple[list, list[int], list[str], list[list[int]], dict]:
+    """Lane rows (sumolib lanes, edges in file order, walking areas and crossings left out),
+    the edge row of each (-1 internal), the normal edges' ids and lane rows, and sumolib edge
+    -> edge row."""
+    lanes: list = []
+    lane_edge: list[int] = []
+    edge_ids: list[str] = []
+    edge_lane_rows: list[list[int]] = []
+    edge_row: dict = {}
+    for edge in net.getEdges(withInternal=True):
+        function = edge.getFunction()
+        if function in ("walkingarea", "crossing"):
+            continue
+        internal = function == "internal"
+        erow = -1 if internal else len(edge_ids)
+        rows = list(range(len(lanes), len(lanes) + len(edge.getLanes())))
+        lanes += edge.getLanes()
+        lane_edge += [erow] * len(rows)
+        if not internal:
+            edge_row[edge] = erow
+            edge_ids.append(edge.getID())
+            edge_lane_rows.append(rows)  # sumolib keeps lanes by index, 0 = rightmost
+    return lanes, lane_edge, edge_ids, edge_lane_rows, edge_row
+
+
+def _connections(lanes: list, lane_ids: list[str], lane_edge: list[int], edge_row: dict):
+    """``lane_next`` (primary successor: straight on, else the first connection in file
+    order), ``conn_to`` and ``tls_links`` of ``HDMap``."""
+    lane_row = {lid: i for i, lid in enumerate(lane_ids)}
+    lane_next = np.full(len(lanes), -1, dtype=np.int32)
+    conn_to: dict[tuple[int, int], int] = {}
+    tls_links: dict[tuple[int, int], tuple[str, int]] = {}
+    for src, lane in enumerate(lanes):
+        straight = False
+        for c in lane.getOutgoing():  # in file order
+            dst = lane_row.get(c.getToLane().getID())
+            if dst is None:  # onto a crossing or walking area
+                continue
+            via = c.getViaLaneID()
+            first = lane_row.get(via, dst) if via else dst
+            to = edge_row.get(c.getTo())
+            if lane_edge[src] >= 0 and to is not None:
+                conn_to.setdefault((src, to), first)
+                if c.getTLSID():
+                    tls_links[(src, to)] = (c.getTLSID(), c.getTLLinkIndex())
+            if c.getDirection() == "s" and not straight:  # straight on: the primary successor
+                lane_next[src] = first
+                straight = True
+            elif lane_next[src] < 0:
+                lane_next[src] = first
+    return lane_next, conn_to, tls_links
 
 
 def _sample(shape: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:

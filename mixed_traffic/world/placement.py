@@ -10,7 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from mixed_traffic.config import VehicleConfig
+from mixed_traffic.config import HumanConfig
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.scenario import Route
 
@@ -64,7 +64,8 @@ def cap_followers(
     speed: list[float],
     upstream: dict[int, tuple[int, float]],
     tail: dict[int, float],
-    veh: VehicleConfig,
+    human: HumanConfig,
+    length: float,
 ) -> None:
     """Lower ``speed`` (per planned vehicle, [m/s]) until every vehicle can follow its leader,
     also across junctions: SUMO refuses a vehicle that would have to brake for its leader, or
@@ -75,28 +76,26 @@ def cap_followers(
         lanes.setdefault(planned[i].row, []).append(i)
     pairs = []  # (leader, follower, gap [m])
     for row, ids in lanes.items():
-        pairs += [
-            (a, b, planned[a].pos - planned[b].pos - veh.length) for a, b in zip(ids, ids[1:])
-        ]
+        pairs += [(a, b, planned[a].pos - planned[b].pos - length) for a, b in zip(ids, ids[1:])]
         prev, junction = upstream.get(row, (-1, 0.0))
         if prev in lanes:  # the last vehicle on the lane before follows the first one here
-            gap = tail[prev] + junction + planned[ids[-1]].pos - veh.length
+            gap = tail[prev] + junction + planned[ids[-1]].pos - length
             pairs.append((ids[-1], lanes[prev][0], gap))
     changed = True
     while changed:  # caps only fall: a few sweeps settle chains of slow leaders
         changed = False
         for a, b, gap in pairs:
-            cap = follow_cap(gap, speed[a], veh)
+            cap = follow_cap(gap, speed[a], human)
             if cap < speed[b]:
                 speed[b], changed = cap, True
 
 
-def follow_cap(gap: float, v_lead: float, veh: VehicleConfig) -> float:
+def follow_cap(gap: float, v_lead: float, human: HumanConfig) -> float:
     """Highest speed [m/s] at which IDM's desired gap s0 + vT + v(v − v_lead)/2√(ab) fits in
     ``gap`` [m] behind a leader at ``v_lead`` [m/s] (1 cm/s below, see ``departure_cap``)."""
-    c = 2.0 * math.sqrt(veh.idm_accel * veh.idm_decel)
-    p = veh.idm_headway * c - v_lead  # v² + p·v + c·(s0 − gap) ≤ 0
-    q = c * (veh.idm_min_gap - gap)
+    c = 2.0 * math.sqrt(human.accel * human.decel)
+    p = human.headway * c - v_lead  # v² + p·v + c·(s0 − gap) ≤ 0
+    q = c * (human.min_gap - gap)
     return max(0.0, 0.5 * (-p + math.sqrt(max(0.0, p * p - 4.0 * q))) - 0.01)
 
 
@@ -113,16 +112,16 @@ def upstream_lanes(hd: HDMap) -> dict[int, tuple[int, float]]:
     return out
 
 
-def departure_cap(factor: float, limits: list[tuple[float, float]], veh: VehicleConfig) -> float:
+def departure_cap(factor: float, limits: list[tuple[float, float]], human: HumanConfig) -> float:
     """Highest departure speed [m/s] SUMO accepts for a vehicle with speed ``factor`` [-] before
     lanes with lower limits ``limits`` ([(distance [m], limit [m/s])]): factor × limit, unless
     it could still stop before that lane (measured: SUMO's IDM insertion check asks for the stop
     distance v²/2b + vT, not just enough room to slow down). 1 cm/s below, as the route file
     rounds speeds to 2 decimals."""
-    b, t = veh.idm_decel, veh.idm_headway
+    b, t = human.decel, human.headway
 
     def stop_speed(d: float) -> float:  # v with v²/2b + vT + s0 = d
-        return b * (math.sqrt(t * t + 2.0 * max(0.0, d - veh.idm_min_gap) / b) - t)
+        return b * (math.sqrt(t * t + 2.0 * max(0.0, d - human.min_gap) / b) - t)
 
     return min(max(DEPART_SHARE * factor * v, stop_speed(d)) for d, v in limits) - 0.01
 

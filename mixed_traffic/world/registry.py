@@ -108,6 +108,7 @@ def _load_folder(name: str, folder: Path) -> Scenario:
         extra_args=tuple(spec.get("sumo_args", ())),
         placement_edges=tuple(spec.get("placement_edges", ())),
         periodic=bool(spec.get("periodic", False)),
+        ring=bool(spec.get("ring", False)),
     )
     _validate(scenario, spec_path)
     return scenario

@@ -59,6 +59,9 @@ class Scenario:
     """Edges on which vehicles are placed at reset (default: all edges of the routes)."""
     periodic: bool = False
     """Close the main road into a ring with a virtual leader (see ``boundary``)."""
+    ring: bool = False
+    """The network is a closed loop (the first route's edges, in order): vehicles circle it for
+    the whole episode, nobody enters or leaves."""
     own_vehicles: tuple[OwnVehicle, ...] = ()
     """A user's .sumocfg vehicles: used instead of generated demand (see ``user_scenario``)."""
 
@@ -104,5 +107,8 @@ def sumo_args(scenario: Scenario, config: EnvConfig, route_file: Path, seed: int
         "--duration-log.disable", "true",
         "--eager-insert", "true",
         "--default.speeddev", "0",
+        # an actionStepLength (human drivers) would switch SUMO to the ballistic update; the
+        # AVs' commands are integrated with Euler steps (env/control.py), so keep Euler
+        "--step-method.ballistic", "false",
         *scenario.extra_args,
     ]  # fmt: skip

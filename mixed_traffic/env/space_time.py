@@ -1,0 +1,175 @@
+"""The space-time field of the measurement segment: speeds, flow and congestion waves.
+
+Every step adds each vehicle inside the segment to a fixed grid of ``dx`` metres by ``bin_s``
+seconds: the distance it drove in the step (v·dt) and the time it spent (dt). Edie's
+generalised definitions then give, over any region A of the grid, the flow q = Σd / |A| and
+the density k = Σt / |A| (|A| in lane-metres × seconds), and the space-mean speed v = Σd / Σt.
+Memory grows with the episode's length (two floats per cell), never with the vehicles.
+
+``wave_speed`` estimates how fast speed disturbances travel along the road: the lag that
+maximises the cross-correlation of the speed series of two places ``Δx`` apart gives
+c = Δx / lag. Stop-and-go waves travel upstream (c < 0; observed: −15 to −20 km/h).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+DX = 10.0
+"""Grid cell length along the segment [m]."""
+BIN_S = 1.0
+"""Grid cell duration [s]."""
+WAVE_WINDOW = (3, 5)
+"""Smoothing window of the speed field for waves: cells along x, cells along t."""
+WAVE_SEPARATIONS = (30.0, 50.0, 70.0)
+"""Distances between the two places whose speed series are correlated [m] (short enough that
+a wave of a minute's period cannot be mistaken for the next one)."""
+MIN_WAVE_SPEED = 5.0
+"""Slowest disturbance looked for [km/h]: it bounds the lags searched."""
+MIN_SPEED_SPREAD = 1.0
+"""Standard deviation of the smoothed speed field [m/s] below which there are no waves."""
+MIN_CORRELATION = 0.5
+"""Correlation the best lag must reach for a wave speed to be reported [-]."""
+
+
+class SpaceTimeField:
+    """Edie's sums on a (time × space) grid, plus speed moments, after a warm-up.
+
+    Args:
+        length: segment length [m].
+        lane_metres: Σ over the segment's edges of length × lanes [m].
+        dt: simulation step [s].
+        warmup: samples before this time [s] are not counted.
+    """
+
+    def __init__(self, length: float, lane_metres: float, dt: float, warmup: float) -> None:
+        self.length, self.lane_metres, self.dt, self.warmup = length, lane_metres, dt, warmup
+        self.n_x = max(1, math.ceil(length / DX))
+        self._dist = np.zeros((64, self.n_x))
+        self._time = np.zeros((64, self.n_x))
+        self._t0: float | None = None  # start of the first bin (the first step after warm-up)
+        self._n_bins = 0
+        self._moments = np.zeros(3)  # Σ 1, Σ v, Σ v² over (vehicle, step) samples
+        self._steps = 0
+
+    def add(self, t: float, s: np.ndarray, v: np.ndarray) -> None:
+        """One step ending at ``t`` [s]: vehicles at positions ``s`` [m] along the segment
+        (NaN outside it) driving at ``v`` [m/s], both (N,)."""
+        if t < self.warmup - 1e-9:
+            return
+        if self._t0 is None:
+            self._t0 = t - self.dt
+        self._steps += 1
+        inside = ~np.isnan(s)
+        s, v = s[inside], v[inside]
+        row = int((t - self._t0 - 1e-9) // BIN_S)
+        self._grow(row + 1)
+        col = np.clip((s // DX).astype(np.int64), 0, self.n_x - 1)
+        np.add.at(self._dist[row], col, v * self.dt)
+        np.add.at(self._time[row], col, self.dt)
+        self._moments += (len(v), v.sum(), (v * v).sum())
+
+    def _grow(self, rows: int) -> None:
+        if rows > len(self._dist):
+            extra = max(rows, 2 * len(self._dist)) - len(self._dist)
+            self._dist = np.vstack([self._dist, np.zeros((extra, self.n_x))])
+            self._time = np.vstack([self._time, np.zeros((extra, self.n_x))])
+        self._n_bins = max(self._n_bins, rows)
+
+    @property
+    def distance(self) -> np.ndarray:
+        """(T, X) distance driven in each cell [m] (summed over vehicles and lanes)."""
+        return self._dist[: self._n_bins]
+
+    @property
+    def time(self) -> np.ndarray:
+        """(T, X) time spent in each cell [s] (summed over vehicles and lanes)."""
+        return self._time[: self._n_bins]
+
+    def speed_std(self) -> float:
+        """Population standard deviation of the (vehicle, step) speed samples [m/s]."""
+        n, s1, s2 = self._moments
+        return math.sqrt(max(s2 / n - (s1 / n) ** 2, 0.0)) if n else math.nan
+
+    def flow(self) -> float:
+        """Edie's flow over the whole field [veh/h/lane]."""
+        area = self.lane_metres * self._steps * self.dt
+        return 3600.0 * float(self._dist.sum()) / area if area > 0 else math.nan
+
+    def wave_speed(self) -> float:
+        """Speed of the speed disturbances along the segment [km/h]; NaN without waves."""
+        return wave_speed(self.distance, self.time, DX, BIN_S)
+
+
+def smoothed_speed(dist: np.ndarray, time: np.ndarray, window: tuple[int, int]) -> np.ndarray:
+    """(T, X) space-mean speed [m/s] over a box of ``window`` = (cells along x, cells along
+    t) around each cell (Edie's definition on the box), NaN where the box is empty."""
+    wx, wt = window
+
+    def box(a: np.ndarray) -> np.ndarray:
+        c = np.cumsum(np.cumsum(np.pad(a, ((1, 0), (1, 0))), axis=0), axis=1)
+        t0 = np.clip(np.arange(a.shape[0]) - wt // 2, 0, a.shape[0])
+        t1 = np.clip(np.arange(a.shape[0]) + wt - wt // 2, 0, a.shape[0])
+        x0 = np.clip(np.arange(a.shape[1]) - wx // 2, 0, a.shape[1])
+        x1 = np.clip(np.arange(a.shape[1]) + wx - wx // 2, 0, a.shape[1])
+        return c[t1][:, x1] - c[t0][:, x1] - c[t1][:, x0] + c[t0][:, x0]
+
+    d, t = box(dist), box(time)
+    return np.divide(d, t, out=np.full(d.shape, np.nan), where=t > 0)
+
+
+def wave_speed(dist: np.ndarray, time: np.ndarray, dx: float, bin_s: float) -> float:
+    """Propagation speed [km/h] of speed disturbances in a (T, X) grid of Edie sums.
+
+    The speed field is smoothed over ``WAVE_WINDOW`` cells; for each separation in
+    ``WAVE_SEPARATIONS`` the normalised cross-correlation of the speed series of all pairs
+    of places that far apart is averaged, and its best lag (within ``MIN_WAVE_SPEED``) τ (corr(v(x, t), v(x + Δx, t + τ)))
+    gives Δx / τ. The median over separations is returned, or NaN when the field is too flat
+    (std < ``MIN_SPEED_SPREAD``), too small, or no lag correlates well enough.
+    """
+    v = smoothed_speed(dist, time, WAVE_WINDOW)
+    if v.shape[0] < 20 or np.isnan(v).mean() > 0.2:
+        return math.nan
+    v = np.where(np.isnan(v), np.nanmean(v), v)
+    if v.std() < MIN_SPEED_SPREAD:
+        return math.nan
+    speeds = []
+    for sep in WAVE_SEPARATIONS:
+        k = int(round(sep / dx))
+        if k < 1 or k >= v.shape[1]:
+            continue
+        max_lag = math.ceil(3.6 * k * dx / MIN_WAVE_SPEED / bin_s)
+        lag, corr = _best_lag(v[:, :-k], v[:, k:], max_lag)
+        if corr >= MIN_CORRELATION and abs(lag) > 1e-6:
+            speeds.append(3.6 * k * dx / (lag * bin_s))
+    return float(np.median(speeds)) if speeds else math.nan
+
+
+def _best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> tuple[float, float]:
+    """The lag τ [cells], |τ| <= ``max_lag`` and at most a third of the series, maximising the
+    mean over columns of corr(a[t], b[t + τ]) (refined between cells by a parabola through the
+    peak and its neighbours), and that correlation."""
+    a = a - a.mean(axis=0)
+    b = b - b.mean(axis=0)
+    n = len(a)
+    reach = min(max_lag, n // 3)
+    lags = np.arange(-reach, reach + 1)
+    corr = np.array([_mean_corr(a, b, int(lag)) for lag in lags])
+    i = int(np.argmax(corr))
+    if 0 < i < len(lags) - 1:
+        left, mid, right = corr[i - 1 : i + 2]
+        curve = left - 2 * mid + right
+        shift = 0.5 * (left - right) / curve if curve < 0 else 0.0
+        return float(lags[i] + shift), float(mid)
+    return float(lags[i]), float(corr[i])
+
+
+def _mean_corr(a: np.ndarray, b: np.ndarray, lag: int) -> float:
+    """Mean over columns of the correlation of a[t] and b[t + lag] (centred series)."""
+    n = len(a)
+    x, y = (a[: n - lag], b[lag:]) if lag >= 0 else (a[-lag:], b[: n + lag])
+    den = np.sqrt((x * x).sum(axis=0) * (y * y).sum(axis=0))
+    ok = den > 0
+    return float(np.mean((x * y).sum(axis=0)[ok] / den[ok])) if ok.any() else -1.0
