@@ -93,10 +93,11 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
     auto), ``dt`` the time between its decisions [s]."""
     if name == "random":
         return RandomPolicy(seed)
-    if name == "acc-lc":
+    if name in ("acc-lc", "acc-lc-conservative"):
         from agents.rules.acc_lc import AccLcPolicy
+        from agents.rules.acc_lc_config import conservative
 
-        return AccLcPolicy()
+        return AccLcPolicy(conservative() if name == "acc-lc-conservative" else None)
     if name in ("auto", "auto-raw"):
         return AutoPolicy(checkpoint, z=z, m=m, safety=name == "auto")
     if name in ("follower-stopper", "pi-saturation"):
@@ -104,5 +105,5 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
 
         cls = FollowerStopper if name == "follower-stopper" else PISaturation
         return cls(SternConfig(dt=dt))
-    raise ValueError(f"unknown policy {name!r}; choose from auto, auto-raw, acc-lc, random, "
-                     "follower-stopper, pi-saturation")  # fmt: skip
+    raise ValueError(f"unknown policy {name!r}; choose from auto, auto-raw, acc-lc, "
+                     "acc-lc-conservative, random, follower-stopper, pi-saturation")  # fmt: skip

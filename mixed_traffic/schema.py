@@ -76,7 +76,10 @@ SAFETY = (
 )
 TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
 CELL_KEYS = ("policy", "scenario", "density", "penetration", "weather", "seed")
-POLICIES = ("auto", "auto-raw", "acc-lc", "idm", "random", "follower-stopper", "pi-saturation")
+POLICIES = (
+    "auto", "auto-raw", "acc-lc", "acc-lc-conservative", "idm", "random", "follower-stopper",
+    "pi-saturation",
+)  # fmt: skip
 
 
 def label(key: str) -> str:

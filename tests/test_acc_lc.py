@@ -7,6 +7,7 @@ import pytest
 
 from agents.policies import OBS_KEYS, to_actions
 from agents.rules.acc_lc import AccLcConfig, AccLcPolicy
+from agents.rules.acc_lc_config import conservative
 from agents.rules.acc_lc_longitudinal import _idm
 from mixed_traffic.config import EnvConfig, VehicleConfig
 from mixed_traffic.env.action import to_physical
@@ -283,3 +284,27 @@ def test_centres_itself_while_a_queue_creeps() -> None:
     s = _drive("bottleneck-eval", 120, 1.0, seconds=25.0, seed=2)
     assert len(s["stood_astride"]) > 100
     assert max(s["stood_astride"].values()) <= 50, sorted(s["stood_astride"].values())[-5:]
+
+
+def _equilibrium_gap(v: float, c: AccLcConfig, v0: float = 26.4) -> float:
+    """Bumper gap [m] at which ACC-LC's acceleration behind a leader at its own speed is 0."""
+    lo, hi = 0.1, 500.0
+    for _ in range(80):
+        mid = 0.5 * (lo + hi)
+        acc = _idm(np.array([v]), np.array([v0]), np.array([mid]), np.array([0.0]), c)[0]
+        lo, hi = (mid, hi) if acc < 0 else (lo, mid)
+    return lo
+
+
+def test_acc_lc_holds_a_constant_time_gap_and_the_conservative_one_does_not() -> None:
+    """Commercial ACC keeps a time gap of 1-2 s whatever the speed (IIDM: gap = s0 + vT); the
+    conservative variant's gap widened with speed (IDM's free-road term and an emergency term
+    from the comfortable deceleration on)."""
+    fair = AccLcConfig()
+    assert 1.0 <= fair.T <= 1.6
+    for v in (5.0, 15.0, 25.0):
+        gap = _equilibrium_gap(v, fair)
+        assert (gap - fair.s0) / v == pytest.approx(fair.T, rel=0.01)
+    cons = conservative()
+    gaps = [(_equilibrium_gap(v, cons) - cons.s0) / v for v in (10.0, 25.0)]
+    assert gaps[1] > 1.5 * gaps[0] and gaps[1] > 2.5

@@ -56,3 +56,13 @@ def test_a_free_and_a_congested_point_of_the_fundamental_diagram() -> None:
     assert jam["speed_std"] >= 1.0
     assert -25.0 <= jam["wave_speed"] <= -12.0
     assert math.isclose(jam["measured_density"] / 3, 60.0, rel_tol=0.1)
+
+
+def test_a_full_acc_lc_fleet_costs_at_most_ten_percent_of_the_human_travel_time() -> None:
+    """straight, 120 veh/km: DT-TF with 100 % ACC-LC against all-human traffic (the
+    conservative variant's speed-dependent gap cost about 20 %)."""
+    common = dict(scenario="straight", density=120.0, episode_length=120.0)
+    human = _metrics("idm", warmup=30.0, penetration=0.0, **common)
+    acc = _metrics("acc-lc", warmup=30.0, penetration=1.0, **common)
+    assert acc["dt_tf"] <= 1.10 * human["dt_tf"]
+    assert acc["collisions"] == 0

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from mixed_traffic.config import SensorConfig, VehicleConfig
+from mixed_traffic.config import HumanConfig, SensorConfig, VehicleConfig
 from mixed_traffic.env.api import DEAD_END_DISTANCE
 
 #: decisions (rows of ``params``): left change, follow, right change
@@ -25,11 +25,16 @@ class AccLcConfig:
     max_steer_deg: float = VehicleConfig.max_steer_deg
     max_accel: float = VehicleConfig.max_accel
     max_decel: float = VehicleConfig.max_decel
-    # IDM
+    # longitudinal: IIDM with a constant time gap T (commercial ACC: 1-2 s, independent of
+    # speed); emergency braking only where stopping behind the leader's stopping point needs
+    # more than ``emergency_decel`` (blended in over ``emergency_span``)
     a: float = 1.5
     b: float = 2.0
-    T: float = 1.3
-    s0: float = 3.0
+    T: float = 1.4
+    s0: float = 2.0
+    iidm: bool = True
+    emergency_decel: float = 4.0
+    emergency_span: float = 2.0
     speed_factor: float = 0.95
     # lights and junctions
     yellow_stop_decel: float = 3.5
@@ -50,10 +55,10 @@ class AccLcConfig:
     # IDM (hv parameters), may need to brake at most ``force_rear_decel`` for the ego
     force_rear_decel: float = 3.0
     force_front_decel: float = 3.0
-    hv_a: float = 1.5
-    hv_b: float = 2.0
-    hv_T: float = 1.2
-    hv_s0: float = 2.0
+    hv_a: float = HumanConfig.accel
+    hv_b: float = HumanConfig.decel
+    hv_T: float = HumanConfig.headway
+    hv_s0: float = HumanConfig.min_gap
     # lateral envelope: clearance kept to vehicles alongside (longitudinal overlap)
     side_margin: float = 0.4
     side_long_margin: float = 2.0
@@ -83,3 +88,11 @@ class AccLcConfig:
     # past its lane centre into the next lane (a fixed small cap instead left egos straddling
     # two lanes when the queue stopped)
     follow_curvature: float = 0.1
+
+
+def conservative() -> AccLcConfig:
+    """The ACC-LC of the first studies (policy ``acc-lc-conservative``): IDM with T = 1.3 s and
+    s0 = 3 m, whose gap widens towards the desired speed, and an emergency term that blends in
+    from the comfortable deceleration: in steady following its time gap grew from 1.75 s at
+    41 km/h to 3.9 s at 89 km/h."""
+    return AccLcConfig(T=1.3, s0=3.0, iidm=False, emergency_decel=2.0, emergency_span=2.0)

@@ -29,22 +29,37 @@ def _idm(
     c: AccLcConfig,
     s0: float | np.ndarray | None = None,
 ) -> np.ndarray:
-    """IDM acceleration; dv = v - v_leader (closing speed), gap bumper gap [m] (inf = free);
-    ``s0`` standstill gap (default ``c.s0``)."""
+    """IDM (or IIDM, ``c.iidm``) acceleration with the kinematic emergency term; dv = v -
+    v_leader (closing speed), gap bumper gap [m] (inf = free); ``s0`` standstill gap (default
+    ``c.s0``)."""
     s0 = c.s0 if s0 is None else s0
     v0 = np.maximum(v0, 0.1)
-    free = 1.0 - (np.minimum(v, 2 * v0) / v0) ** 4
     s_star = s0 + np.maximum(0.0, v * c.T + v * dv / (2.0 * np.sqrt(c.a * c.b)))
-    inter = np.where(np.isfinite(gap), (s_star / np.maximum(gap, 0.1)) ** 2, 0.0)
-    acc = c.a * (free - inter)
+    z = np.where(np.isfinite(gap), s_star / np.maximum(gap, 0.1), 0.0)
+    acc = _iidm(v, v0, z, c) if c.iidm else c.a * (1.0 - (np.minimum(v, 2 * v0) / v0) ** 4 - z**2)
     # kinematic emergency: brake hard enough to stop behind where the leader could stop
     v_lead = np.maximum(v - dv, 0.0)
     room = np.maximum(gap - np.minimum(1.0, 0.5 * s0) + v_lead**2 / (2 * c.max_decel), 0.05)
     need = np.where(np.isfinite(gap), v**2 / (2 * room), 0.0)
-    # blended in from the comfortable decel to twice it: a switch at one threshold made
-    # steady following a noise-driven alternation of IDM's acceleration and hard braking
-    r = np.clip((need - c.b) / c.b, 0.0, 1.0)
+    # blended in over ``emergency_span`` from ``emergency_decel``: a switch at one threshold
+    # made steady following a noise-driven alternation of IDM's acceleration and hard braking
+    r = np.clip((need - c.emergency_decel) / c.emergency_span, 0.0, 1.0)
     return np.minimum(acc, (1.0 - r) * acc - r * 1.2 * need)
+
+
+def _iidm(v: np.ndarray, v0: np.ndarray, z: np.ndarray, c: AccLcConfig) -> np.ndarray:
+    """Improved IDM (Treiber & Kesting 2013, §11.3.6): in equilibrium the gap is s0 + v T at
+    every speed below v0, a constant time gap; ``z`` = desired / actual gap."""
+    below = v <= v0
+    a_free = np.where(below, c.a * (1.0 - (v / v0) ** 4),
+                      -c.b * (1.0 - (v0 / np.maximum(v, 0.1)) ** (4.0 * c.a / c.b)))  # fmt: skip
+    close = z >= 1.0
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+        soft = a_free * (1.0 - z ** (2.0 * c.a / np.maximum(a_free, 1e-9)))
+    soft = np.where(a_free > 1e-9, soft, a_free)
+    acc_below = np.where(close, c.a * (1.0 - z**2), soft)
+    acc_above = np.where(close, a_free + c.a * (1.0 - z**2), a_free)
+    return np.where(below, acc_below, acc_above)
 
 
 def lane_accel(
