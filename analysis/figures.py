@@ -50,7 +50,7 @@ def save_figure(fig: Figure, path: str | os.PathLike[str], dpi: int = DPI) -> Pa
     return path
 
 
-def _new_figure(
+def new_figure(
     width: float, height: float, ncols: int = 1, nrows: int = 1
 ) -> tuple[Figure, list[Axes]]:
     """A figure with ``nrows`` x ``ncols`` axes (row-major list) in the report's seaborn style."""
@@ -105,7 +105,7 @@ def plot_penetration(
         return None
     if stats["penetration"].nunique() + int(has_ref) < 2:
         return None
-    fig, (ax,) = _new_figure(6.4, 4.2)
+    fig, (ax,) = new_figure(6.4, 4.2)
     _errorbar_lines(ax, stats, "penetration", metric, x_scale=100.0, jitter=1.0)
     if has_ref:
         m, h = ref[f"{metric}_mean"].iloc[0], ref[f"{metric}_ci"].iloc[0]
@@ -148,7 +148,7 @@ def plot_density(
     metrics = [m for m in metrics if stats[f"{m}_n"].sum() > 0]
     if not metrics:
         return None
-    fig, axes = _new_figure(3.6 * len(metrics), 3.6, ncols=len(metrics))
+    fig, axes = new_figure(3.6 * len(metrics), 3.6, ncols=len(metrics))
     span = float(stats["density"].max() - stats["density"].min()) or 1.0
     for letter, ax, m in zip("abcdefgh", axes, metrics):
         _errorbar_lines(ax, stats, "density", m, jitter=span * 0.012)
@@ -205,7 +205,7 @@ def plot_micro(
         return None
     ncols = min(3, len(metrics))
     nrows = -(-len(metrics) // ncols)
-    fig, axes = _new_figure(3.0 * ncols + 0.8, 3.0 * nrows, ncols=ncols, nrows=nrows)
+    fig, axes = new_figure(3.0 * ncols + 0.8, 3.0 * nrows, ncols=ncols, nrows=nrows)
     for ax in axes[len(metrics) :]:
         ax.set_visible(False)
     for ax, m in zip(axes, metrics):
@@ -240,7 +240,7 @@ def plot_weather(
     stats = stats.sort_values("weather", key=lambda s: s.map(lambda w: order.get(w, 99)))
     if stats[f"{metric}_n"].sum() == 0:
         return None
-    fig, (ax,) = _new_figure(6.4, 4.0)
+    fig, (ax,) = new_figure(6.4, 4.0)
     _bars(ax, stats, metric, hue="weather")
     ax.set_xlabel("weather")
     ax.set_ylabel(label(metric))

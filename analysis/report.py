@@ -29,9 +29,11 @@ from reportlab.platypus import Paragraph, Spacer
 from analysis import figures as figs
 from analysis import findings as fnd
 from analysis import tables as tbl
+from analysis import traffic_figures as tf
 from analysis.pdf import PAGE_WIDTH, figure, frame_rows, grid, make_styles, para, write_pdf
 from analysis.results import load_results
 from analysis.style import fmt_density, fmt_penetration
+from analysis.traffic_figures import FD_DIR
 from mixed_traffic.schema import METRICS
 
 _ERROR_CHARS = 300
@@ -212,6 +214,8 @@ def build_report(
             )
             story.append(Spacer(1, 8))
 
+    story += _traffic_sections(df, results_dir, fig_dir, out_pdf.stem, styles)
+
     story.append(para("Safety counts", styles["h1"]))
     safety = tbl.safety_table(df)
     if safety.empty:
@@ -230,6 +234,32 @@ def build_report(
 
     write_pdf(story, out_pdf, title)
     return out_pdf
+
+
+def _traffic_sections(df: pd.DataFrame, results_dir: Path, fig_dir: Path, stem: str,
+                      styles: dict[str, ParagraphStyle]) -> list[Any]:  # fmt: skip
+    """The "Fundamental diagram" and "Space-time diagram" sections."""
+    humans = results_dir / FD_DIR
+    extra = load_results(humans) if (humans / "records.jsonl").is_file() else df.iloc[:0]
+    out: list[Any] = [para("Fundamental diagram", styles["h1"])]
+    fd = tf.plot_fundamental_diagram(df, extra, fig_dir / f"{stem}-fundamental_diagram.png")
+    out.append(
+        figure(fd, "Flow against density per lane (Edie's definitions over the measurement "
+               "segment after warm-up; one point per episode): all-human traffic over densities "
+               "(extra one-seed cells and the sweep's 0 % cells) against the sweep's cells with "
+               "100 % of each AV policy. Grey: the empirical capacity (1,800-2,300 veh/h/lane at "
+               "18-35 veh/km/lane) and jam density (120-160 veh/km/lane).", styles)
+        if fd else para("No episode measured a flow.", styles["small"])
+    )  # fmt: skip
+    out.append(para("Space-time diagram", styles["h1"]))
+    st = tf.plot_space_time(tf.trace_files(results_dir), fig_dir / f"{stem}-space_time.png")
+    out.append(
+        figure(st, "Every vehicle's position along the measurement segment over time, coloured "
+               "by its speed (every 0.5 s); stop-and-go waves are the red bands that run "
+               "upstream.", styles)
+        if st else para("No trajectories were recorded for this sweep.", styles["small"])
+    )  # fmt: skip
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:

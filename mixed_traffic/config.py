@@ -202,8 +202,9 @@ class EnvConfig:
 
     scenario: str = "straight"
     """Scenario name from ``list_scenarios()``, or a path to a .net.xml or .sumocfg file."""
-    density: float = 120.0
-    """Traffic density k summed over all lanes of the road [veh/km] (paper: 60/120/180)."""
+    density: float | None = None
+    """Traffic density k summed over all lanes of the road [veh/km] (paper: 60/120/180); None =
+    the scenario's default (120 veh/km unless its spec gives one: urban grids use less)."""
     penetration: float = 0.2
     """AV penetration rate p, the fraction of vehicles that are AVs [0-1]."""
     weather: str = "normal"
@@ -237,7 +238,8 @@ class EnvConfig:
         if not isinstance(self.scenario, str) or not self.scenario:
             raise ValueError(f"EnvConfig.scenario={self.scenario!r} must be a non-empty string")
         # the per-scenario jam density (lanes x JAM_DENSITY_PER_LANE) is checked by the demand builder
-        _check_range(self, "density", 0.0, 1000.0, lo_open=True)
+        if self.density is not None:
+            _check_range(self, "density", 0.0, 1000.0, lo_open=True)
         _check_range(self, "penetration", 0.0, 1.0)
         _check_choice(self, "weather", WEATHERS)
         _check_choice(self, "backend", BACKENDS)

@@ -106,7 +106,7 @@ class MixedTrafficEnv(ParallelEnv):
             raise ValueError(
                 f"pass either config=EnvConfig(...) or keyword fields, not both: {sorted(kwargs)}"
             )
-        self.config = cfg = config if config is not None else EnvConfig(**kwargs)
+        cfg = config if config is not None else EnvConfig(**kwargs)
         if render_mode not in (None, *self.metadata["render_modes"]):
             raise ValueError(
                 f"render_mode={render_mode!r} is not one of {self.metadata['render_modes']}"
@@ -118,7 +118,7 @@ class MixedTrafficEnv(ParallelEnv):
         self.warmup = warmup
         self.sumo_drives_avs = sumo_drives_avs
         self.scenario = load_scenario(cfg.scenario)
-        self.scenario.check_density(cfg.density)
+        self.config = cfg = self.scenario.configure(cfg)
         self.hdmap = self.scenario.hdmap
         self.possible_agents = [f"av_{i}" for i in range(av_count(self.scenario, cfg))]
         self._table = AgentTable(self.possible_agents)

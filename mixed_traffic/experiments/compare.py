@@ -44,8 +44,9 @@ class CompareConfig:
 
     scenarios: tuple[str, ...] = TRAIN_CELLS
     """Train-split scenarios (held-out eval variants are refused)."""
-    density: float = 120.0
-    """Traffic density [veh/km]."""
+    density: float | None = None
+    """Traffic density [veh/km] (default: each scenario's, 120 veh/km unless its spec gives
+    one)."""
     penetrations: tuple[float, ...] = (0.2, 1.0)
     """AV penetrations [0-1]."""
     seeds: tuple[int, ...] = (100, 101)
@@ -78,7 +79,8 @@ class CompareConfig:
     def folder(self) -> Path:
         """Records of these settings and this code (seeds and penetrations are picked from
         them)."""
-        cells = f"{self.density:g}vkm-{self.episode_length:g}s-w{self.warmup:g}"
+        density = "default" if self.density is None else f"{self.density:g}"
+        cells = f"{density}vkm-{self.episode_length:g}s-w{self.warmup:g}"
         return self.out / cells / f"code-{current_code_key()}"
 
     def wanted(self, record: dict) -> bool:

@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         configs = [config_from_args(args, EnvConfig, seed=s) for s in args.seeds]
-        validate(configs[0], args.warmup, args.policy)
+        configs = [validate(c, args.warmup, args.policy) for c in configs]
     except (ValueError, KeyError) as e:
         parser.error(str(e).strip("'\""))
     records: list[dict[str, Any]] = []

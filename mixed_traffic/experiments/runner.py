@@ -22,7 +22,6 @@ from mixed_traffic.env.parallel import MixedTrafficEnv, check_warmup
 from mixed_traffic.provenance import json_safe, record_meta
 from mixed_traffic.schema import CELL_KEYS, METRICS, POLICIES
 from mixed_traffic.world.registry import load_scenario
-from mixed_traffic.world.scenario import Scenario
 
 DEFAULT_WARMUP = 30.0
 """Simulated time before density and speed are averaged [s]."""
@@ -30,15 +29,14 @@ SUMO_DRIVEN = ("idm",)
 """Policies under which SUMO drives the AVs (no agent acts)."""
 
 
-def validate(config: EnvConfig, warmup: float, policy: str | None = None) -> Scenario:
+def validate(config: EnvConfig, warmup: float, policy: str | None = None) -> EnvConfig:
     """Everything an episode needs checked before any work starts: the policy name, the
-    scenario, the density against its jam density and the warm-up. Raises ``ValueError``."""
+    scenario, the density against its jam density and the warm-up. Raises ``ValueError``.
+    Returns ``config`` with the scenario's default density where it gives none."""
     if policy is not None:
         check_policy(policy)
-    scenario = load_scenario(config.scenario)
-    scenario.check_density(config.density)
     check_warmup(warmup, config.episode_length)
-    return scenario
+    return load_scenario(config.scenario).configure(config)
 
 
 def check_policy(policy: str) -> None:
@@ -73,10 +71,11 @@ def run_episode(
         SumoError: SUMO failed to start.
     """
     check_policy(policy)
-    meta, t0 = record_meta(config), time.perf_counter()
+    t0 = time.perf_counter()
     # the env validates the config against its scenario before anything else is done
     env = MixedTrafficEnv(config=config, warmup=warmup, sumo_drives_avs=policy in SUMO_DRIVEN,
                           render_mode="rgb_array" if gif else None)  # fmt: skip
+    config, meta = env.config, record_meta(env.config)  # the scenario's defaults filled in
     frames = _Gif(gif)
     try:
         agent = _make_policy(policy, config, checkpoint)

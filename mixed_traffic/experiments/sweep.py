@@ -16,7 +16,7 @@ import multiprocessing as mp
 import sys
 import time
 import traceback
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 from tqdm import tqdm
@@ -30,6 +30,7 @@ from mixed_traffic.provenance import (
     write_record_atomic,
 )
 from mixed_traffic.schema import CELL_KEYS, POLICIES
+from mixed_traffic.world.registry import load_scenario
 
 PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
 DENSITIES = (60.0, 120.0, 180.0)
@@ -45,8 +46,9 @@ class SweepConfig:
     """penetration | density | weather."""
     scenario: str = "straight"
     """Scenario name or .net.xml/.sumocfg path (see ``python -m mixed_traffic.scenario --list``)."""
-    at_density: float = 120.0
-    """Density for the penetration and weather sweeps [veh/km]."""
+    at_density: float | None = None
+    """Density for the penetration and weather sweeps [veh/km] (default: the scenario's, 120
+    veh/km unless its spec gives one)."""
     at_penetration: float = 0.2
     """AV penetration for the density and weather sweeps [0-1]."""
     values: tuple[float | str, ...] = ()
@@ -96,12 +98,16 @@ class SweepConfig:
             bad("address", "--address needs --backend ray")
         if not 0 <= self.warmup < self.episode_length:
             bad("warmup", f"must be in [0, episode length {self.episode_length})")
-        EnvConfig(scenario=self.scenario, density=self.at_density,
-                  penetration=self.at_penetration, episode_length=self.episode_length)  # fmt: skip
+        try:
+            scenario = load_scenario(self.scenario)
+        except ValueError as e:
+            bad("scenario", str(e))
+        base = EnvConfig(scenario=self.scenario, density=self.at_density,
+                         penetration=self.at_penetration, episode_length=self.episode_length)  # fmt: skip
+        scenario.configure(base)
         try:
             for v in self.axis_values():  # each value must make a valid config
-                EnvConfig(**{"density": self.at_density, "penetration": self.at_penetration,
-                             self.axis: v})  # fmt: skip
+                scenario.configure(replace(base, **{self.axis: v}))
         except ValueError as e:
             bad("values", str(e))
 
@@ -139,9 +145,10 @@ class Cell:
 
 def cells(sweep: SweepConfig) -> list[Cell]:
     """Every cell of the sweep, in a stable order (seed-major, so early results span the axis)."""
+    density = sweep.at_density or load_scenario(sweep.scenario).density
     base = dict(
         scenario=sweep.scenario,
-        density=sweep.at_density,
+        density=density,
         penetration=sweep.at_penetration,
         weather="normal",
     )

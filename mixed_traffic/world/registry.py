@@ -109,6 +109,7 @@ def _load_folder(name: str, folder: Path) -> Scenario:
         placement_edges=tuple(spec.get("placement_edges", ())),
         periodic=bool(spec.get("periodic", False)),
         ring=bool(spec.get("ring", False)),
+        density=float(spec.get("density", 120.0)),
     )
     _validate(scenario, spec_path)
     return scenario

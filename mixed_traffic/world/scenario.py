@@ -6,7 +6,7 @@ A scenario is a bundled folder (``registry``) or a user's own ``.net.xml`` / ``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from mixed_traffic.config import JAM_DENSITY_PER_LANE, EnvConfig
@@ -59,6 +59,8 @@ class Scenario:
     """Edges on which vehicles are placed at reset (default: all edges of the routes)."""
     periodic: bool = False
     """Close the main road into a ring with a virtual leader (see ``boundary``)."""
+    density: float = 120.0
+    """Default density [veh/km summed over ``lanes``], used when a config gives none."""
     ring: bool = False
     """The network is a closed loop (the first route's edges, in order): vehicles circle it for
     the whole episode, nobody enters or leaves."""
@@ -79,6 +81,14 @@ class Scenario:
     def max_density(self) -> float:
         """Jam density of the main road [veh/km summed over lanes]."""
         return self.lanes * JAM_DENSITY_PER_LANE
+
+    def configure(self, config: EnvConfig) -> EnvConfig:
+        """``config`` with this scenario's default density where it gives none, checked
+        against the jam density (``ValueError``)."""
+        if config.density is None:
+            config = replace(config, density=self.density)
+        self.check_density(config.density)
+        return config
 
     def check_density(self, density: float) -> None:
         """Raise ``ValueError`` unless 0 < ``density`` [veh/km] <= the jam density."""
