@@ -33,8 +33,7 @@ from analysis import traffic_figures as tf
 from analysis.pdf import PAGE_WIDTH, figure, frame_rows, grid, make_styles, para, write_pdf
 from analysis.results import load_results
 from analysis.style import fmt_density, fmt_penetration
-from analysis.traffic_figures import FD_DIR
-from mixed_traffic.schema import METRICS
+from mixed_traffic.schema import FD_DIR, METRICS
 
 _ERROR_CHARS = 300
 

@@ -18,15 +18,12 @@ from matplotlib.patches import Rectangle
 from analysis.figures import new_figure, save_figure
 from analysis.results import ok_rows
 from analysis.style import REFERENCE_COLOR, order_policies, policy_palette
+from mixed_traffic.schema import TRACE_DIR
 
 CAPACITY_BAND = ((18.0, 35.0), (1800.0, 2300.0))
 """Empirical capacity: (density range [veh/km/lane], flow range [veh/h/lane])."""
 JAM_BAND = (120.0, 160.0)
 """Empirical jam density [veh/km/lane]."""
-FD_DIR = "fd"
-"""Subfolder of a results folder with the extra all-human cells of the fundamental diagram."""
-TRAJECTORY_DIR = "trajectories"
-"""Subfolder of a results folder with the space-time traces (``*.npz``)."""
 
 
 def fd_points(df: pd.DataFrame) -> pd.DataFrame:
@@ -86,4 +83,4 @@ def plot_space_time(traces: list[Path], path: Path) -> Path | None:
 
 def trace_files(results_dir: Path) -> list[Path]:
     """The space-time traces of a results folder, in name order."""
-    return sorted((Path(results_dir) / TRAJECTORY_DIR).glob("*.npz"))
+    return sorted((Path(results_dir) / TRACE_DIR).glob("*.npz"))

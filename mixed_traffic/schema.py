@@ -76,6 +76,10 @@ SAFETY = (
 )
 TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
 CELL_KEYS = ("policy", "scenario", "density", "penetration", "weather", "seed")
+#: Subfolders of a sweep's results folder: the extra all-human cells of the fundamental diagram,
+#: and the trajectories (``.npz``) of its representative cells.
+FD_DIR = "fd"
+TRACE_DIR = "trajectories"
 POLICIES = (
     "auto", "auto-raw", "acc-lc", "acc-lc-conservative", "idm", "random", "follower-stopper",
     "pi-saturation",

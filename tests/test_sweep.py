@@ -61,13 +61,21 @@ def test_tiny_sweep_writes_records_figures_and_report(tmp_path: Path) -> None:
     ):
         assert name in text, name
     assert f"{dt_tf:.2f}" in text  # the reference's DT-TF appears as the report formats it
+    # the traffic figures: all-human cells over densities and two cells' trajectories
+    fd = read_records(out / "fd" / "records.jsonl")
+    assert {r["cell"]["density"] for r in fd} == {36.0, 60.0, 84.0, 108.0, 132.0, 156.0, 180.0}
+    assert all(r["cell"]["policy"] == "idm" and r["metrics"]["flow"] > 0 for r in fd)
+    traces = sorted(p.name for p in (out / "trajectories").glob("*.npz"))
+    assert traces == ["idm-penetration-0.0-seed0.npz", "random-penetration-0.5-seed0.npz"]
+    for section in ("Fundamental diagram", "Space-time diagram"):
+        assert section in text, section
 
 
 def test_interrupted_sweep_resumes_without_duplicates(tmp_path: Path) -> None:
     out = tmp_path / "res"
     args = [sys.executable, "-m", "mixed_traffic.sweep", "--penetration", "--values", "0.3", "0.6",
             "--policies", "random", "--seeds", "0", "--episode-length", "20", "--warmup", "2",
-            "--workers", "1", "--no-report", "--out", str(out)]  # fmt: skip
+            "--workers", "1", "--no-report", "--no-traffic", "--out", str(out)]  # fmt: skip
     proc = subprocess.Popen(
         args, start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
     )
@@ -92,7 +100,7 @@ def test_interrupted_sweep_resumes_without_duplicates(tmp_path: Path) -> None:
 def test_records_from_other_code_are_set_aside_and_run_again(tmp_path: Path) -> None:
     out = tmp_path / "res"
     args = ["--penetration", "--values", "0.5", "--policies", "random", "--seeds", "0",
-            "--episode-length", "10", "--warmup", "1", "--no-report", "--no-reference",
+            "--episode-length", "10", "--warmup", "1", "--no-report", "--no-traffic", "--no-reference",
             "--out", str(out)]  # fmt: skip
     assert main(args) == 0
     (record,) = read_records(out / "records.jsonl")
@@ -110,7 +118,7 @@ def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path: Path) -> None:
     out = tmp_path / "res"
     missing = tmp_path / "no_such_checkpoint.pt"
     assert main(["--penetration", "--values", "0.5", "--policies", "auto", "random", "--seeds", "0",
-                 "--episode-length", "10", "--warmup", "1", "--no-report", "--no-reference",
+                 "--episode-length", "10", "--warmup", "1", "--no-report", "--no-traffic", "--no-reference",
                  "--checkpoint", str(missing), "--out", str(out)]) == 0  # fmt: skip
     records = {r["cell"]["policy"]: r for r in read_records(out / "records.jsonl")}
     assert (
@@ -159,7 +167,7 @@ def test_ray_backend_runs_cells_as_tasks(tmp_path: Path) -> None:
     pytest.importorskip("ray", reason="the ray extra is not installed")
     out = tmp_path / "res"
     assert main(["--penetration", "--values", "0.5", "--policies", "random", "--seeds", "0",
-                 "--episode-length", "10", "--warmup", "1", "--no-report", "--backend", "ray",
+                 "--episode-length", "10", "--warmup", "1", "--no-report", "--no-traffic", "--backend", "ray",
                  "--workers", "2", "--out", str(out)]) == 0  # fmt: skip
     records = read_records(out / "records.jsonl")
     assert sorted((r["cell"]["policy"], r["status"]) for r in records) == [

@@ -115,8 +115,9 @@ class FlowRecorder:
     """
 
     def __init__(
-        self, hdmap: HDMap, measurement: Sequence[str], dt: float, warmup: float = 0.0
-    ) -> None:
+        self, hdmap: HDMap, measurement: Sequence[str], dt: float, warmup: float = 0.0,
+        trace_every: int = 0,
+    ) -> None:  # fmt: skip
         if not measurement:
             raise ValueError("FlowRecorder needs at least one measurement edge")
         if dt <= 0 or warmup < 0:
@@ -132,7 +133,7 @@ class FlowRecorder:
         self.length = float(hdmap.edge_length[rows].sum())
         """Segment length [m]."""
         lane_metres = float((hdmap.edge_length[rows] * hdmap.edge_num_lanes[rows]).sum())
-        self.field = SpaceTimeField(self.length, lane_metres, self.dt, self.warmup)
+        self.field = SpaceTimeField(self.length, lane_metres, self.dt, self.warmup, trace_every)
         """Edie's sums on a space-time grid over the segment (flow, speed spread, waves)."""
         self._first_edge, self._last_edge = rows[0], rows[-1]
         # lane speed limit by snapshot lane row; row -1 (unknown) -> NaN

@@ -38,6 +38,7 @@ Metrics
 Arguments: every field of ``EnvConfig`` as a keyword (``parallel_env(density=180, ...)``) or a
 whole ``config=EnvConfig(...)``; ``render_mode`` ``"rgb_array"`` (headless bird's-eye view) or
 ``"human"`` (sumo-gui, needs a display); ``warmup`` [s] before flow metrics count;
+``trace=True`` keeps every vehicle's trajectory in the measurement segment (``trajectories()``);
 ``sumo_drives_avs=True`` hands the AVs back to SUMO's own car-following and lane-change models
 (they are then no agents: the all-human reference of the studies drives this way).
 """
@@ -85,6 +86,9 @@ from mixed_traffic.world.registry import load_scenario
 from mixed_traffic.world.scenario import sumo_args
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
+TRACE_INTERVAL = 0.5
+"""Time between the samples of a traced trajectory [s]."""
+
 
 class MixedTrafficEnv(ParallelEnv):
     __doc__ = __doc__
@@ -100,6 +104,7 @@ class MixedTrafficEnv(ParallelEnv):
         render_mode: str | None = None,
         warmup: float = 0.0,
         sumo_drives_avs: bool = False,
+        trace: bool = False,
         **kwargs: Any,
     ) -> None:
         if config is not None and kwargs:
@@ -117,6 +122,7 @@ class MixedTrafficEnv(ParallelEnv):
         check_warmup(warmup, cfg.episode_length)
         self.warmup = warmup
         self.sumo_drives_avs = sumo_drives_avs
+        self.trace = trace
         self.scenario = load_scenario(cfg.scenario)
         self.config = cfg = self.scenario.configure(cfg)
         self.hdmap = self.scenario.hdmap
@@ -180,8 +186,9 @@ class MixedTrafficEnv(ParallelEnv):
         self._noise_rng = np.random.default_rng(noise_seed)
         self._controller.reset()
         self._builder.reset()
+        every = max(1, round(TRACE_INTERVAL / cfg.step_length)) if self.trace else 0
         self._flow = FlowRecorder(
-            self.hdmap, self.scenario.measurement, cfg.step_length, self.warmup
+            self.hdmap, self.scenario.measurement, cfg.step_length, self.warmup, every
         )
         self._av = AVMetrics(cfg.step_length, cfg.reward.rear_speed_drop)
         self._table.reset(list(self.possible_agents) if cfg.fixed_fleet else [])
@@ -408,6 +415,11 @@ class MixedTrafficEnv(ParallelEnv):
         """Flow figures of the episode beyond the metric catalogue (delay indices, free-flow
         time, vehicles seen, steps)."""
         return self._flow.diagnostics()
+
+    def trajectories(self) -> dict[str, np.ndarray]:
+        """With ``trace=True``: every vehicle's time ``t`` [s], position ``s`` [m] along the
+        measurement segment and speed ``v`` [m/s] every ``TRACE_INTERVAL`` after warm-up."""
+        return self._flow.field.traces()
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._snap is None:

@@ -44,8 +44,12 @@ class SpaceTimeField:
         warmup: samples before this time [s] are not counted.
     """
 
-    def __init__(self, length: float, lane_metres: float, dt: float, warmup: float) -> None:
+    def __init__(self, length: float, lane_metres: float, dt: float, warmup: float,
+                 trace_every: int = 0) -> None:  # fmt: skip
         self.length, self.lane_metres, self.dt, self.warmup = length, lane_metres, dt, warmup
+        self.trace_every = trace_every
+        """Keep every vehicle's (t, s, v) every this many steps (0: no traces)."""
+        self._traces: list[np.ndarray] = []
         self.n_x = max(1, math.ceil(length / DX))
         self._dist = np.zeros((64, self.n_x))
         self._time = np.zeros((64, self.n_x))
@@ -70,6 +74,8 @@ class SpaceTimeField:
         np.add.at(self._dist[row], col, v * self.dt)
         np.add.at(self._time[row], col, self.dt)
         self._moments += (len(v), v.sum(), (v * v).sum())
+        if self.trace_every and self._steps % self.trace_every == 1 % self.trace_every:
+            self._traces.append(np.stack([np.full(len(s), t), s, v], axis=1).astype(np.float32))
 
     def _grow(self, rows: int) -> None:
         if rows > len(self._dist):
@@ -87,6 +93,11 @@ class SpaceTimeField:
     def time(self) -> np.ndarray:
         """(T, X) time spent in each cell [s] (summed over vehicles and lanes)."""
         return self._time[: self._n_bins]
+
+    def traces(self) -> dict[str, np.ndarray]:
+        """Arrays ``t`` [s], ``s`` [m along the segment] and ``v`` [m/s] of the traced samples."""
+        rows = np.concatenate(self._traces) if self._traces else np.zeros((0, 3), np.float32)
+        return {"t": rows[:, 0], "s": rows[:, 1], "v": rows[:, 2]}
 
     def speed_std(self) -> float:
         """Population standard deviation of the (vehicle, step) speed samples [m/s]."""

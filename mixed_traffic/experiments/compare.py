@@ -92,7 +92,7 @@ class CompareConfig:
             scenario=scenario, at_density=self.density, values=self.penetrations,
             reference=False, policies=(policy,), seeds=self.seeds,
             episode_length=self.episode_length, warmup=self.warmup, checkpoint=checkpoint,
-            workers=self.workers, out=out, report=False,
+            workers=self.workers, out=out, report=False, traffic=False,
         )  # fmt: skip
 
 

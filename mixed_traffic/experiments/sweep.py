@@ -29,7 +29,7 @@ from mixed_traffic.provenance import (
     record_meta,
     write_record_atomic,
 )
-from mixed_traffic.schema import CELL_KEYS, POLICIES
+from mixed_traffic.schema import CELL_KEYS, FD_DIR, POLICIES, TRACE_DIR
 from mixed_traffic.world.registry import load_scenario
 
 PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -78,6 +78,10 @@ class SweepConfig:
     """Write figures and the PDF report after the cells."""
     pdf: Path | None = None
     """PDF report path, figures beside it (default: reports/<axis>.pdf)."""
+    traffic: bool = True
+    """Run the cells of the report's traffic figures: up to 7 short one-seed all-human cells
+    over densities (fundamental diagram) and the trajectories of the first seed's reference
+    cell and last cell of the first policy (space-time diagram)."""
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
@@ -178,11 +182,46 @@ def episode_record(cell: Cell, sweep: SweepConfig) -> dict:
         from mixed_traffic.experiments.runner import run_episode
 
         config = cell_config(cell, sweep)
-        record = run_episode(config, cell.policy, sweep.warmup, checkpoint=sweep.checkpoint)
+        record = run_episode(config, cell.policy, sweep.warmup, checkpoint=sweep.checkpoint,
+                             trace=trace_path(cell, sweep))  # fmt: skip
     except Exception as e:  # any failure becomes a failed record; the sweep carries on
         return _failed(cell, sweep, f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=3)}")
     record["cell"] = asdict(cell)
     return record
+
+
+def trace_path(cell: Cell, sweep: SweepConfig) -> Path | None:
+    """Where a representative cell's trajectories go (the first seed's all-human reference,
+    and its cell of the first policy at the last axis value), else None."""
+    last = sweep.axis_values()[-1]
+    representative = cell.seed == sweep.seeds[0] and (
+        (cell.policy == "idm" and cell.penetration == 0.0)
+        or (cell.policy == sweep.policies[0] and getattr(cell, sweep.axis) == last)
+    )
+    if not (sweep.traffic and representative):
+        return None
+    value = getattr(cell, sweep.axis)
+    return sweep.results / TRACE_DIR / f"{cell.policy}-{sweep.axis}-{value}-seed{cell.seed}.npz"
+
+
+FD_PER_LANE = (12.0, 20.0, 28.0, 36.0, 44.0, 52.0, 60.0)
+"""Densities of the fundamental diagram's all-human cells [veh/km/lane]."""
+
+
+def fd_sweep(sweep: SweepConfig) -> SweepConfig:
+    """The one-seed all-human cells of the fundamental diagram: short episodes (at most 120 s
+    after at most 30 s) at ``FD_PER_LANE`` densities, in ``RESULTS/fd``."""
+    scenario = load_scenario(sweep.scenario)
+    values = tuple(
+        k * scenario.lanes for k in FD_PER_LANE if k * scenario.lanes <= scenario.max_density
+    )
+    length = min(sweep.episode_length, 120.0)
+    return replace(
+        sweep, axis="density", values=values, policies=("idm",), at_penetration=0.0,
+        seeds=sweep.seeds[:1], reference=False, episode_length=length,
+        warmup=min(sweep.warmup, 30.0, length / 2), out=sweep.results / FD_DIR, report=False,
+        traffic=False,
+    )  # fmt: skip
 
 
 def _failed(cell: Cell, sweep: SweepConfig, error: str) -> dict:
@@ -208,6 +247,8 @@ def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
     else:
         _run_processes(todo, sweep, records_path, bar)
     bar.close()
+    if sweep.traffic:
+        run_sweep(fd_sweep(sweep), progress)
     return records_path
 
 
