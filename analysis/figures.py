@@ -91,7 +91,7 @@ def plot_penetration(
 ) -> Path | None:
     """DT-TF (or ``metric``) against AV penetration [%] per policy, with the 0 % reference.
 
-    The all-IDM 0 % cells (any policy) are drawn as a dashed horizontal line with its CI band and
+    The all-human 0 % cells (any policy) are drawn as a dashed horizontal line with its CI band and
     a point at 0 %. ``None`` when penetration takes fewer than two values under one condition.
     """
     cond = sweep_condition(df, "penetration")
@@ -109,7 +109,7 @@ def plot_penetration(
     _errorbar_lines(ax, stats, "penetration", metric, x_scale=100.0, jitter=1.0)
     if has_ref:
         m, h = ref[f"{metric}_mean"].iloc[0], ref[f"{metric}_ci"].iloc[0]
-        ax.axhline(m, color=REFERENCE_COLOR, linestyle="--", linewidth=1.3, label="0 % (all IDM)")
+        ax.axhline(m, color=REFERENCE_COLOR, linestyle="--", linewidth=1.3, label="0 % (all human)")
         if h == h:
             ax.axhspan(m - h, m + h, color=REFERENCE_COLOR, alpha=0.10, linewidth=0)
         ax.errorbar(

@@ -94,7 +94,7 @@ def trend(df: pd.DataFrame, vary: str, metric: str) -> list[str]:
     """Per policy: how ``metric`` changes from the lowest to the highest value of ``vary``.
 
     The change is tested with :func:`paired_difference` (highest minus lowest, paired by seed
-    when the seeds match). For penetration the 0 % all-IDM cells are left out of the trend and
+    when the seeds match). For penetration the 0 % all-human cells are left out of the trend and
     reported as a reference.
     """
     cond = sweep_condition(df, vary)
@@ -119,7 +119,7 @@ def trend(df: pd.DataFrame, vary: str, metric: str) -> list[str]:
     ref = summarise(sub[sub["penetration"] == 0], [], [metric])
     if vary == "penetration" and not ref.empty and ref[f"{metric}_n"].iloc[0] > 0:
         out.append(
-            f"All-IDM reference (0 % AVs): {name} = {_value(metric, ref[f'{metric}_mean'].iloc[0])}"
+            f"All-human reference (0 % AVs): {name} = {_value(metric, ref[f'{metric}_mean'].iloc[0])}"
             f" ({describe_condition(cond)})."
         )
     return out

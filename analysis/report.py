@@ -103,7 +103,7 @@ def failed_rows(df: pd.DataFrame) -> list[list[str]]:
 
 _FIGURE_CAPTIONS = {
     "penetration": "DT-TF (mean time of all vehicles to cross the 1 km measurement segment) against AV "
-    "penetration per policy; dashed line: the 0 % all-IDM reference (paper Fig. 'Scalability "
+    "penetration per policy; dashed line: the 0 % all-human reference (paper Fig. 'Scalability "
     "Analysis' (d)).",
     "density": "AvgDT-A, AvgAT-C and AvgDI-C against traffic density per policy "
     "(paper Fig. 'Scalability Analysis' (a)-(c)).",

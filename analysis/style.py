@@ -18,7 +18,7 @@ POLICY_COLORS: dict[str, str] = {
 }
 _EXTRA_COLORS = ("#d62728", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
 REFERENCE_COLOR = "#333333"
-"""Colour of the 0 % all-IDM reference."""
+"""Colour of the 0 % all-human reference."""
 
 
 def order_policies(policies: Iterable[Any]) -> list[str]:

@@ -82,5 +82,6 @@ def plot_space_time(traces: list[Path], path: Path) -> Path | None:
 
 
 def trace_files(results_dir: Path) -> list[Path]:
-    """The space-time traces of a results folder, in name order."""
-    return sorted((Path(results_dir) / TRACE_DIR).glob("*.npz"))
+    """The space-time traces of a results folder: the all-human reference first, then by name."""
+    files = (Path(results_dir) / TRACE_DIR).glob("*.npz")
+    return sorted(files, key=lambda p: (not p.name.startswith("idm-"), p.name))

@@ -66,3 +66,12 @@ def test_a_full_acc_lc_fleet_costs_at_most_ten_percent_of_the_human_travel_time(
     acc = _metrics("acc-lc", warmup=30.0, penetration=1.0, **common)
     assert acc["dt_tf"] <= 1.10 * human["dt_tf"]
     assert acc["collisions"] == 0
+
+
+def test_urban_traffic_flows_and_has_a_travel_time() -> None:
+    """The signalised grid at its default density: vehicles cross the measurement segment (it
+    starts after the entry edge) and the humans keep moving (no gridlock)."""
+    m = _metrics("idm", warmup=30.0, scenario="urban", penetration=0.0, episode_length=150.0)
+    assert m["vehicles_crossed"] > 0 and m["dt_tf"] is not None
+    assert m["mean_speed"] >= 4.0
+    assert m["collisions"] == 0

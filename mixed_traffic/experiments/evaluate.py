@@ -79,7 +79,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--policy", choices=POLICIES, default="idm",
-        help="policy driving the AVs; idm = all-IDM reference (default: idm)",
+        help="policy driving the AVs; idm = all-human reference (default: idm)",
     )  # fmt: skip
     add_config_args(parser, EnvConfig, only=CONFIG_OPTIONS, group_title="environment")
     parser.add_argument(

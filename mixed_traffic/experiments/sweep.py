@@ -55,7 +55,7 @@ class SweepConfig:
     """Values of the swept axis (default: penetration 0.2 .. 1.0, density 60 120 180 veh/km, or
     every weather)."""
     reference: bool = True
-    """Add the all-IDM 0 % reference cells to a penetration sweep."""
+    """Add the all-human 0 % reference cells to a penetration sweep."""
     policies: tuple[str, ...] = ("auto", "acc-lc")
     """Policies to compare: auto (AUTO behind its safety module), auto-raw, acc-lc, idm, random."""
     seeds: tuple[int, ...] = (0, 1, 2)
@@ -358,7 +358,7 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
     axis = p.add_mutually_exclusive_group()
     dest = config_dest("axis")  # the config field `axis`, set by one of three flags
     axis.add_argument("--penetration", dest=dest, action="store_const", const="penetration",
-                      help=f"sweep AV penetration {PENETRATIONS} plus an all-IDM 0 %% reference (default)")  # fmt: skip
+                      help=f"sweep AV penetration {PENETRATIONS} plus an all-human 0 %% reference (default)")  # fmt: skip
     axis.add_argument("--density", dest=dest, action="store_const", const="density",
                       help=f"sweep density {DENSITIES} veh/km")  # fmt: skip
     axis.add_argument("--weather", dest=dest, action="store_const", const="weather",

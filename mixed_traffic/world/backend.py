@@ -390,7 +390,7 @@ class SumoBackend:
     def release_control(self, ids: Sequence[str]) -> None:
         """Give AVs back to SUMO: default speed mode (31) and lane-change mode (1621), so they
         drive by their vType's car-following (IDM) and lane-change models like conventional cars
-        (the all-IDM reference)."""
+        (the all-human reference)."""
         v = self._api.vehicle
         for vid in ids:
             v.setSpeedMode(vid, 31)
