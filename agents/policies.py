@@ -73,7 +73,7 @@ class AutoPolicy:
         from agents.rules.safety import SafetyModule
 
         path = Path(checkpoint) if checkpoint is not None else SHIPPED_CHECKPOINT
-        self.checkpoint = path
+        self.checkpoint = path.resolve()
         self.name = "auto" if safety else "auto-raw"
         self._policy = load_policy(path, z=z, m=m, threads=1)
         self.safety = SafetyModule() if safety else None

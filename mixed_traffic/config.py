@@ -250,6 +250,12 @@ class EnvConfig:
         _check_range(self, "step_length", 0.01, 1.0)
         _check_range(self, "lateral_resolution", 0.1, 3.2)
         _check_range(self, "speed_tolerance", 0.0, 1.0)
+        nested = {"sensors": SensorConfig, "reward": RewardConfig, "vehicle": VehicleConfig,
+                  "human": HumanConfig}  # fmt: skip
+        for name, cls in nested.items():
+            if not isinstance(getattr(self, name), cls):
+                raise ValueError(f"EnvConfig.{name}={getattr(self, name)!r} must be a "
+                                 f"{cls.__name__}(...) (a dict goes through EnvConfig.from_dict)")  # fmt: skip
 
     @property
     def steps_per_episode(self) -> int:

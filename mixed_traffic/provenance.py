@@ -123,6 +123,23 @@ def _locked(path: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+def check_writable(path: str | Path) -> None:
+    """Raise ``ValueError`` naming ``path`` unless records can be written there (its folder is
+    created); call it before any work starts, so that no result is lost at the end."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{path} is a folder, not a records file")
+    blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"cannot write records to {path}: {blocking} is a file, not a folder")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
+            pass
+    except OSError as e:
+        raise ValueError(f"cannot write records to {path}: {e.strerror or e}") from None
+
+
 def write_record_atomic(path: str | Path, record: dict[str, Any]) -> None:
     """Append ``record`` as one JSON line to ``path`` atomically (see module docstring).
 

@@ -117,14 +117,22 @@ def test_records_from_other_code_are_set_aside_and_run_again(tmp_path: Path) -> 
 def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path: Path) -> None:
     out = tmp_path / "res"
     missing = tmp_path / "no_such_checkpoint.pt"
-    assert main(["--penetration", "--values", "0.5", "--policies", "auto", "random", "--seeds", "0",
-                 "--episode-length", "10", "--warmup", "1", "--no-report", "--no-traffic", "--no-reference",
-                 "--checkpoint", str(missing), "--out", str(out)]) == 0  # fmt: skip
+    args = ["--penetration", "--values", "0.5", "--policies", "auto", "random", "--seeds", "0",
+            "--episode-length", "10", "--warmup", "1", "--no-report", "--no-traffic",
+            "--no-reference", "--checkpoint", str(missing), "--out", str(out)]  # fmt: skip
+    assert main(args) == 1  # a failed cell is an error exit, with a summary line
     records = {r["cell"]["policy"]: r for r in read_records(out / "records.jsonl")}
     assert (
         records["auto"]["status"] == "failed" and "no_such_checkpoint" in records["auto"]["error"]
     )
     assert records["random"]["status"] == "ok"
+    # a re-run retries the failed cell, not the finished one
+    assert main(args) == 1
+    runs = [r["cell"]["policy"] for r in read_records(out / "records.jsonl")]
+    assert runs.count("auto") == 2 and runs.count("random") == 1
+    # other weights make another cell: with the shipped checkpoint the auto cell runs and passes
+    shipped = [a for a in args if a not in ("--checkpoint", str(missing))]
+    assert main(shipped) == 0
 
 
 @pytest.mark.parametrize(

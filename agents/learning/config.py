@@ -6,6 +6,7 @@ docstrings carry the units); :class:`agents.learning.trainer.Trainer` runs one.
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, NoReturn
 
@@ -157,8 +158,10 @@ class TrainConfig:
 
     def _check_budgets(self) -> None:
         """The run's budgets and the demonstration phase."""
-        if self.env_steps < 0 or self.minutes < 0:
-            self._bad("env_steps", "budgets must be >= 0")
+        if not math.isfinite(self.minutes) or self.minutes < 0:
+            self._bad("minutes", "must be a finite number of minutes >= 0")
+        if self.env_steps < 0:
+            self._bad("env_steps", "must be >= 0")
         if self.env_steps == 0 and self.minutes == 0:
             self._bad("env_steps", "give a budget: env_steps > 0 and/or minutes > 0")
         if not 0 <= self.demo_share <= 1:

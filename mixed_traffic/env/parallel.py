@@ -49,6 +49,7 @@ import contextlib
 import os
 import shutil
 import tempfile
+from collections.abc import Mapping
 from dataclasses import replace
 from itertools import compress, repeat
 from pathlib import Path
@@ -152,6 +153,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._step_truth: tuple[Rows, PerceptionFrame] | None = None
         self._last_obs: dict[str, dict] = {}
         self._renderer: Any = None
+        self._phase = "new"  # new -> running -> ended (time limit) | closed
 
     @property
     def agents(self) -> list[str]:
@@ -174,6 +176,9 @@ class MixedTrafficEnv(ParallelEnv):
     def reset(self, seed: int | None = None, options: dict | None = None):
         if seed is None:
             seed = int(self._episode_rng.integers(2**31 - 1))
+        if self._phase == "closed":  # reopened: a new scratch folder for the route file
+            self._tmp = tempfile.mkdtemp(prefix="mixed_traffic_")
+        self._phase = "running"
         cfg = replace(self.config, seed=int(seed))
         demand_seed, sumo_seed, noise_seed = np.random.SeedSequence(int(seed)).generate_state(3)
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
@@ -210,6 +215,7 @@ class MixedTrafficEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ step
     def step(self, actions: dict[str, Any]):
+        self._check_step(actions)
         decision, params = stack_actions(actions, self.agents, self._act_space)  # action
         steer, accel = to_physical(decision, params, self.config.vehicle)
         cmd = self._control(steer, accel, decision)  # control
@@ -223,6 +229,19 @@ class MixedTrafficEnv(ParallelEnv):
         obs = self._observe(snap, rows, sensed)  # observation
         self._step_truth = (rows, truth)  # reused if agents enter in _finish
         return self._finish(snap, obs, rewards, terms, events)
+
+    def _check_step(self, actions: Any) -> None:
+        """Name the misuse before anything moves."""
+        if self._phase == "new":
+            raise RuntimeError("step() before reset(): call reset() to start an episode first")
+        if self._phase == "closed":
+            raise RuntimeError("step() after close(): call reset() to start a new episode")
+        if self._phase == "ended":
+            raise RuntimeError(f"step() after the episode ended at episode_length="
+                               f"{self.config.episode_length} s: call reset()")  # fmt: skip
+        if not isinstance(actions, Mapping):
+            raise ValueError(f"step() takes a dict of actions, one per live agent (agent id -> "
+                             f"{{'decision', 'params'}}), got {type(actions).__name__}")  # fmt: skip
 
     # ------------------------------------------------------------------ stages
     def _control(self, steer: np.ndarray, accel: np.ndarray, decision: np.ndarray):
@@ -359,6 +378,7 @@ class MixedTrafficEnv(ParallelEnv):
                     terminated[a], truncated[a] = False, False
                     infos.setdefault(a, {"reward_terms": {}, "event": ""})["event"] = "entered"
         if truncate:
+            self._phase = "ended"
             table.agents = []
             summary = self.episode_metrics()
             for info in infos.values():
@@ -439,6 +459,7 @@ class MixedTrafficEnv(ParallelEnv):
     def close(self) -> None:
         self._backend.close()
         shutil.rmtree(self._tmp, ignore_errors=True)
+        self._phase = "closed"
 
     def __del__(self) -> None:
         with contextlib.suppress(Exception):

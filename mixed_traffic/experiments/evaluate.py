@@ -24,7 +24,7 @@ from tqdm import tqdm
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
 from mixed_traffic.experiments.runner import DEFAULT_WARMUP, cell_of, run_episode, validate
-from mixed_traffic.provenance import record_meta, write_record_atomic
+from mixed_traffic.provenance import check_writable, record_meta, write_record_atomic
 from mixed_traffic.schema import METRICS, POLICIES
 from mixed_traffic.world.backend import SumoError
 
@@ -114,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         configs = [config_from_args(args, EnvConfig, seed=s) for s in args.seeds]
         configs = [validate(c, args.warmup, args.policy) for c in configs]
+        check_writable(args.out)
     except (ValueError, KeyError) as e:
         parser.error(str(e).strip("'\""))
     records: list[dict[str, Any]] = []

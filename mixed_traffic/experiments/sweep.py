@@ -24,6 +24,7 @@ from tqdm import tqdm
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.cli import add_config_args, config_dest, config_from_args
 from mixed_traffic.provenance import (
+    check_writable,
     current_code_key,
     read_records,
     record_meta,
@@ -94,6 +95,8 @@ class SweepConfig:
             bad("policies", f"unknown policies {unknown}; choose from {list(POLICIES)}")
         if not self.seeds:
             bad("seeds", "give at least one seed")
+        if any(s < 0 for s in self.seeds):
+            bad("seeds", "seeds must be >= 0")
         if self.workers < 1:
             bad("workers", "must be >= 1")
         if self.backend not in ("process", "ray"):
@@ -130,8 +133,17 @@ class SweepConfig:
 
     @property
     def report_pdf(self) -> Path | None:
-        """Where the PDF goes, or None without a report."""
-        return (self.pdf or Path("reports") / f"{self.axis}.pdf") if self.report else None
+        """Where the PDF goes, or None without a report: beside the results when ``out`` is
+        given (a sweep into another folder leaves the committed reports alone)."""
+        default = (self.out if self.out else Path("reports")) / f"{self.axis}.pdf"
+        return (self.pdf or default) if self.report else None
+
+    @property
+    def checkpoint_key(self) -> str:
+        """The AUTO weights of the sweep's auto cells (an absolute path), part of their key."""
+        from agents.policies import SHIPPED_CHECKPOINT
+
+        return str(Path(self.checkpoint).resolve() if self.checkpoint else SHIPPED_CHECKPOINT)
 
 
 @dataclass(frozen=True)
@@ -239,8 +251,8 @@ def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
     """Run the missing cells of ``sweep``; returns the records file."""
     sweep.results.mkdir(parents=True, exist_ok=True)
     records_path = sweep.results / "records.jsonl"
-    done = {_cell_key(r) for r in _records_of_this_code(records_path)}
-    todo = [c for c in cells(sweep) if c.key() not in done]
+    done = {_cell_key(r) for r in _records_of_this_code(records_path) if r.get("status") == "ok"}
+    todo = [c for c in cells(sweep) if _planned_key(c, sweep) not in done]  # failed: again
     bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode", disable=not progress)
     if sweep.backend == "ray":
         _run_ray(todo, sweep, records_path, bar)
@@ -297,7 +309,7 @@ def _collect(
         record = None
     if record is not None:
         write_record_atomic(records_path, record)
-        key = _cell_key(record)
+        key = _cell_key(record)[:-1]  # the cell, without the checkpoint
         for pid, (proc, cell, _) in list(running.items()):
             if cell.key() == key:
                 proc.join(timeout=10)
@@ -344,8 +356,21 @@ def _advance(bar: tqdm, record: dict) -> None:
 
 
 def _cell_key(record: dict) -> tuple:
+    """A record's cell, with the checkpoint its auto cells ran (other weights: another cell)."""
     cell = record.get("cell", {})
-    return tuple(cell.get(k) for k in CELL_KEYS)
+    return (*(cell.get(k) for k in CELL_KEYS), record.get("checkpoint", ""))
+
+
+def _planned_key(cell: Cell, sweep: SweepConfig) -> tuple:
+    """``_cell_key`` of the record ``cell`` will write."""
+    return (*cell.key(), sweep.checkpoint_key if cell.policy.startswith("auto") else "")
+
+
+def failed_cells(sweep: SweepConfig) -> list[Cell]:
+    """The sweep's cells without a successful record of this code (after its run)."""
+    done = {_cell_key(r) for r in read_records(sweep.results / "records.jsonl")
+            if r.get("status") == "ok" and r.get("code") == current_code_key()}  # fmt: skip
+    return [c for c in cells(sweep) if _planned_key(c, sweep) not in done]
 
 
 # --------------------------------------------------------------------------- CLI
@@ -366,9 +391,11 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
     fields = [f.name for f in dataclasses.fields(SweepConfig) if f.name != "axis"]
     add_config_args(p, SweepConfig, only=fields)
     try:
-        return config_from_args(p.parse_args(argv), SweepConfig)
+        sweep = config_from_args(p.parse_args(argv), SweepConfig)
+        check_writable(sweep.results / "records.jsonl")
     except ValueError as e:
         p.error(str(e))
+    return sweep
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -376,11 +403,16 @@ def main(argv: list[str] | None = None) -> int:
     t0 = time.time()
     records = run_sweep(sweep)
     print(f"records: {records} ({time.time() - t0:.0f} s)")
+    failed = failed_cells(sweep)
     if sweep.report_pdf is not None:
         from analysis.report import build_report
 
         pdf = build_report(sweep.results, sweep.report_pdf)
         print(f"report: {pdf}")
+    if failed:
+        print(f"{len(failed)} of {len(cells(sweep))} cells failed (their errors are in {records}); "
+              "run the sweep again to retry them", file=sys.stderr)  # fmt: skip
+        return 1
     return 0
 
 
