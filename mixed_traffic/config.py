@@ -225,6 +225,10 @@ class EnvConfig:
     """All AVs exist from reset and re-enter upstream when they finish (for SuperSuit/SB3)."""
     speed_tolerance: float = 0.1
     """Speed above the limit, as a fraction of it, that counts as a violation [-]."""
+    reset_wait: float = 3600.0
+    """How long reset() lets the simulation run, with nobody acting, until the first AV enters
+    when none is in the network yet [s]; never past the episode end (PettingZoo needs an agent
+    after reset). An error names a shorter wait that runs out."""
     sensors: SensorConfig = field(default_factory=SensorConfig)
     """Sensor ranges, history length and noise switch."""
     reward: RewardConfig = field(default_factory=RewardConfig)
@@ -250,6 +254,7 @@ class EnvConfig:
         _check_range(self, "step_length", 0.01, 1.0)
         _check_range(self, "lateral_resolution", 0.1, 3.2)
         _check_range(self, "speed_tolerance", 0.0, 1.0)
+        _check_range(self, "reset_wait", 0.0, 86400.0)
         nested = {"sensors": SensorConfig, "reward": RewardConfig, "vehicle": VehicleConfig,
                   "human": HumanConfig}  # fmt: skip
         for name, cls in nested.items():

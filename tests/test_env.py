@@ -301,3 +301,61 @@ def test_vehicles_waiting_at_an_entry_are_not_dropped(tmp_path) -> None:
         assert seen == {f"c{i}" for i in range(6)}
     finally:
         e.close()
+
+
+SPARSE = dict(scenario="straight", density=30.0, penetration=0.02, episode_length=120.0)
+
+
+def test_reset_waits_for_the_first_av_and_pettingzoo_accepts_a_sparse_env() -> None:
+    """30 veh/km with 2 % AVs: no AV is on the road at t = 0, so reset() lets the simulation run
+    until one enters; then PettingZoo's four test functions pass (the AEC wrapper used to
+    divide by zero, and performance_benchmark's masked integer actions used to be refused)."""
+    from pettingzoo.test import performance_benchmark
+
+    e = parallel_env(**SPARSE)
+    try:
+        obs, infos = e.reset(seed=1)  # seed 1: the first AV enters at 0.4 s
+        assert e.agents and list(obs) == e.agents and e.sim_time > 0.3
+    finally:
+        e.close()
+    parallel_api_test(parallel_env(**SPARSE), num_cycles=40)
+    api_test(mixed_traffic.env(**SPARSE), num_cycles=15)
+    parallel_seed_test(lambda: parallel_env(**SPARSE), num_cycles=15)
+    performance_benchmark(mixed_traffic.env(**SPARSE))
+
+
+def test_reset_names_a_wait_that_runs_out() -> None:
+    e = parallel_env(**{**SPARSE, "reset_wait": 30.0})
+    try:
+        with pytest.raises(RuntimeError, match="no AV entered the network"):
+            e.reset(seed=2)  # seed 2: no AV enters in the whole episode
+    finally:
+        e.close()
+
+
+def test_an_episode_without_any_av_is_all_human_and_ends_cleanly() -> None:
+    e = parallel_env(**SPARSE)
+    try:
+        with pytest.warns(UserWarning, match="no AV entered the network during"):
+            obs, _ = e.reset(seed=2)
+        assert obs == {} and e.agents == []
+        e.step({})  # the last step of the episode
+        assert e.sim_time == pytest.approx(SPARSE["episode_length"])
+        with pytest.raises(RuntimeError, match="call reset"):
+            e.step({})
+    finally:
+        e.close()
+
+
+def test_a_forbidden_decision_is_replaced_and_reported() -> None:
+    e = parallel_env(scenario="straight", density=60.0, penetration=0.3, episode_length=5.0)
+    try:
+        obs, _ = e.reset(seed=0)
+        a = next(a for a in e.agents if not obs[a]["action_mask"][2])  # rightmost lane
+        actions = {b: 1 for b in e.agents}  # bare integer decisions: follow
+        actions[a] = 2  # right change out of the rightmost lane
+        _, _, _, _, infos = e.step(actions)
+        assert infos[a].get("decision_replaced") is True
+        assert not any(infos[b].get("decision_replaced") for b in e.agents if b != a)
+    finally:
+        e.close()

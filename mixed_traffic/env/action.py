@@ -24,6 +24,11 @@ action, a non-finite value, a value outside the space, or an action for an agent
 live. The last is a deliberate choice: PettingZoo's ``parallel_api_test`` only ever sends actions
 for ``env.agents``, and a stale action for a finished agent is almost always a bookkeeping bug in
 the caller, so it is reported rather than silently ignored (``strict_agents=False`` ignores them).
+
+A bare integer is a decision with neutral params (steering 0, accel_brake 0): PettingZoo's tools
+sample an index from the observation's ``action_mask``. A decision the mask forbids is replaced
+by follow if that is allowed, else by the first allowed one (``allowed_decisions``); the env
+reports the replacement in ``infos[agent]["decision_replaced"]``.
 """
 
 from __future__ import annotations
@@ -160,6 +165,8 @@ def stack_actions(
         if agent not in actions:
             raise ValueError(f"no action for live agent {agent!r}; every live agent needs one")
         act = actions[agent]
+        if _is_integer(act):  # a bare decision (PettingZoo's masked sampling): neutral params
+            act = {"decision": act, "params": np.zeros((N_DECISIONS, N_PARAMS))}
         if not isinstance(act, Mapping) or "decision" not in act or "params" not in act:
             raise ValueError(
                 f"action of agent {agent!r} must be a dict with keys 'decision' and 'params' "
@@ -171,6 +178,20 @@ def stack_actions(
 
 
 _INT_TYPES = (int, np.int64, np.int32, np.int16, np.int8, np.uint64, np.uint32, np.uint16, np.uint8)
+
+
+def _is_integer(value: Any) -> bool:
+    return type(value) in _INT_TYPES
+
+
+def allowed_decisions(decision: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The executed decisions (A,) under the action masks (A, 3): a forbidden decision is
+    replaced by follow if that is allowed, else by the first allowed one; and which (A,) bool
+    were replaced."""
+    mask = np.asarray(mask, bool)
+    forbidden = ~mask[np.arange(len(decision)), decision]
+    fallback = np.where(mask[:, 1], 1, np.argmax(mask, axis=1))
+    return np.where(forbidden, fallback, decision), forbidden
 
 
 def _stack_fast(

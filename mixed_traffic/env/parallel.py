@@ -49,6 +49,7 @@ import contextlib
 import os
 import shutil
 import tempfile
+import warnings
 from collections.abc import Mapping
 from dataclasses import replace
 from itertools import compress, repeat
@@ -61,7 +62,12 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.env.action import action_space, stack_actions, to_physical
+from mixed_traffic.env.action import (
+    action_space,
+    allowed_decisions,
+    stack_actions,
+    to_physical,
+)
 from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
 from mixed_traffic.env.av_metrics import AVMetrics, AVStep
 from mixed_traffic.env.control import BicycleController
@@ -154,6 +160,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._last_obs: dict[str, dict] = {}
         self._renderer: Any = None
         self._phase = "new"  # new -> running -> ended (time limit) | closed
+        self._replaced: set[str] = set()  # agents whose decision the mask forbade this step
 
     @property
     def agents(self) -> list[str]:
@@ -201,7 +208,31 @@ class MixedTrafficEnv(ParallelEnv):
         self._memory = StepMemory()
         snap = self._advance()
         self._backend.drop_pending(demand.placed_ids)
-        return self._start_from(snap), {a: {} for a in self.agents}
+        obs = self._start_from(snap)
+        if not self.agents and self.possible_agents and not self.sumo_drives_avs:
+            obs = self._wait_for_an_agent()
+        return obs, {a: {} for a in self.agents}
+
+    def _wait_for_an_agent(self) -> dict[str, dict]:
+        """Advance the simulation (nobody acts) until the first AV enters the network, for at
+        most ``config.reset_wait`` seconds; the observations of the agents that entered. An
+        episode in which no AV enters at all is left one step before its end, agentless."""
+        cfg = self.config
+        end = cfg.episode_length - cfg.step_length
+        limit = min(self.sim_time + cfg.reset_wait, end)
+        obs: dict[str, dict] = {}
+        while not self.agents and self.sim_time < limit - 1e-9:
+            obs, *_ = self.step({})
+        if not self.agents and limit < end - 1e-9:
+            raise RuntimeError(
+                f"reset(): no AV entered the network within {self.sim_time:.1f} s "
+                f"(EnvConfig.reset_wait={cfg.reset_wait} s); raise reset_wait, the penetration "
+                f"or the density"
+            )
+        if not self.agents:
+            warnings.warn(f"reset(): no AV entered the network during the {cfg.episode_length} s "
+                          f"episode (seed {cfg.seed}); it is all human", stacklevel=3)  # fmt: skip
+        return obs
 
     def _start_from(self, snap: TrafficSnapshot) -> dict[str, dict]:
         """Admit the AVs of ``snap`` and observe them, as at the start of an episode."""
@@ -217,6 +248,7 @@ class MixedTrafficEnv(ParallelEnv):
     def step(self, actions: dict[str, Any]):
         self._check_step(actions)
         decision, params = stack_actions(actions, self.agents, self._act_space)  # action
+        decision = self._allowed(decision)
         steer, accel = to_physical(decision, params, self.config.vehicle)
         cmd = self._control(steer, accel, decision)  # control
         snap = self._advance()  # SUMO step + density boundary
@@ -242,6 +274,14 @@ class MixedTrafficEnv(ParallelEnv):
         if not isinstance(actions, Mapping):
             raise ValueError(f"step() takes a dict of actions, one per live agent (agent id -> "
                              f"{{'decision', 'params'}}), got {type(actions).__name__}")  # fmt: skip
+
+    def _allowed(self, decision: np.ndarray) -> np.ndarray:
+        """Decisions the masks of the last observations forbid, replaced (``allowed_decisions``)
+        and remembered for this step's infos."""
+        masks = [self._last_obs.get(a, self._empty_obs)["action_mask"] for a in self.agents]
+        decision, replaced = allowed_decisions(decision, np.reshape(masks, (-1, 3)))
+        self._replaced = set(compress(self.agents, replaced.tolist()))
+        return decision
 
     # ------------------------------------------------------------------ stages
     def _control(self, steer: np.ndarray, accel: np.ndarray, decision: np.ndarray):
@@ -362,6 +402,8 @@ class MixedTrafficEnv(ParallelEnv):
         truncated.update(dict.fromkeys(ended, False))
         infos = {a: {"reward_terms": t if t is not None else {}, "event": e}
                  for a, t, e in zip(agents, map(terms.get, agents), map(events.get, agents, repeat("")))}  # fmt: skip
+        for a in self._replaced.intersection(infos):
+            infos[a]["decision_replaced"] = True
         obs_out = dict(zip(agents, map(obs.get, agents)))
         for a in [a for a, o in obs_out.items() if o is None]:  # not observed this step
             obs_out[a] = self._last_obs.get(a, self._empty_obs)
