@@ -31,16 +31,20 @@ def save_checkpoint(
     A crash mid-write leaves the previous checkpoint intact (no torn files).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = checkpoint_payload(learner, meta)
+    atomic_write_bytes(path, lambda f: torch.save(payload, f))
+    return path
+
+
+def checkpoint_payload(learner: RBPDQN, meta: dict[str, Any] | None = None) -> dict[str, Any]:
+    """What a checkpoint file holds: ``learner``'s state and ``meta`` plus its shapes."""
     full_meta = dict(meta or {})
     full_meta.update(
         lca=learner.lca_cfg.to_dict(),
         learner_cfg=learner.cfg.to_dict(),
         obs_shapes={k: list(v) for k, v in learner.lca_cfg.obs_shapes().items()},
     )
-    payload = {"format": FORMAT, "learner": learner.state_dict(), "meta": full_meta}
-    atomic_write_bytes(path, lambda f: torch.save(payload, f))
-    return path
+    return {"format": FORMAT, "learner": learner.state_dict(), "meta": full_meta}
 
 
 def atomic_write_bytes(path: Path, writer: Any) -> None:

@@ -227,8 +227,8 @@ class EnvConfig:
     """Speed above the limit, as a fraction of it, that counts as a violation [-]."""
     reset_wait: float = 3600.0
     """How long reset() lets the simulation run, with nobody acting, until the first AV enters
-    when none is in the network yet [s]; never past the episode end (PettingZoo needs an agent
-    after reset). An error names a shorter wait that runs out."""
+    when none is in the network yet [s]; never past the episode's last step (PettingZoo needs an
+    agent after reset). If none enters, reset() raises NoAgentError (docs/env.md)."""
     sensors: SensorConfig = field(default_factory=SensorConfig)
     """Sensor ranges, history length and noise switch."""
     reward: RewardConfig = field(default_factory=RewardConfig)

@@ -1,4 +1,4 @@
-"""Where the project's files live: the repository's scenarios and the per-user cache."""
+"""Where the project's files live: the shipped scenarios and checkpoint, and the per-user cache."""
 
 from __future__ import annotations
 
@@ -6,7 +6,15 @@ import os
 from pathlib import Path
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
-SCENARIOS_DIR = Path(os.environ.get("MIXED_TRAFFIC_SCENARIOS", REPO_ROOT / "scenarios"))
+
+
+def _shipped_scenarios() -> Path:
+    """The checkout's scenarios/ folder, or its copy inside an installed wheel."""
+    checkout = REPO_ROOT / "scenarios"
+    return checkout if checkout.is_dir() else Path(__file__).resolve().parent / "_scenarios"
+
+
+SCENARIOS_DIR = Path(os.environ.get("MIXED_TRAFFIC_SCENARIOS", _shipped_scenarios()))
 CHECKPOINT = REPO_ROOT / "agents" / "checkpoints" / "auto.pt"
 
 

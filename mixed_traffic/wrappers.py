@@ -1,6 +1,7 @@
 """Kept for the documented import path; the wrappers live in :mod:`mixed_traffic.env.wrappers`."""
 
 from mixed_traffic.env.wrappers import (
+    FLAT_SIZE,
     FlatActionWrapper,
     FlatObservationWrapper,
     dict_to_flat,
@@ -9,6 +10,7 @@ from mixed_traffic.env.wrappers import (
 )
 
 __all__ = [
+    "FLAT_SIZE",
     "FlatActionWrapper",
     "FlatObservationWrapper",
     "dict_to_flat",

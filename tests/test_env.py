@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import warnings
 
 import numpy as np
@@ -10,9 +11,10 @@ from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test
 
 import mixed_traffic
 from mixed_traffic.config import EnvConfig, SensorConfig
-from mixed_traffic.env import MixedTrafficEnv, env, parallel_env
+from mixed_traffic.env import MixedTrafficEnv, NoAgentError, env, parallel_env
 from mixed_traffic.env.reward import TERM_NAMES
 from mixed_traffic.schema import TERMINAL_REASONS
+from mixed_traffic.world.backend import binary
 from mixed_traffic.world.registry import list_scenarios
 
 SHORT = dict(density=60.0, penetration=0.3, episode_length=8.0)
@@ -20,7 +22,9 @@ SHORT = dict(density=60.0, penetration=0.3, episode_length=8.0)
 
 def _family_defaults() -> list[str]:
     return [
-        f for f in ("straight", "highway", "bottleneck", "merge", "urban") if f in list_scenarios()
+        f
+        for f in ("straight", "highway", "bottleneck", "merge", "ring", "urban")
+        if f in list_scenarios()
     ]
 
 
@@ -324,20 +328,49 @@ def test_reset_waits_for_the_first_av_and_pettingzoo_accepts_a_sparse_env() -> N
     performance_benchmark(mixed_traffic.env(**SPARSE))
 
 
+def test_pettingzoo_accepts_a_user_sumocfg_whose_vehicles_depart_later(tmp_path) -> None:
+    """A netgenerate grid and a .sumocfg whose flows start at 5 s: reset() waits for the
+    first AV, then all four PettingZoo test functions pass."""
+    from pettingzoo.test import performance_benchmark
+
+    net = tmp_path / "grid.net.xml"
+    subprocess.run([binary("netgenerate"), "--grid", "--grid.number", "3", "--grid.length", "100",
+                    "-L", "2", "--tls.guess", "-o", str(net)], check=True, capture_output=True)  # fmt: skip
+    (tmp_path / "r.rou.xml").write_text(
+        '<routes><flow id="ac" begin="5" end="100" period="3" from="A0A1" to="C1C2"/>'
+        '<flow id="ca" begin="6" end="100" period="4" from="C2C1" to="A1A0"/></routes>'
+    )
+    cfg = tmp_path / "run.sumocfg"
+    cfg.write_text('<configuration><input><net-file value="grid.net.xml"/>'
+                   '<route-files value="r.rou.xml"/></input></configuration>')  # fmt: skip
+    kw = dict(scenario=str(cfg), penetration=0.3, episode_length=30.0)
+    e = parallel_env(**kw)
+    try:
+        e.reset(seed=0)
+        assert e.agents and e.sim_time > 5.0
+    finally:
+        e.close()
+    parallel_api_test(parallel_env(**kw), num_cycles=30)
+    api_test(mixed_traffic.env(**kw), num_cycles=10)
+    parallel_seed_test(lambda: parallel_env(**kw), num_cycles=10)
+    performance_benchmark(mixed_traffic.env(**kw))
+
+
 def test_reset_names_a_wait_that_runs_out() -> None:
     e = parallel_env(**{**SPARSE, "reset_wait": 30.0})
     try:
-        with pytest.raises(RuntimeError, match="no AV entered the network"):
+        with pytest.raises(NoAgentError, match="no AV entered the network within reset_wait=30"):
             e.reset(seed=2)  # seed 2: no AV enters in the whole episode
     finally:
         e.close()
 
 
-def test_an_episode_without_any_av_is_all_human_and_ends_cleanly() -> None:
+def test_an_episode_without_any_av_is_an_error_or_on_request_all_human() -> None:
     e = parallel_env(**SPARSE)
     try:
-        with pytest.warns(UserWarning, match="no AV entered the network during"):
-            obs, _ = e.reset(seed=2)
+        with pytest.raises(NoAgentError, match=r"during the 120.0 s episode.*allow_no_agents"):
+            e.reset(seed=2)
+        obs, _ = e.reset(seed=2, options={"allow_no_agents": True})
         assert obs == {} and e.agents == []
         e.step({})  # the last step of the episode
         assert e.sim_time == pytest.approx(SPARSE["episode_length"])

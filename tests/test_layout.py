@@ -4,6 +4,8 @@ load only where they are needed, and modules stay small."""
 from __future__ import annotations
 
 import ast
+import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -125,3 +127,45 @@ def test_no_module_is_over_600_lines() -> None:
     files = [f for d in ("mixed_traffic", "agents", "analysis") for f in (ROOT / d).rglob("*.py")]
     lines = {f.relative_to(ROOT).as_posix(): len(f.read_text().splitlines()) for f in files}
     assert {f: n for f, n in lines.items() if n > 600} == {}
+
+
+def test_pyproject_lists_every_package_folder() -> None:
+    import tomllib
+
+    listed = set(
+        tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"]
+    )
+    folders = {".".join(f.parent.relative_to(ROOT).parts)
+               for d in ("mixed_traffic", "agents", "analysis") for f in (ROOT / d).rglob("*.py")}  # fmt: skip
+    assert listed == folders | {"agents.checkpoints", "mixed_traffic._scenarios"}
+
+
+def test_a_wheel_install_runs_the_shipped_scenarios_from_any_folder(tmp_path: Path) -> None:
+    """Issue 25 D2: scenarios/ ships inside the wheel (mapped to mixed_traffic/_scenarios)."""
+    build = subprocess.run([sys.executable, "-m", "pip", "wheel", str(ROOT), "--no-deps",
+                            "--no-build-isolation", "-q", "-w", str(tmp_path / "dist")],
+                           capture_output=True, text=True, cwd=tmp_path, timeout=300)  # fmt: skip
+    assert build.returncode == 0, build.stderr[-2000:]
+    (wheel,) = (tmp_path / "dist").glob("*.whl")
+    site, elsewhere = tmp_path / "site", tmp_path / "elsewhere"
+    subprocess.run([sys.executable, "-m", "pip", "install", "--no-deps", "-q", "--target",
+                    str(site), str(wheel)], check=True, timeout=300)  # fmt: skip
+    elsewhere.mkdir()
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MIXED_TRAFFIC_")}
+    env |= {"PYTHONPATH": str(site), "MIXED_TRAFFIC_CACHE": str(tmp_path / "cache")}
+    script = (
+        "import json, mixed_traffic as m; from mixed_traffic.paths import SCENARIOS_DIR as s;"
+        "print(json.dumps([m.__file__, str(s), m.list_scenarios()]))"
+    )
+    where = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                           cwd=elsewhere, env=env, timeout=120)  # fmt: skip
+    assert where.returncode == 0, where.stderr
+    module, scenarios, names = json.loads(where.stdout)
+    assert module.startswith(str(site)) and scenarios.startswith(str(site))
+    assert {"straight", "ring", "urban"} <= {n.split("-")[0] for n in names}
+    run = subprocess.run([sys.executable, "-m", "mixed_traffic.evaluate", "--policy", "acc-lc",
+                          "--scenario", "straight", "--seeds", "0", "--episode-length", "10",
+                          "--warmup", "0", "--json"],
+                         capture_output=True, text=True, cwd=elsewhere, env=env, timeout=300)  # fmt: skip
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert '"policy"' in run.stdout

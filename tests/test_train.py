@@ -48,8 +48,10 @@ def test_two_worker_smoke_cli(tmp_path: Path) -> None:
             "--update-ratio", "0.02", "--log-every", "1000", "--no-progress",
             "--replay-capacity", "20000", "--out", str(out)]  # fmt: skip
     assert main(argv) == 0
-    for name in ("checkpoint.pt", "replay.pt", "state.json", "curves.csv", "auto.pt", "auto.json"):
+    for name in ("COMMIT", "checkpoint.pt", "curves.csv", "auto.pt", "auto.json"):
         assert (out / name).is_file(), name
+    (commit,) = (out / "commits").iterdir()  # older commits are removed
+    assert sorted(p.name for p in commit.iterdir()) == ["checkpoint.pt", "replay.pt", "state.json"]
     info = json.loads((out / "auto.json").read_text())
     assert info["env_steps"] >= 3000 and info["updates"] > 0
     assert info["command"].startswith("python -m mixed_traffic.train --workers 2")
@@ -77,6 +79,16 @@ def test_resume_continues_counters(tmp_path: Path) -> None:
     assert steps == sorted(steps) and len(set(steps)) == len(steps)
     with pytest.raises(FileExistsError):
         Trainer(_cfg(tmp_path, workers=1, env_steps=3000))
+
+
+def test_resume_before_the_first_commit_starts_afresh(tmp_path: Path) -> None:
+    tmp_path.mkdir(exist_ok=True)
+    (tmp_path / "curves.csv").write_text("env_steps,wall_time\n250,1.0\n")  # a killed run's rows
+    (tmp_path / ".checkpoint.pt.x1.tmp").write_bytes(b"torn")
+    logs: list[str] = []
+    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=10), resume=True, log=logs.append)
+    assert tr.c["env_steps"] == 0 and tr.c["run"] == 0 and "starting afresh" in logs[0]
+    assert _curves(tmp_path) == [] and not list(tmp_path.glob("*.tmp"))
 
 
 def test_provenance_names_the_revision_the_run_started_at(tmp_path: Path, monkeypatch) -> None:

@@ -225,7 +225,7 @@ class RolloutWorker:
         self.env_cfg = cfg
         self.env = parallel_env(config=cfg)
         self.acted: set[str] = set()
-        self.obs, _ = self.env.reset(seed=cfg.seed)
+        self.obs, _ = self.env.reset(seed=cfg.seed, options={"allow_no_agents": True})
         self.ep_reward, self.ep_actions = 0.0, 0
 
     def _step(self) -> None:

@@ -4,12 +4,14 @@ between two rows, ``curves.csv`` I/O, and the optional TensorBoard writer and pr
 from __future__ import annotations
 
 import csv
+import io
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from agents.checkpoint import atomic_write_bytes
 from agents.collection.workers import Chunk
 
 CURVE_COLUMNS = (
@@ -64,11 +66,10 @@ class Window:
         }  # fmt: skip
 
 
-def write_curves(path: Path, rows: list[dict], mode: str = "a") -> None:
-    """Append ``rows`` to the curves file ``path`` (``mode="w"``: rewrite it), with the header
-    when the file is new."""
-    new = mode == "w" or not path.exists()
-    with path.open(mode, newline="") as f:
+def write_curves(path: Path, rows: list[dict]) -> None:
+    """Append ``rows`` to the curves file ``path``, with the header when the file is new."""
+    new = not path.exists()
+    with path.open("a", newline="") as f:
         w = csv.DictWriter(f, fieldnames=CURVE_COLUMNS)
         if new:
             w.writeheader()
@@ -76,15 +77,27 @@ def write_curves(path: Path, rows: list[dict], mode: str = "a") -> None:
 
 
 def trim_curves(path: Path, env_steps: int) -> None:
-    """Drop the rows of the curves file ``path`` written after ``env_steps`` transitions (after
-    the last checkpoint: a resumed run redoes them)."""
+    """Keep the rows of the curves file ``path`` up to ``env_steps`` transitions (the last
+    commit: a resumed run redoes the rest), dropping a row torn by a kill; atomic."""
     if not path.is_file():
         return
-    with path.open() as f:
+    with path.open(newline="") as f:
         rows = list(csv.DictReader(f))
-    keep = [r for r in rows if int(float(r["env_steps"])) <= env_steps]
+    keep = [r for r in rows if None not in r.values() and _steps(r) <= env_steps]
     if len(keep) != len(rows):
-        write_curves(path, keep, mode="w")
+        text = io.StringIO()
+        w = csv.DictWriter(text, fieldnames=CURVE_COLUMNS)
+        w.writeheader()
+        w.writerows(keep)
+        atomic_write_bytes(path, lambda f: f.write(text.getvalue().encode()))
+
+
+def _steps(row: dict[str, str]) -> float:
+    """A curves row's env_steps (inf when unreadable, so that trimming drops it)."""
+    try:
+        return float(row["env_steps"])
+    except ValueError:
+        return math.inf
 
 
 def tensorboard(out: Path) -> Any:

@@ -20,10 +20,11 @@ Backends (:class:`TrainConfig.backend`):
 A worker that dies (segfault, SIGKILL, exception) is restarted with a fresh env and fresh seeds;
 everything it had sent is already in the replay, only its unsent LocalBuffer is lost.
 
-Outputs in ``out``: ``curves.csv`` (+ TensorBoard if installed), ``checkpoint.pt`` (learner and
-optimisers, :func:`agents.checkpoint.save_checkpoint`), ``replay.pt``, ``state.json`` (counters,
-RNG), all atomic and rewritten every ``checkpoint_every`` seconds and at the end; with
-``keep_snapshots`` each periodic checkpoint is also kept as ``snapshots/<env steps>.pt``; then
+Outputs in ``out``: ``curves.csv`` (+ TensorBoard if installed); every ``checkpoint_every``
+seconds and at the end one commit (:mod:`agents.learning.commit`) of ``checkpoint.pt`` (learner
+and optimisers), ``replay.pt`` and ``state.json`` (counters, RNG), from which ``--resume``
+continues after a kill -9 at any instant; a copy of the last ``checkpoint.pt`` in ``out``; with
+``keep_snapshots`` each periodic checkpoint also as ``snapshots/<env steps>.pt``; then
 ``auto.pt`` + ``auto.json`` (command, git revision, wall time, env steps, config).
 
 The pieces: :mod:`agents.learning.config` (:class:`TrainConfig`), :mod:`agents.learning.collectors`
@@ -44,9 +45,15 @@ from typing import Any
 import numpy as np
 import torch
 
-from agents.checkpoint import atomic_write_bytes, load_checkpoint, save_checkpoint
+from agents.checkpoint import (
+    atomic_write_bytes,
+    checkpoint_payload,
+    load_checkpoint,
+    save_checkpoint,
+)
 from agents.collection.workers import Chunk, WorkerSpec, exploration_ladder, weight_vector
 from agents.learning.collectors import make_collector
+from agents.learning.commit import commit, committed, remove_leftovers
 from agents.learning.config import TrainConfig, env_base_config, lca_config
 from agents.learning.curves import Window, progress, tensorboard, trim_curves, write_curves
 from agents.learning.rbpdqn import RBPDQN, LearnerConfig
@@ -124,17 +131,23 @@ class Trainer:
         self._start(resume)
 
     def _start(self, resume: bool) -> None:
-        """Resume the run in ``out``, or start a new one (from ``init``'s networks if given);
-        then record this invocation."""
-        state_file = self.out / "state.json"
-        if resume:
-            self._load()
-        elif state_file.exists():
+        """Resume the run in ``out`` from its last commit, or start a new one (from ``init``'s
+        networks if given); then record this invocation. ``--resume`` on a run killed before
+        its first commit starts afresh."""
+        last = committed(self.out)
+        if last is not None and not resume:
             raise FileExistsError(
                 f"{self.out} already holds a training run; pass --resume or another --out"
             )
-        elif self.cfg.init:
-            self._init_from(Path(self.cfg.init))
+        remove_leftovers(self.out)
+        if last is not None:
+            self._load(last)
+        else:
+            if resume:
+                self.log(f"--resume: nothing committed in {self.out} yet; starting afresh")
+            trim_curves(self.out / "curves.csv", -1)  # rows of a run that never committed
+            if self.cfg.init:
+                self._init_from(Path(self.cfg.init))
         # every invocation of this run, first to last (auto.json provenance); the revision is
         # taken now, as commits made while a run trains do not change the code it runs
         from mixed_traffic.provenance import git_revision
@@ -143,24 +156,21 @@ class Trainer:
         self.c["revisions"] = [*self.c.get("revisions", []), git_revision()]
 
     # -------------------------------------------------------------- persistence
-    def _load(self) -> None:
-        """Restore networks, optimisers, replay, counters and RNG from ``out`` (--resume)."""
-        state_file = self.out / "state.json"
-        if not state_file.is_file():
-            raise FileNotFoundError(f"--resume: {state_file} not found")
-        state = json.loads(state_file.read_text())
+    def _load(self, folder: Path) -> None:
+        """Restore networks, optimisers, replay, counters and RNG from the commit ``folder``."""
+        state = json.loads((folder / "state.json").read_text())
         self._check_resumable(TrainConfig.from_dict(state["config"]))
-        load_checkpoint(self.out / "checkpoint.pt", learner=self.learner)
-        sd = torch.load(self.out / "replay.pt", map_location="cpu", weights_only=True)
+        load_checkpoint(folder / "checkpoint.pt", learner=self.learner)
+        sd = torch.load(folder / "replay.pt", map_location="cpu", weights_only=True)
         self.replay.load_state_dict(sd)
         self.c.update(state["counters"])
         self.c["run"] += 1
         self.restart_base = self.c["worker_restarts"]
         self.rng.bit_generator.state = state["rng"]
-        if self.learner.steps != self.c["updates"]:
+        if self.learner.steps != self.c["updates"]:  # cannot happen with one commit; checked
             raise ValueError(
-                f"--resume: checkpoint has {self.learner.steps} updates, state.json "
-                f"{self.c['updates']} (torn checkpoint?)"
+                f"--resume: {folder} has a checkpoint of {self.learner.steps} updates and "
+                f"counters of {self.c['updates']}"
             )
         trim_curves(self.out / "curves.csv", self.c["env_steps"])
         self.log(f"resumed {self.out}: {self.c['env_steps']} env steps, "
@@ -184,19 +194,23 @@ class Trainer:
         self.log(f"initialised from {path} ({meta.get('env_steps')} env steps)")
 
     def save(self, snapshot: bool = False) -> None:
-        """replay.pt, checkpoint.pt (and a snapshot copy), then state.json (the commit point),
-        each atomically."""
-        self.out.mkdir(parents=True, exist_ok=True)
-        sd = self.replay.state_dict()
-        atomic_write_bytes(self.out / "replay.pt", lambda f: torch.save(sd, f))
-        meta = self._meta()
-        save_checkpoint(self.out / "checkpoint.pt", self.learner, meta)
-        if snapshot:
-            path = self.out / "snapshots" / f"{self.c['env_steps']:09d}.pt"
-            save_checkpoint(path, self.learner, meta)
+        """Commit checkpoint, replay and counters as one unit (:mod:`agents.learning.commit`);
+        then copy the checkpoint to ``out/checkpoint.pt`` (and a snapshot), each atomically."""
+        payload = checkpoint_payload(self.learner, self._meta())
+        replay = self.replay.state_dict()
         state = {"config": self.cfg.to_dict(), "counters": self.c,
                  "rng": self.rng.bit_generator.state}  # fmt: skip
-        atomic_write_json(self.out / "state.json", state)
+        folder = commit(self.out, {
+            "checkpoint.pt": lambda f: torch.save(payload, f),
+            "replay.pt": lambda f: torch.save(replay, f),
+            "state.json": lambda f: f.write(json.dumps(state, indent=2).encode()),
+        })  # fmt: skip
+        copies = [self.out / "checkpoint.pt"]
+        if snapshot:
+            copies.append(self.out / "snapshots" / f"{self.c['env_steps']:09d}.pt")
+        data = (folder / "checkpoint.pt").read_bytes()
+        for path in copies:
+            atomic_write_bytes(path, lambda f: f.write(data))
 
     def _meta(self) -> dict[str, Any]:
         """Provenance and counters stored with every checkpoint."""

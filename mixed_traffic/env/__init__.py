@@ -17,7 +17,7 @@ import sys
 import types
 from typing import Any
 
-__all__ = ["MixedTrafficEnv", "env", "parallel_env"]
+__all__ = ["MixedTrafficEnv", "NoAgentError", "env", "parallel_env"]
 
 
 def __getattr__(name: str) -> Any:

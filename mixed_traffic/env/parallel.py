@@ -49,7 +49,6 @@ import contextlib
 import os
 import shutil
 import tempfile
-import warnings
 from collections.abc import Mapping
 from dataclasses import replace
 from itertools import compress, repeat
@@ -95,6 +94,10 @@ from mixed_traffic.world.snapshot import TrafficSnapshot
 
 TRACE_INTERVAL = 0.5
 """Time between the samples of a traced trajectory [s]."""
+
+
+class NoAgentError(RuntimeError):
+    """reset() found no AV in the network and none entered before its wait ran out."""
 
 
 class MixedTrafficEnv(ParallelEnv):
@@ -210,28 +213,28 @@ class MixedTrafficEnv(ParallelEnv):
         self._backend.drop_pending(demand.placed_ids)
         obs = self._start_from(snap)
         if not self.agents and self.possible_agents and not self.sumo_drives_avs:
-            obs = self._wait_for_an_agent()
+            obs = self._wait_for_an_agent(int(seed), bool((options or {}).get("allow_no_agents")))
         return obs, {a: {} for a in self.agents}
 
-    def _wait_for_an_agent(self) -> dict[str, dict]:
+    def _wait_for_an_agent(self, seed: int, allow_none: bool) -> dict[str, dict]:
         """Advance the simulation (nobody acts) until the first AV enters the network, for at
-        most ``config.reset_wait`` seconds; the observations of the agents that entered. An
-        episode in which no AV enters at all is left one step before its end, agentless."""
+        most ``config.reset_wait`` seconds and never past the episode's last step; the
+        observations of the agents that entered. If none did, ``NoAgentError`` unless
+        ``allow_none`` (the episode then runs on all human)."""
         cfg = self.config
         end = cfg.episode_length - cfg.step_length
         limit = min(self.sim_time + cfg.reset_wait, end)
         obs: dict[str, dict] = {}
         while not self.agents and self.sim_time < limit - 1e-9:
             obs, *_ = self.step({})
-        if not self.agents and limit < end - 1e-9:
-            raise RuntimeError(
-                f"reset(): no AV entered the network within {self.sim_time:.1f} s "
-                f"(EnvConfig.reset_wait={cfg.reset_wait} s); raise reset_wait, the penetration "
-                f"or the density"
+        if not self.agents and not allow_none:
+            within = (f"within reset_wait={cfg.reset_wait} s" if limit < end - 1e-9
+                      else f"during the {cfg.episode_length} s episode")  # fmt: skip
+            raise NoAgentError(
+                f"reset(seed={seed}): no AV entered the network {within}; raise the penetration, "
+                f"the density or reset_wait, or pass options={{'allow_no_agents': True}} to run "
+                f"the episode all human"
             )
-        if not self.agents:
-            warnings.warn(f"reset(): no AV entered the network during the {cfg.episode_length} s "
-                          f"episode (seed {cfg.seed}); it is all human", stacklevel=3)  # fmt: skip
         return obs
 
     def _start_from(self, snap: TrafficSnapshot) -> dict[str, dict]:

@@ -132,7 +132,7 @@ def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tu
 
     config = env.config
     infer, decisions = 0.0, 0
-    obs, _ = env.reset(seed=config.seed)
+    obs, _ = env.reset(seed=config.seed, options={"allow_no_agents": True})  # all-human draws count
     frames.add(env)
     steps = range(config.steps_per_episode)
     for _ in tqdm(steps, desc="steps", leave=False, disable=not progress):

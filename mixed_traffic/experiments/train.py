@@ -34,8 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.train",
         description="Train the AUTO agent (LCA + RBP-DQN) with N rollout workers and one learner. "
-        "Writes OUT/curves.csv, OUT/checkpoint.pt, OUT/replay.pt, OUT/state.json and, at the "
-        "end, OUT/auto.pt + OUT/auto.json; each periodic checkpoint is also kept in OUT/snapshots/.",
+        "Writes OUT/curves.csv; commits checkpoint, replay and counters together into "
+        "OUT/commits/ (the manifest OUT/COMMIT names the last) and copies the checkpoint to "
+        "OUT/checkpoint.pt and OUT/snapshots/; at the end OUT/auto.pt + OUT/auto.json.",
     )
     names = [f.name for f in dataclasses.fields(TrainConfig)]
     add_config_args(p, TrainConfig, only=[n for n in names if n in _SHORT])
@@ -44,7 +45,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--resume",
         action="store_true",
-        help="continue the run in --out from its checkpoint, replay and counters",
+        help="continue the run in --out from its last commit (checkpoint, replay and "
+        "counters); a run killed before its first commit starts afresh",
     )
     sensors = EnvConfig().sensors
     p.add_argument("--history", type=int, default=sensors.history,

@@ -30,8 +30,9 @@ node_mask  (3, 3)      int8   per lane: lane exists, vehicle(s) detected, light 
 action_mask (3,)       int8   allowed decisions: left change, follow, right change
 ========== =========== ====== ========================================================
 
-Boxes are ``[-1, 1]`` float32 and every value is clipped into them; the masks are
-``MultiBinary`` (int8 0/1, current step only).
+Boxes are ``[-1, 1]`` float32 and every value is clipped into them; the masks are int8 0/1 for
+the current step only: ``node_mask`` a ``Box(0, 1, (3, 3), int8)`` (TorchRL cannot convert a
+2-D ``MultiBinary``), ``action_mask`` a ``MultiBinary(3)``.
 
 Validity convention for the history: a frame that was not observed (episode start, or an
 agent that appeared later) is all zeros. ``ego[t, 2]`` (length) > 0 marks an observed frame,
@@ -95,7 +96,7 @@ def observation_space(config: EnvConfig) -> gym.spaces.Dict:
             "lanes": box(3, z, 4 * m),
             "vehicles": box(3, z, 12),
             "lights": box(3, z, 4),
-            "node_mask": gym.spaces.MultiBinary([3, 3]),
+            "node_mask": gym.spaces.Box(0, 1, (3, 3), np.int8),
             "action_mask": gym.spaces.MultiBinary(3),
         }
     )
