@@ -76,7 +76,9 @@ def _flatten(record: dict[str, Any]) -> dict[str, Any]:
     row: dict[str, Any] = {k: cell.get(k) for k in CELL_KEYS}
     if row["seed"] is None:
         row["seed"] = record.get("seed")
-    row["status"] = record.get("status", "ok")
+    # a record without its status or code hash cannot be trusted as an ok episode
+    row["status"] = record.get("status") if "code" in record else None
+    row["status"] = row["status"] or "invalid"
     row["error"] = record.get("error")
     row["sumo_version"] = record.get("sumo_version")
     row["git_revision"] = record.get("git_revision")
@@ -141,7 +143,7 @@ def _normalise(df: pd.DataFrame) -> pd.DataFrame:
     ):
         df[col] = pd.to_numeric(df[col], errors="coerce").astype(float)
     df["seed"] = pd.to_numeric(df["seed"], errors="coerce").astype("Int64")
-    df["status"] = df["status"].fillna("ok").astype(str)
+    df["status"] = df["status"].fillna("invalid").astype(str)
     for col in ("policy", "scenario", "weather"):
         df[col] = df[col].astype(object)
     return df.reset_index(drop=True)

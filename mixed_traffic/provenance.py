@@ -123,6 +123,35 @@ def _locked(path: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+class FolderBusyError(RuntimeError):
+    """Another live process is running into the same results folder."""
+
+
+@contextlib.contextmanager
+def exclusive_folder(folder: Path) -> Iterator[None]:
+    """Hold ``folder``'s run lock (``.run.lock``, released by the OS even on kill -9), so two
+    runs never execute the same cells at once; FolderBusyError names the holder otherwise."""
+    folder.mkdir(parents=True, exist_ok=True)
+    with open(folder / ".run.lock", "a+") as fh:
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            fh.seek(0)
+            holder = fh.read().strip() or "unknown"
+            raise FolderBusyError(
+                f"{folder} is in use by another run (pid {holder}); wait for it to finish or "
+                "pass another --out"
+            ) from None
+        fh.seek(0)
+        fh.truncate()
+        fh.write(str(os.getpid()))
+        fh.flush()
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
 def check_writable(path: str | Path) -> None:
     """Raise ``ValueError`` naming ``path`` unless records can be written there (its folder is
     created); call it before any work starts, so that no result is lost at the end."""
@@ -155,21 +184,33 @@ def write_record_atomic(path: str | Path, record: dict[str, Any]) -> None:
         old = path.read_bytes() if path.exists() else b""
         if old and not old.endswith(b"\n"):
             old += b"\n"
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as fh:
-                fh.write(old)
-                fh.write(line)
-                fh.flush()
-                os.fsync(fh.fileno())
-            mode = path.stat().st_mode & 0o777 if path.exists() else 0o666 & ~_umask()
-            os.chmod(tmp, mode)
-            os.replace(tmp, path)
-        except BaseException:
-            with contextlib.suppress(OSError):
-                os.unlink(tmp)
-            raise
-        _fsync_dir(path.parent)
+        _replace(path, old + line)
+
+
+def rewrite_records(path: str | Path, records: list[dict[str, Any]]) -> None:
+    """Replace ``path`` by exactly ``records`` (one JSON line each), atomically and locked."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with _locked(path):
+        _replace(path, b"".join(record_line(r).encode("utf-8") + b"\n" for r in records))
+
+
+def _replace(path: Path, data: bytes) -> None:
+    """Write ``data`` to a temp file beside ``path``, fsync, keep the mode, ``os.replace``."""
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(data)
+            fh.flush()
+            os.fsync(fh.fileno())
+        mode = path.stat().st_mode & 0o777 if path.exists() else 0o666 & ~_umask()
+        os.chmod(tmp, mode)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    _fsync_dir(path.parent)
 
 
 def _umask() -> int:

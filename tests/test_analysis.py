@@ -191,6 +191,21 @@ def test_failed_then_successful_rerun_keeps_success(tmp_path):
     assert list(df["status"]) == ["ok"]
 
 
+def test_a_record_without_status_or_code_is_not_counted_ok(tmp_path):
+    """Issue 25 D8: such a record has no provenance; the report lists it as invalid."""
+    rng = random.Random(2)
+    ok = _record("auto", "straight", 120.0, 0.2, "normal", 0, rng)
+    no_code = {k: v for k, v in _record("auto", "straight", 120.0, 0.4, "normal", 0, rng).items()
+               if k != "code"}  # fmt: skip
+    no_status = {k: v for k, v in _record("idm", "straight", 120.0, 0.0, "normal", 0, rng).items()
+                 if k != "status"}  # fmt: skip
+    lines = [json.dumps(r) for r in (ok, no_code, no_status)]
+    (tmp_path / "records.jsonl").write_text("\n".join(lines) + "\n")
+    df = load_results(tmp_path)
+    assert sorted(df["status"]) == ["invalid", "invalid", "ok"]
+    assert df.loc[df["status"] == "ok", "penetration"].tolist() == [0.2]
+
+
 def test_load_errors(tmp_path):
     with pytest.raises(FileNotFoundError, match="does not exist"):
         load_results(tmp_path / "nope")

@@ -151,7 +151,7 @@ def _frame(rows: list[tuple[str, float, int, str, float]]) -> pd.DataFrame:
             "policy": policy, "scenario": "straight", "density": 120.0, "penetration": pen,
             "weather": "normal", "seed": seed,
         }  # fmt: skip
-        records.append({"cell": cell, "status": "ok", "metrics": {metric: value}})
+        records.append({"cell": cell, "status": "ok", "code": "c0de", "metrics": {metric: value}})
     return records_to_frame(records)
 
 

@@ -112,6 +112,17 @@ def test_bad_arguments_exit_with_a_clear_message(argv: list[str], message: str, 
     assert exit_info.value.code == 2 and message in capsys.readouterr().err
 
 
+def test_an_unreadable_checkpoint_is_named_before_any_episode(tmp_path: Path, capsys) -> None:
+    """Issue 25 D9: it used to rank best (all its cells failed, so nothing was in excess)."""
+    bad = tmp_path / "torn.pt"
+    bad.write_bytes(SHIPPED.read_bytes()[:5000])
+    with pytest.raises(SystemExit) as exit_info:
+        main([str(SHIPPED), str(bad), "--out", str(tmp_path / "cmp")])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "torn.pt: corrupt or unreadable" in err
+    assert not (tmp_path / "cmp").exists()
+
+
 def test_code_key_follows_sources_checkpoint_and_scenarios_only(tmp_path: Path) -> None:
     root, scen = tmp_path / "repo", tmp_path / "scenarios"
     for path, text in [(root / "mixed_traffic" / "env.py", "a = 1\n"),

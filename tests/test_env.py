@@ -104,6 +104,8 @@ def test_agents_enter_leave_and_report_terms() -> None:
         while e.agents:
             obs, rew, term, trunc, info = e.step(_follow(e))
             seen |= set(e.agents)
+            if e.agents:  # memory stays flat: finished agents leave no observation or history
+                assert set(e._last_obs) <= set(e.agents) >= set(e._builder._slot)
             for a, i in info.items():
                 assert set(i["reward_terms"]) <= set(TERM_NAMES)
                 if i["event"]:

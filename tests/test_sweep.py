@@ -11,10 +11,12 @@ import time
 from pathlib import Path
 
 import pytest
+import torch
 from pypdf import PdfReader
 
+from agents.policies import SHIPPED_CHECKPOINT
 from mixed_traffic.experiments.sweep import SweepConfig, cells, main, parse_args
-from mixed_traffic.provenance import current_code_key, read_records
+from mixed_traffic.provenance import current_code_key, exclusive_folder, read_records
 
 TINY = [
     "--values",
@@ -97,6 +99,19 @@ def test_interrupted_sweep_resumes_without_duplicates(tmp_path: Path) -> None:
     assert all(r in records for r in first)  # kept, not run again
 
 
+def test_a_second_run_into_a_busy_folder_stops_before_any_cell(tmp_path: Path, capsys) -> None:
+    """Issue 25 D12: two concurrent runs used to execute the same cells twice."""
+    out = tmp_path / "res"
+    args = ["--penetration", "--values", "0.5", "--policies", "random", "--seeds", "0",
+            "--episode-length", "10", "--warmup", "1", "--no-report", "--no-traffic",
+            "--no-reference", "--out", str(out)]  # fmt: skip
+    with exclusive_folder(out):  # as if another sweep were running into out
+        assert main(args) == 2
+    assert f"in use by another run (pid {os.getpid()})" in capsys.readouterr().err
+    assert read_records(out / "records.jsonl") == []
+    assert main(args) == 0 and len(read_records(out / "records.jsonl")) == 1
+
+
 def test_records_from_other_code_are_set_aside_and_run_again(tmp_path: Path) -> None:
     out = tmp_path / "res"
     args = ["--penetration", "--values", "0.5", "--policies", "random", "--seeds", "0",
@@ -112,26 +127,34 @@ def test_records_from_other_code_are_set_aside_and_run_again(tmp_path: Path) -> 
     (again,) = read_records(out / "records.jsonl")
     assert again["code"] == current_code_key()
     assert again["metrics"]["avg_vel_a"] == record["metrics"]["avg_vel_a"]  # same seed, re-run
+    # D8: one record without a code moves aside alone; this code's records stay done
+    stray = {k: v for k, v in old.items() if k != "code"}
+    (out / "records.jsonl").write_text(json.dumps(again) + "\n" + json.dumps(stray) + "\n")
+    assert main(args) == 0
+    assert read_records(out / "records.jsonl") == [again]  # not run again
+    assert read_records(out / "records.code-unknown.jsonl") == [stray]
 
 
 def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path: Path) -> None:
     out = tmp_path / "res"
-    missing = tmp_path / "no_such_checkpoint.pt"
+    # readable, but made for a 2-step history: the cell fails when its env (history 5) starts
+    odd = tmp_path / "other_history.pt"
+    data = torch.load(SHIPPED_CHECKPOINT, weights_only=True)
+    data["meta"]["lca"]["z"] = data["meta"]["lca"]["z"] + 3
+    torch.save(data, odd)
     args = ["--penetration", "--values", "0.5", "--policies", "auto", "random", "--seeds", "0",
             "--episode-length", "10", "--warmup", "1", "--no-report", "--no-traffic",
-            "--no-reference", "--checkpoint", str(missing), "--out", str(out)]  # fmt: skip
+            "--no-reference", "--checkpoint", str(odd), "--out", str(out)]  # fmt: skip
     assert main(args) == 1  # a failed cell is an error exit, with a summary line
     records = {r["cell"]["policy"]: r for r in read_records(out / "records.jsonl")}
-    assert (
-        records["auto"]["status"] == "failed" and "no_such_checkpoint" in records["auto"]["error"]
-    )
+    assert records["auto"]["status"] == "failed" and "other_history" in records["auto"]["error"]
     assert records["random"]["status"] == "ok"
     # a re-run retries the failed cell, not the finished one
     assert main(args) == 1
     runs = [r["cell"]["policy"] for r in read_records(out / "records.jsonl")]
     assert runs.count("auto") == 2 and runs.count("random") == 1
     # other weights make another cell: with the shipped checkpoint the auto cell runs and passes
-    shipped = [a for a in args if a not in ("--checkpoint", str(missing))]
+    shipped = [a for a in args if a not in ("--checkpoint", str(odd))]
     assert main(shipped) == 0
 
 
@@ -147,6 +170,10 @@ def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path: Path) -> None:
         (["--address", "auto"], "--address needs --backend ray"),
         (["--weather", "--values", "snow"], "--values"),
         (["--backend", "slurm"], "--backend"),
+        (
+            ["--checkpoint", "no/such.pt"],
+            "--checkpoint=no/such.pt: checkpoint no/such.pt: file not found",
+        ),
     ],
 )
 def test_bad_arguments_exit_with_a_clear_message(argv: list[str], message: str, capsys) -> None:

@@ -132,7 +132,7 @@ class FlowRecorder:
         self._offset[rows] = offsets
         self.length = float(hdmap.edge_length[rows].sum())
         """Segment length [m]."""
-        lane_metres = float((hdmap.edge_length[rows] * hdmap.edge_num_lanes[rows]).sum())
+        lane_metres = float((hdmap.edge_length[rows] * hdmap.edge_car_lanes[rows]).sum())
         self.field = SpaceTimeField(self.length, lane_metres, self.dt, self.warmup, trace_every)
         """Edie's sums on a space-time grid over the segment (flow, speed spread, waves)."""
         self._first_edge, self._last_edge = rows[0], rows[-1]

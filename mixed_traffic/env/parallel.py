@@ -48,7 +48,6 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-import tempfile
 from collections.abc import Mapping
 from dataclasses import replace
 from itertools import compress, repeat
@@ -80,6 +79,7 @@ from mixed_traffic.env.truth import (
     rear_conventional,
     take_or_nan,
 )
+from mixed_traffic.paths import scratch_dir
 from mixed_traffic.schema import METRICS
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import ttc
@@ -148,7 +148,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._backend = SumoBackend("traci" if render_mode == "human" else cfg.backend, cfg.second_instance,
                                     gui=render_mode == "human")  # fmt: skip
         self._backend.set_lane_table(self.hdmap.lane_ids, self.hdmap.lane_edge)
-        self._tmp = tempfile.mkdtemp(prefix="mixed_traffic_")
+        self._tmp = scratch_dir()
         self._episode_rng = np.random.default_rng(cfg.seed)
         # per episode, set by reset()
         self._snap: TrafficSnapshot | None = None
@@ -187,7 +187,7 @@ class MixedTrafficEnv(ParallelEnv):
         if seed is None:
             seed = int(self._episode_rng.integers(2**31 - 1))
         if self._phase == "closed":  # reopened: a new scratch folder for the route file
-            self._tmp = tempfile.mkdtemp(prefix="mixed_traffic_")
+            self._tmp = scratch_dir()
         self._phase = "running"
         cfg = replace(self.config, seed=int(seed))
         demand_seed, sumo_seed, noise_seed = np.random.SeedSequence(int(seed)).generate_state(3)
@@ -410,6 +410,7 @@ class MixedTrafficEnv(ParallelEnv):
         obs_out = dict(zip(agents, map(obs.get, agents)))
         for a in [a for a, o in obs_out.items() if o is None]:  # not observed this step
             obs_out[a] = self._last_obs.get(a, self._empty_obs)
+        self._forget(done)
         rew_out = dict(zip(agents, map(rewards.get, agents, repeat(0.0))))
         if not cfg.fixed_fleet:
             table.finished.update(done)
@@ -430,6 +431,16 @@ class MixedTrafficEnv(ParallelEnv):
                 info["episode"] = summary
         self._snap = snap
         return obs_out, rew_out, terminated, truncated, infos
+
+    def _forget(self, done: list[str]) -> None:
+        """Free what finished agents hold (history slots; last observations, which are views
+        of a whole step's arrays), so memory stays flat. A fixed fleet keeps a compact copy
+        of each last observation: it is returned until the agent enters again."""
+        self._builder.drop(done)
+        for a in done:
+            last = self._last_obs.pop(a, None)
+            if last is not None and self.config.fixed_fleet:
+                self._last_obs[a] = {k: v.copy() for k, v in last.items()}
 
     def _retire(self, done: list[str], events: dict[str, str]) -> None:
         """End the trips of ``done`` agents; SUMO already removed arrived and collided ones."""
@@ -514,7 +525,7 @@ class MixedTrafficEnv(ParallelEnv):
         """A copy (pickle, e.g. SuperSuit's ``concat_vec_envs``) gets its own scratch directory,
         so copies neither overwrite each other's route file nor delete it on close."""
         self.__dict__.update(state)
-        self._tmp = tempfile.mkdtemp(prefix="mixed_traffic_")
+        self._tmp = scratch_dir()
 
 
 def check_warmup(warmup: float, episode_length: float) -> None:

@@ -15,7 +15,8 @@ load from other processes on a small machine). Target: the
 snapshot adds ≤ 30 % to a raw step. Sections are functions in ``SECTIONS`` so others can add
 theirs.
 
-Section ``env`` is in ``bench_env``; ``inference`` times AUTO's batched forward pass.
+Section ``env`` is in ``bench_env``, ``soak`` (memory over a 600 s episode) in ``bench_soak``;
+``inference`` times AUTO's batched forward pass.
 """
 
 from __future__ import annotations
@@ -23,7 +24,6 @@ from __future__ import annotations
 import argparse
 import statistics
 import sys
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -33,6 +33,8 @@ import numpy as np
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.bench_env import PENETRATIONS, section_env
+from mixed_traffic.experiments.bench_soak import section_soak
+from mixed_traffic.paths import scratch_dir
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.boundary import PeriodicBoundary
 from mixed_traffic.world.demand import make_demand, write_demand
@@ -71,7 +73,7 @@ def start_straight(
     sc = load_scenario(cfg.scenario)
     hd = sc.hdmap
     demand = make_demand(sc, cfg, np.random.default_rng(seed))
-    route_file = Path(tempfile.mkdtemp(prefix="mixed_traffic_bench_")) / "demand.rou.xml"
+    route_file = Path(scratch_dir()) / "demand.rou.xml"
     write_demand(demand, cfg, route_file)
     backend = SumoBackend(cfg.backend, cfg.second_instance)
     backend.set_lane_table(hd.lane_ids, hd.lane_edge)
@@ -167,6 +169,7 @@ SECTIONS: dict[str, Callable[[argparse.Namespace], object]] = {
     "snapshot": section_snapshot,
     "env": section_env,
     "inference": section_inference,
+    "soak": section_soak,
 }
 
 
@@ -195,7 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument(
         "--env-policy", choices=("random", "keep"), nargs="+", default=["random", "keep"],
-        help="env section: action policies (default: both; see _random_actions)",
+        help="env section: action policies (default: both; see bench_actions)",
     )  # fmt: skip
     p.add_argument(
         "--env-density", type=float, default=120.0, help="env section: veh/km (default: 120)"
@@ -207,6 +210,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--env-episode", type=float, default=40.0,
         help="env section: simulated seconds between resets (default: 40)",
+    )  # fmt: skip
+    p.add_argument(
+        "--soak-length", type=float, default=600.0,
+        help="soak section: simulated seconds of the one episode (default: 600)",
+    )  # fmt: skip
+    p.add_argument(
+        "--soak-density", type=float, default=180.0,
+        help="soak section: veh/km, 100 %% AVs (default: 180)",
     )  # fmt: skip
     p.add_argument(
         "--backend", choices=("libsumo", "traci"), default="libsumo",

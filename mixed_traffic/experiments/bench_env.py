@@ -30,7 +30,7 @@ TARGET_ENV_RATIO = 2.0
 @dataclass
 class EnvResult:
     policy: str
-    """``random`` or ``keep`` (see ``_random_actions``)."""
+    """``random`` or ``keep`` (see ``bench_actions``)."""
     penetration: float
     """AV share [-]."""
     env_ms: float
@@ -52,9 +52,7 @@ class EnvResult:
         return 1e3 / self.env_ms
 
 
-def _random_actions(
-    env, obs: dict, space, rng: np.random.Generator, policy: str = "random"
-) -> dict:
+def bench_actions(env, obs: dict, space, rng: np.random.Generator, policy: str = "random") -> dict:
     """Actions for every live agent. ``random``: decision uniform over the allowed ones, params
     uniform in the Box. ``keep``: follow (or the allowed decision) with zero steering and
     accel_brake, i.e. hold lane and speed, so the traffic keeps its density."""
@@ -109,7 +107,7 @@ def _limit_block(env, block: int) -> tuple[float, object]:
     return total / block, snap
 
 
-def _make_env(penetration: float, density: float, episode: float, seed: int):
+def make_bench_env(penetration: float, density: float, episode: float, seed: int):
     from mixed_traffic.env import parallel_env
 
     return parallel_env(
@@ -123,7 +121,7 @@ def bench_env_penetration(
     episode: float = 40.0, seed: int = 0, policy: str = "random",
 ) -> EnvResult:  # fmt: skip
     """Alternate (env, limit) block pairs of ``block`` steps until ``steps`` env steps are timed."""
-    env = _make_env(penetration, density, episode, seed)
+    env = make_bench_env(penetration, density, episode, seed)
     rng = np.random.default_rng(seed)
     space = env.action_space(None)
     clock = time.perf_counter
@@ -140,12 +138,12 @@ def bench_env_penetration(
             k += 1
             done = 0
             for _ in range(warm):
-                obs, *_ = env.step(_random_actions(env, obs, space, rng, policy))
+                obs, *_ = env.step(bench_actions(env, obs, space, rng, policy))
                 done += 1
             while done + 2 * block < episode_steps and len(env_blocks) * block < steps:
                 timed, agent_steps = 0.0, 0
                 for _ in range(block):
-                    act = _random_actions(env, obs, space, rng, policy)
+                    act = bench_actions(env, obs, space, rng, policy)
                     live = int(env._snap.is_av.sum())
                     t0 = clock()
                     obs, *_ = env.step(act)
@@ -190,7 +188,7 @@ def profile_env_stages(
     """Exclusive ms/step of each stage of env.step (instrumented pass), and the total ms/step."""
     import mixed_traffic.env.parallel as env_mod
 
-    env = _make_env(penetration, density, episode, seed)
+    env = make_bench_env(penetration, density, episode, seed)
     rng = np.random.default_rng(seed)
     space = env.action_space(None)
     clock = time.perf_counter
@@ -228,10 +226,10 @@ def profile_env_stages(
             obs, _ = env.reset(seed=seed + k)
             k += 1
             for _ in range(warm):
-                obs, *_ = env.step(_random_actions(env, obs, space, rng, policy))
+                obs, *_ = env.step(bench_actions(env, obs, space, rng, policy))
             acc.clear()
             for _ in range(min(episode_steps - warm - 1, steps - n)):
-                act = _random_actions(env, obs, space, rng, policy)
+                act = bench_actions(env, obs, space, rng, policy)
                 t0 = clock()
                 obs, *_ = env.step(act)
                 total += clock() - t0

@@ -31,8 +31,9 @@ import numpy as np
 from tqdm import tqdm
 
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
+from mixed_traffic.experiments.runner import check_checkpoint
 from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
-from mixed_traffic.provenance import current_code_key, read_records
+from mixed_traffic.provenance import FolderBusyError, current_code_key, read_records
 from mixed_traffic.world.registry import train_split_scenario
 
 TRAIN_CELLS = ("merge-ramp", "bottleneck-3to2", "urban-grid3x3", "highway-curves", "straight-3lane")
@@ -109,6 +110,8 @@ def expand(paths: list[Path]) -> list[Path]:
             out.append(path)
         else:
             raise ValueError(f"{path}: no such checkpoint file or run folder")
+    for path in out:  # an unreadable one must not rank (its cells would all fail)
+        check_checkpoint(path)
     return out
 
 
@@ -215,7 +218,10 @@ def main(argv: list[str] | None = None) -> int:
         checkpoints = expand(args.checkpoints)
     except ValueError as e:
         p.error(str(e))
-    scores = run(cfg, checkpoints)
+    try:
+        scores = run(cfg, checkpoints)
+    except FolderBusyError as e:
+        p.error(str(e))
     print(json.dumps(scores, indent=1) if args.json else table(scores))
     print(f"best: {scores[0]['checkpoint']}")
     return 0

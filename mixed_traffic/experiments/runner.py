@@ -47,6 +47,13 @@ def check_policy(policy: str) -> None:
         raise ValueError(f"policy {policy!r} is not available; choose from {list(POLICIES)}")
 
 
+def check_checkpoint(path: str | Path) -> None:
+    """Raise ``ValueError`` naming ``path`` unless it is a readable RBP-DQN checkpoint."""
+    from agents.checkpoint import read_checkpoint  # torch only when a checkpoint is named
+
+    read_checkpoint(path)
+
+
 def run_episode(
     config: EnvConfig,
     policy: str = "idm",

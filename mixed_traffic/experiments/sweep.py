@@ -24,10 +24,13 @@ from tqdm import tqdm
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.cli import add_config_args, config_dest, config_from_args
 from mixed_traffic.provenance import (
+    FolderBusyError,
     check_writable,
     current_code_key,
+    exclusive_folder,
     read_records,
     record_meta,
+    rewrite_records,
     write_record_atomic,
 )
 from mixed_traffic.schema import CELL_KEYS, FD_DIR, POLICIES, TRACE_DIR
@@ -86,13 +89,22 @@ class SweepConfig:
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
-            raise ValueError(f"--{name.replace('_', '-')}={getattr(self, name)!r}: {why}")
+            value = getattr(self, name)
+            shown = str(value) if isinstance(value, Path) else repr(value)
+            raise ValueError(f"--{name.replace('_', '-')}={shown}: {why}")
 
         if self.axis not in AXES:
             bad("axis", f"choose from {AXES}")
         unknown = [p for p in self.policies if p not in POLICIES]
         if unknown or not self.policies:
             bad("policies", f"unknown policies {unknown}; choose from {list(POLICIES)}")
+        if self.checkpoint is not None and any(p.startswith("auto") for p in self.policies):
+            from mixed_traffic.experiments.runner import check_checkpoint
+
+            try:
+                check_checkpoint(self.checkpoint)
+            except ValueError as e:
+                bad("checkpoint", str(e))
         if not self.seeds:
             bad("seeds", "give at least one seed")
         if any(s < 0 for s in self.seeds):
@@ -249,39 +261,42 @@ def _run_cell(cell: Cell, sweep: SweepConfig, queue: mp.Queue) -> None:
 
 def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
     """Run the missing cells of ``sweep``; returns the records file."""
-    sweep.results.mkdir(parents=True, exist_ok=True)
     records_path = sweep.results / "records.jsonl"
-    done = {_cell_key(r) for r in _records_of_this_code(records_path) if r.get("status") == "ok"}
-    todo = [c for c in cells(sweep) if _planned_key(c, sweep) not in done]  # failed: again
-    bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode", disable=not progress)
-    if sweep.backend == "ray":
-        _run_ray(todo, sweep, records_path, bar)
-    else:
-        _run_processes(todo, sweep, records_path, bar)
-    bar.close()
+    with exclusive_folder(sweep.results):  # a second run into the folder stops here
+        done = {_cell_key(r) for r in _records_of_this_code(records_path)
+                if r.get("status") == "ok"}  # fmt: skip
+        todo = [c for c in cells(sweep) if _planned_key(c, sweep) not in done]  # failed: again
+        bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode",
+                   disable=not progress)  # fmt: skip
+        if sweep.backend == "ray":
+            _run_ray(todo, sweep, records_path, bar)
+        else:
+            _run_processes(todo, sweep, records_path, bar)
+        bar.close()
     if sweep.traffic:
         run_sweep(fd_sweep(sweep), progress)
     return records_path
 
 
 def _records_of_this_code(path: Path) -> list[dict]:
-    """The records in ``path``, or none if any was written by other code (another ``code``
-    hash, or none): those would count as done and mix into the report, so the file is moved
-    aside as ``records.code-<theirs>.jsonl`` (nothing is lost) and every cell runs again."""
+    """The records in ``path`` written by this code. Those of other code (another ``code``
+    hash, or none) would count as done and mix into the report, so they move to
+    ``records.code-<theirs>.jsonl`` (written before ``path`` is rewritten: nothing is lost)."""
     records, ours = read_records(path), current_code_key()
-    codes = {r.get("code") or "unknown" for r in records}
-    if codes <= {ours}:
+    keep = [r for r in records if r.get("code") == ours]
+    if len(keep) == len(records):
         return records
-    tag = "-".join(sorted(codes - {ours}))[:40]
-    aside = path.with_name(f"records.code-{tag}.jsonl")
-    n = 1
+    others = [r for r in records if r.get("code") != ours]
+    tag = "-".join(sorted({str(r.get("code") or "unknown") for r in others}))[:40]
+    aside, n = path.with_name(f"records.code-{tag}.jsonl"), 1
     while aside.exists():
         n += 1
         aside = path.with_name(f"records.code-{tag}.{n}.jsonl")
-    path.replace(aside)
-    print(f"{path}: records from other code ({tag}) moved to {aside.name}; running every cell "
-          "again", file=sys.stderr)  # fmt: skip
-    return []
+    rewrite_records(aside, others)
+    rewrite_records(path, keep)
+    print(f"{path}: {len(others)} record(s) of other code ({tag}) moved to {aside.name}; "
+          f"{len(keep)} kept", file=sys.stderr)  # fmt: skip
+    return keep
 
 
 def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm) -> None:
@@ -401,7 +416,11 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
 def main(argv: list[str] | None = None) -> int:
     sweep = parse_args(argv)
     t0 = time.time()
-    records = run_sweep(sweep)
+    try:
+        records = run_sweep(sweep)
+    except FolderBusyError as e:
+        print(f"python -m mixed_traffic.sweep: error: {e}", file=sys.stderr)
+        return 2
     print(f"records: {records} ({time.time() - t0:.0f} s)")
     failed = failed_cells(sweep)
     if sweep.report_pdf is not None:

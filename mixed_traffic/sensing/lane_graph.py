@@ -55,6 +55,8 @@ class LaneGraph:
     def connection(self, lane: np.ndarray, edge: np.ndarray) -> np.ndarray:
         """(...) first lane row of the connection lane -> edge, -1 if there is none."""
         found, i = self._find(self.conn_keys, lane, edge)
+        if len(self.conn_vals) == 0:  # a network without junctions (a single edge)
+            return np.full(found.shape, -1, dtype=np.int64)
         return np.where(found, self.conn_vals[np.minimum(i, len(self.conn_vals) - 1)], -1)
 
     def signal(self, lane: np.ndarray, edge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -121,7 +121,8 @@ class _Plan:
 def _plan(scenario: Scenario, config: EnvConfig) -> _Plan:
     hd = scenario.hdmap
     per_lane = config.density / scenario.lanes / 1000.0  # veh/m per lane
-    speed_limit = float(hd.lane_speed[hd.edge_lanes[hd.edge_of(scenario.routes[0].entry), 0]])
+    entry = hd.car_lane_rows(hd.edge_of(scenario.routes[0].entry))
+    speed_limit = float(hd.lane_speed[entry[0]])
     v_eq = idm_equilibrium_speed(1.0 / per_lane, speed_limit, cautious(config.human),
                                  config.vehicle.length)  # fmt: skip
     if scenario.ring:  # closed: nobody enters
@@ -162,7 +163,7 @@ def av_count(scenario: Scenario, config: EnvConfig) -> int:
     n_init = sum(ring_counts(scenario, plan.per_lane)) if scenario.ring else 0
     for edge in () if scenario.ring else _placement_edges(scenario):
         e = hd.edge_of(edge)
-        n_init += int(hd.edge_num_lanes[e]) * _lane_count(float(hd.edge_length[e]), plan.per_lane)
+        n_init += int(hd.edge_car_lanes[e]) * _lane_count(float(hd.edge_length[e]), plan.per_lane)
     if config.fixed_fleet:
         return int(round(config.penetration * n_init))
     return int(round(config.penetration * (n_init + plan.n_queue)))
@@ -230,10 +231,8 @@ class _Placement:
         candidates = [i for i, r in enumerate(base) if edge in r.edges or r.origin == edge]
         if not candidates:
             candidates = list(range(len(base)))
-        for lane in range(int(hd.edge_num_lanes[e])):
-            self._lane(
-                edge, float(hd.edge_length[e]), lane, int(hd.edge_lanes[e, lane]), candidates
-            )
+        for row in hd.car_lane_rows(e):  # never on a sidewalk, bike or bus lane
+            self._lane(edge, float(hd.edge_length[e]), int(hd.lane_index[row]), row, candidates)
 
     def _lane(
         self, edge: str, length: float, lane: int, lane_row: int, candidates: list[int]

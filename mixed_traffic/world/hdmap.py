@@ -26,7 +26,9 @@ import sumolib.net
 from mixed_traffic.paths import cache_dir
 
 SPACING = 1.0  # waypoint spacing along the centreline [m]
-_CACHE_VERSION = "hdmap-v2"  # v2: read with sumolib
+_CACHE_VERSION = "hdmap-v3"  # v2: read with sumolib; v3: lane permissions
+CAR = "passenger"
+"""The vehicle class of every car in the env (humans and AVs): lanes are usable by it or not."""
 
 
 @dataclass
@@ -46,8 +48,12 @@ class HDMap:
     """(L,) [m]."""
     lane_speed: np.ndarray
     """(L,) speed limit [m/s]."""
+    lane_car: np.ndarray
+    """(L,) bool: SUMO's permissions let vClass ``passenger`` use the lane (not a sidewalk,
+    bike, bus or rail lane)."""
     lane_next: np.ndarray
-    """(L,) int32 primary successor lane row (via the junction lane if any), -1 at a dead end."""
+    """(L,) int32 primary successor lane row (via the junction lane if any; a car lane's is a
+    car lane), -1 at a dead end."""
     edge_ids: list[str]
     """(E,) ids of normal edges."""
     edge_lanes: np.ndarray
@@ -55,7 +61,8 @@ class HDMap:
     edge_length: np.ndarray
     """(E,) [m]."""
     conn_to: dict[tuple[int, int], int]
-    """(lane row, next edge row) -> first lane row to take (junction lane, or the next lane)."""
+    """(car lane row, next edge row) -> first lane row to take (junction lane, or the next
+    lane), for connections cars may use."""
     tls_links: dict[tuple[int, int], tuple[str, int]]
     """(lane row, next edge row) -> (traffic light id, link index) for signalised connections."""
     wp_offset: np.ndarray
@@ -78,6 +85,16 @@ class HDMap:
     def edge_num_lanes(self) -> np.ndarray:
         """(E,) lanes per edge."""
         return (self.edge_lanes >= 0).sum(axis=1)
+
+    @cached_property
+    def edge_car_lanes(self) -> np.ndarray:
+        """(E,) lanes per edge that cars may use."""
+        rows = self.edge_lanes
+        return ((rows >= 0) & self.lane_car[np.maximum(rows, 0)]).sum(axis=1)
+
+    def car_lane_rows(self, edge: int) -> list[int]:
+        """Lane rows of ``edge`` that cars may use, rightmost first."""
+        return [int(r) for r in self.edge_lanes[edge] if r >= 0 and self.lane_car[r]]
 
     @cached_property
     def lane_row(self) -> dict[str, int]:
@@ -105,8 +122,11 @@ class HDMap:
 
     @cached_property
     def edge_free_time(self) -> np.ndarray:
-        """(E,) free-flow travel time of each edge at its rightmost lane's limit [s]."""
-        return self.edge_length / np.maximum(self.lane_speed[self.edge_lanes[:, 0]], 0.1)
+        """(E,) free-flow travel time of each edge at its fastest car lane's limit [s]."""
+        rows = np.maximum(self.edge_lanes, 0)
+        car = (self.edge_lanes >= 0) & self.lane_car[rows]
+        speed = np.where(car, self.lane_speed[rows], 0.0).max(axis=1)
+        return self.edge_length / np.maximum(speed, 0.1)
 
     def fastest_path(self, lane: int, destination: int) -> list[int] | None:
         """Edge rows from ``lane``'s edge to ``destination`` with the least free-flow travel
@@ -171,13 +191,16 @@ class HDMap:
         return self.ahead_table(m)[self.waypoint_at(lane, pos)]
 
     def neighbour_lane(self, lane: np.ndarray, offset: int) -> np.ndarray:
-        """(N,) lane row ``offset`` lanes to the left (+) or right (-) on the same edge, -1 if none."""
+        """(N,) lane row ``offset`` lanes to the left (+) or right (-) on the same edge, -1 if
+        none; beside a car lane, a lane cars may not use (a sidewalk, a bike lane) is none."""
         lane = np.asarray(lane, dtype=np.int64)
         edge = self.lane_edge[lane]
         idx = self.lane_index[lane].astype(np.int64) + offset
         ok = (edge >= 0) & (idx >= 0) & (idx < self.edge_lanes.shape[1])
         out = np.full(lane.shape, -1, dtype=np.int64)
         out[ok] = self.edge_lanes[edge[ok], idx[ok]]
+        barred = (out >= 0) & self.lane_car[lane] & ~self.lane_car[np.maximum(out, 0)]
+        out[barred] = -1
         return out
 
     def edge_of(self, edge_id: str) -> int:
@@ -263,7 +286,8 @@ def build_hdmap(net_file: str | Path) -> HDMap:
     edge_lanes = np.full((len(edge_ids), kmax), -1, dtype=np.int32)
     for e, rows in enumerate(edge_lane_rows):
         edge_lanes[e, : len(rows)] = rows
-    lane_next, conn_to, tls_links = _connections(lanes, lane_ids, lane_edge, edge_row)
+    lane_car = np.array([lane.allows(CAR) for lane in lanes], dtype=bool)
+    lane_next, conn_to, tls_links = _connections(lanes, lane_ids, lane_edge, edge_row, lane_car)
     samples = [_sample(np.reshape(ln.getShape3D(), (-1, 3)), ln.getLength()) for ln in lanes]
     counts = np.array([len(pts) for pts, _ in samples], dtype=np.int64)
     return HDMap(
@@ -274,6 +298,7 @@ def build_hdmap(net_file: str | Path) -> HDMap:
         lane_length=np.array(lane_length),
         lane_width=np.array([lane.getWidth() for lane in lanes]),
         lane_speed=np.array([lane.getSpeed() for lane in lanes]),
+        lane_car=lane_car,
         lane_next=lane_next,
         edge_ids=edge_ids,
         edge_lanes=edge_lanes,
@@ -313,9 +338,12 @@ def _lane_table(net: Any) -> tuple[list, list[int], list[str], list[list[int]], 
     return lanes, lane_edge, edge_ids, edge_lane_rows, edge_row
 
 
-def _connections(lanes: list, lane_ids: list[str], lane_edge: list[int], edge_row: dict):
+def _connections(
+    lanes: list, lane_ids: list[str], lane_edge: list[int], edge_row: dict, car: np.ndarray
+):
     """``lane_next`` (primary successor: straight on, else the first connection in file
-    order), ``conn_to`` and ``tls_links`` of ``HDMap``."""
+    order), ``conn_to`` and ``tls_links`` of ``HDMap``; from a car lane only connections that
+    cars may use (SUMO's own permissions of the connection's lanes)."""
     lane_row = {lid: i for i, lid in enumerate(lane_ids)}
     lane_next = np.full(len(lanes), -1, dtype=np.int32)
     conn_to: dict[tuple[int, int], int] = {}
@@ -328,8 +356,10 @@ def _connections(lanes: list, lane_ids: list[str], lane_edge: list[int], edge_ro
                 continue
             via = c.getViaLaneID()
             first = lane_row.get(via, dst) if via else dst
+            if car[src] and not (car[dst] and car[first]):
+                continue
             to = edge_row.get(c.getTo())
-            if lane_edge[src] >= 0 and to is not None:
+            if lane_edge[src] >= 0 and to is not None and car[src]:
                 conn_to.setdefault((src, to), first)
                 if c.getTLSID():
                     tls_links[(src, to)] = (c.getTLSID(), c.getTLLinkIndex())
@@ -364,6 +394,7 @@ _ARRAYS = [
     "lane_length",
     "lane_width",
     "lane_speed",
+    "lane_car",
     "lane_next",
     "edge_lanes",
     "edge_length",

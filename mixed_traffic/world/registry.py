@@ -62,8 +62,8 @@ def train_split_scenario(name: str) -> Scenario:
 
 
 def load_scenario(name: str) -> Scenario:
-    """A bundled scenario by name, or a user's ``.net.xml`` / ``.sumocfg`` by path."""
-    if name.endswith(".net.xml") or name.endswith(".sumocfg"):
+    """A bundled scenario by name, or a user's ``.net.xml(.gz)`` / ``.sumocfg`` by path."""
+    if name.endswith((".net.xml", ".net.xml.gz", ".sumocfg")):
         from mixed_traffic.world.user_scenario import load_user_scenario
 
         return load_user_scenario(Path(name))
@@ -71,7 +71,7 @@ def load_scenario(name: str) -> Scenario:
     if name not in reg:
         raise ValueError(
             f"unknown scenario {name!r}; known: {', '.join(sorted(reg))} "
-            "(or a path to a .net.xml or .sumocfg file)"
+            "(or a path to a .net.xml, .net.xml.gz or .sumocfg file)"
         )
     return _load_folder(name, reg[name])
 

@@ -1,4 +1,4 @@
-"""A user's own SUMO network (``.net.xml``) or configuration (``.sumocfg``) as a ``Scenario``.
+"""A user's own SUMO network (``.net.xml`` or ``.net.xml.gz``) or configuration (``.sumocfg``) as a ``Scenario``.
 
 A bare network gets generated demand: SUMO-routed trips between fringe edges, density measured
 over the whole network. A configuration keeps its own vehicles (``<vehicle>``, ``<trip>``,
@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from mixed_traffic.world.hdmap import NetFileError, read_net
+from mixed_traffic.world.hdmap import CAR, NetFileError, read_net
 from mixed_traffic.world.scenario import OwnVehicle, Route, Scenario
 
 #: Fringe origin/destination pairs kept for a bare network (enough for route choice, few routes).
@@ -29,9 +29,9 @@ def load_user_scenario(path: Path) -> Scenario:
         raise ValueError(f"scenario file {path} does not exist")
     if path.name.endswith(".sumocfg"):
         return _from_sumocfg(path)
-    if path.name.endswith(".net.xml"):
+    if path.name.endswith((".net.xml", ".net.xml.gz")):
         return _from_net(path)
-    raise ValueError(f"{path}: expected a .net.xml or .sumocfg file")
+    raise ValueError(f"{path}: expected a .net.xml, .net.xml.gz or .sumocfg file")
 
 
 # --------------------------------------------------------------------------- network
@@ -59,22 +59,25 @@ class _Net:
                 msg = f"{path} is not a SUMO network (root <{e.detail}>, expected <net>)"
                 raise ValueError(msg) from e
             raise
-        edges = [
-            e
-            for e in net.getEdges(withInternal=True)
-            if e.getFunction() not in ("internal", "walkingarea", "crossing")
-        ]
+        normal = [e for e in net.getEdges(withInternal=True)
+                  if e.getFunction() not in ("internal", "walkingarea", "crossing")]  # fmt: skip
+        if not normal:
+            raise ValueError(f"network file {path} contains no edges")
+        edges = [e for e in normal if any(ln.allows(CAR) for ln in e.getLanes())]
+        if not edges:
+            raise ValueError(
+                f"network file {path} has no lane that passenger cars may use (vClass "
+                f"{CAR!r}; its lanes allow only e.g. pedestrians, bicycles or rail)"
+            )
         self.path = path
-        self.lanes: dict[str, int] = {e.getID(): len(e.getLanes()) for e in edges}
+        # lanes cars may use, per edge (sidewalks and bike lanes do not count for density)
+        self.lanes: dict[str, int] = {
+            e.getID(): sum(ln.allows(CAR) for ln in e.getLanes()) for e in edges
+        }
         self.nodes: dict[str, tuple[str, str]] = {
             e.getID(): (e.getFromNode().getID(), e.getToNode().getID()) for e in edges
         }
-        if not self.lanes:
-            raise ValueError(f"network file {path} contains no edges")
-        self.succ: dict[str, set[str]] = {
-            e.getID(): {t.getID() for t in e.getOutgoing() if t.getID() in self.lanes}
-            for e in edges
-        }
+        self.succ: dict[str, set[str]] = {e.getID(): _car_successors(e, self.lanes) for e in edges}
 
     def reachable(self, start: str) -> set[str]:
         seen, todo = {start}, deque([start])
@@ -100,11 +103,24 @@ class _Net:
         return Counter(self.lanes.values()).most_common(1)[0][0]
 
 
+def _car_successors(edge, car_edges: dict[str, int]) -> set[str]:
+    """Edges a car can reach from ``edge`` through one junction: a connection from a lane
+    cars may use to one they may use (SUMO's permissions)."""
+    return {
+        to.getID()
+        for to, conns in edge.getOutgoing().items()
+        if to.getID() in car_edges
+        and any(c.getFromLane().allows(CAR) and c.getToLane().allows(CAR) for c in conns)
+    }
+
+
 def _from_net(path: Path) -> Scenario:
     net = _Net(path)
     entries, exits = net.fringe()
     reach = {o: net.reachable(o) for o in entries}
     pairs = [(o, d) for o in entries for d in exits if d in reach[o] and d != o]
+    if not pairs:  # a road of single edges: each is its own trip (SUMO accepts from == to)
+        pairs = [(o, o) for o in entries if o in exits]
     if not pairs:
         raise ValueError(f"network file {path}: no exit edge is reachable from any entry edge")
     # spread the kept pairs over the list so every entry appears (deterministic, no seed needed)

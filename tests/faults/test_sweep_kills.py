@@ -1,0 +1,60 @@
+"""Issue 25 fault suite: kill -9 of a sweep's worker process mid-cell. The sweep records that
+cell as failed, finishes the others, exits 1, and a re-run retries only that cell."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from mixed_traffic.provenance import read_records
+
+
+def _children(pid: int) -> list[int]:
+    """Live child processes of ``pid`` (from /proc)."""
+    out = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[1]) == pid:
+            out.append(int(stat.parent.name))
+    return out
+
+
+def _cmdline(pid: int) -> bytes:
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes()
+    except OSError:  # it ended meanwhile
+        return b""
+
+
+def test_a_killed_sweep_worker_is_a_failed_cell_that_the_next_run_retries(tmp_path: Path) -> None:
+    out = tmp_path / "res"
+    args = [sys.executable, "-m", "mixed_traffic.sweep", "--penetration", "--values", "0.5",
+            "--policies", "random", "--seeds", "0", "1", "--episode-length", "30", "--warmup", "2",
+            "--workers", "1", "--no-report", "--no-traffic", "--no-reference", "--out", str(out)]  # fmt: skip
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline, workers = time.time() + 60, []
+    while time.time() < deadline and not workers:
+        # the spawn start method also starts a resource tracker: the worker runs the cell
+        workers = [c for c in _children(proc.pid)
+                   if b"spawn_main" in _cmdline(c) and b"resource_tracker" not in _cmdline(c)]  # fmt: skip
+        time.sleep(0.1)
+    assert workers, "the sweep started no worker process"
+    time.sleep(1.0)  # mid-cell
+    os.kill(workers[0], signal.SIGKILL)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 1 and "1 of 2 cells failed" in err
+    records = read_records(out / "records.jsonl")
+    assert sorted(r["status"] for r in records) == ["failed", "ok"]
+    (failed,) = [r for r in records if r["status"] == "failed"]
+    assert "worker process died with exit code -9" in failed["error"]
+    again = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr[-1000:]
+    records = read_records(out / "records.jsonl")
+    assert len(records) == 3 and sum(r["status"] == "ok" for r in records) == 2

@@ -1,0 +1,97 @@
+"""Networks the project has never seen, generated here with SUMO's own tools (netgenerate,
+netconvert): lane permissions (sidewalks, bike lanes, bike-only roads), gzip, a single edge
+(issue 24, part 1). Episodes run in real SUMO with ACC-LC AVs."""
+
+from __future__ import annotations
+
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.env import parallel_env
+from mixed_traffic.experiments.bench_env import bench_actions
+from mixed_traffic.experiments.runner import run_episode
+from mixed_traffic.world.backend import binary
+from mixed_traffic.world.registry import load_scenario
+
+NODES = """<nodes><node id="A" x="0" y="0"/><node id="B" x="600" y="0"/>
+<node id="C" x="1200" y="0"/></nodes>"""
+
+
+def _netgenerate(out: Path, *args: str) -> Path:
+    subprocess.run([binary("netgenerate"), "--grid", "--grid.number", "3", "--grid.length",
+                    "200", "--default.lanenumber", "2", *args, "-o", str(out)],
+                   check=True, capture_output=True, timeout=120)  # fmt: skip
+    return out
+
+
+def _netconvert(folder: Path, edges: str, name: str) -> Path:
+    (folder / "n.nod.xml").write_text(NODES)
+    (folder / "e.edg.xml").write_text(f"<edges>{edges}</edges>")
+    out = folder / name
+    subprocess.run([binary("netconvert"), "-n", str(folder / "n.nod.xml"), "-e",
+                    str(folder / "e.edg.xml"), "-o", str(out)],
+                   check=True, capture_output=True, timeout=120)  # fmt: skip
+    return out
+
+
+def _episode(net: Path, **kw) -> dict:
+    cfg = EnvConfig(scenario=str(net), penetration=0.5, episode_length=25.0, seed=0, **kw)
+    return run_episode(cfg, "acc-lc", warmup=0.0)
+
+
+def test_sidewalks_and_bike_lanes_carry_no_car(tmp_path: Path) -> None:
+    net = _netgenerate(tmp_path / "side.net.xml", "--sidewalks.guess", "--bikelanes.guess")
+    sc = load_scenario(str(net))
+    hd = sc.hdmap
+    assert sc.lanes == 2, "density counts the car lanes, not sidewalks or bike lanes"
+    assert (~hd.lane_car).any() and hd.lane_car.any()
+    # no connection or neighbour of a car lane leads onto a lane cars may not use
+    assert all(hd.lane_car[a] and hd.lane_car[b] for (a, _), b in hd.conn_to.items())
+    for side in (-1, 1):
+        nb = hd.neighbour_lane(np.flatnonzero(hd.lane_car), side)
+        assert hd.lane_car[nb[nb >= 0]].all()
+    # random decisions within the mask: no car ever stands on a sidewalk or a bike lane
+    env = parallel_env(scenario=str(net), density=30.0, penetration=0.5, episode_length=25.0)
+    obs, _ = env.reset(seed=0)
+    space, rng, steps, agents = env.action_space(env.agents[0]), np.random.default_rng(0), 0, 0
+    while env.agents:
+        obs, *_ = env.step(bench_actions(env, obs, space, rng, "random"))
+        lanes = env._snap.lane[env._snap.lane >= 0]
+        assert hd.lane_car[lanes].all(), "a car on a lane that SUMO's permissions bar"
+        steps, agents = steps + 1, agents + len(env.agents)
+    env.close()
+    assert steps >= 240 and agents > 0
+
+
+def test_a_gzipped_network_runs(tmp_path: Path) -> None:
+    net = _netgenerate(tmp_path / "grid.net.xml.gz")
+    assert net.read_bytes()[:2] == b"\x1f\x8b"
+    record = _episode(net, density=30.0)
+    assert record["metrics"]["av_trips"] > 0
+
+
+def test_a_single_edge_road_runs(tmp_path: Path) -> None:
+    net = _netconvert(tmp_path, '<edge id="AB" from="A" to="B" numLanes="2" speed="25"/>',
+                      "one.net.xml")  # fmt: skip
+    sc = load_scenario(str(net))
+    assert [(r.origin, r.destination) for r in sc.routes] == [("AB", "AB")]
+    record = _episode(net, density=40.0)
+    assert record["metrics"]["av_trips"] > 0 and record["metrics"]["collisions"] == 0
+
+
+def test_a_network_without_car_lanes_is_named(tmp_path: Path) -> None:
+    edges = ('<edge id="AB" from="A" to="B" numLanes="1" allow="bicycle"/>'
+             '<edge id="BC" from="B" to="C" numLanes="1" allow="bicycle pedestrian"/>')  # fmt: skip
+    net = _netconvert(tmp_path, edges, "bike.net.xml")
+    with pytest.raises(ValueError, match="no lane that passenger cars may use"):
+        load_scenario(str(net))
+    out = subprocess.run(
+        ["python", "-m", "mixed_traffic.evaluate", "--policy", "acc-lc", "--scenario", str(net)],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert out.returncode == 2 and "Traceback" not in out.stderr
+    assert out.stderr.strip().splitlines()[-1].endswith("bicycles or rail)")
