@@ -4,6 +4,7 @@ netconvert): lane permissions (sidewalks, bike lanes, bike-only roads), gzip, a 
 
 from __future__ import annotations
 
+import shutil
 import subprocess
 from pathlib import Path
 
@@ -95,3 +96,45 @@ def test_a_network_without_car_lanes_is_named(tmp_path: Path) -> None:
     )  # fmt: skip
     assert out.returncode == 2 and "Traceback" not in out.stderr
     assert out.stderr.strip().splitlines()[-1].endswith("bicycles or rail)")
+
+
+def test_a_sumocfg_runs_as_sumo_would_run_it(tmp_path: Path) -> None:
+    """Its vTypes, additional files, begin, end and step length hold (issue 24, part 2)."""
+    shutil.copy(load_scenario("straight").net_file, tmp_path / "road.net.xml")
+    (tmp_path / "routes.rou.xml").write_text("""<routes>
+  <vType id="car" vClass="passenger" length="4.5" accel="2.0" decel="4.0" maxSpeed="30"/>
+  <vType id="truck" vClass="truck" length="12" accel="1.0" maxSpeed="25"/>
+  <route id="main" edges="warmup meas exit"/>
+  <flow id="cars" type="car" begin="100" end="400" period="2" route="main"/>
+  <flow id="trucks" type="truck" begin="100" end="400" period="10" route="main"/>
+  <vehicle id="plain" depart="101" route="main"/>
+</routes>""")
+    (tmp_path / "det.add.xml").write_text('<additional><inductionLoop id="loop0" lane="meas_0" '
+                                          'pos="50" period="10" file="loops.xml"/></additional>')  # fmt: skip
+    cfg = tmp_path / "run.sumocfg"
+    cfg.write_text('<configuration><input><net-file value="road.net.xml"/><route-files '
+                   'value="routes.rou.xml"/><additional-files value="det.add.xml"/></input><time>'
+                   '<begin value="100"/><end value="130"/><step-length value="0.2"/></time>'
+                   "</configuration>")  # fmt: skip
+    sc = load_scenario(str(cfg))
+    assert (sc.step_length, sc.end) == (0.2, 30.0)
+    with pytest.raises(ValueError, match="does not apply"):
+        parallel_env(scenario=str(cfg), density=50.0)
+    env = parallel_env(scenario=str(cfg), penetration=0.3, episode_length=60.0)
+    assert (env.config.step_length, env.config.episode_length) == (0.2, 30.0)
+    # flows become vehicles over the episode only: 21 of the file's 181 depart in its 30 s
+    assert len(sc.own_vehicles) == 181 and len(env.possible_agents) == round(0.3 * 21)
+    env.reset(seed=0)
+    assert env.sim_time < 2.0, "the episode's clock starts at the file's begin"
+    types, steps = {}, 0
+    api = env._backend._api.vehicle
+    while env.agents:
+        env.step({a: {"decision": 1, "params": np.zeros((3, 2), np.float32)} for a in env.agents})
+        types.update({v: api.getTypeID(v) for v in api.getIDList() if not v.startswith("av_")})
+        steps += 1
+    env.close()
+    assert steps <= 150  # 30 s of 0.2 s steps
+    assert {"car", "truck"} <= set(types.values())
+    for vid, vtype in types.items():  # each keeps its type; "plain" has none: SUMO's default
+        assert vtype == {"cars": "car", "trucks": "truck"}.get(vid.split(".")[0], "DEFAULT_VEHTYPE")
+    assert "loop0" in (tmp_path / "loops.xml").read_text()  # the additional file ran

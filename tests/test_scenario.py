@@ -171,8 +171,8 @@ def test_user_sumocfg_uses_its_own_vehicles(tmp_path: Path) -> None:
     assert 10 < n_prob < 50, "probability flow: about 0.3 per second over 100 s"
     config = EnvConfig(scenario=str(cfg), penetration=0.25, seed=3)
     demand = make_demand(sc, config, np.random.default_rng(3))
-    n = len(sc.own_vehicles)
-    assert len(demand.av_ids) == round(0.25 * n)
+    n = len(sc.own_in_episode(config.episode_length))  # the 100 s probability flow: 120 s
+    assert n < len(sc.own_vehicles) and len(demand.av_ids) == round(0.25 * n)
     assert sorted(demand.av_ids) == sorted(f"av_{i}" for i in range(round(0.25 * n)))
     hv = [v.vid for v in demand.vehicles if not v.is_av]
     assert len(set(hv)) == len(hv) and not any(v.startswith("av_") for v in hv)

@@ -193,7 +193,7 @@ class MixedTrafficEnv(ParallelEnv):
         demand_seed, sumo_seed, noise_seed = np.random.SeedSequence(int(seed)).generate_state(3)
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
         route_file = Path(self._tmp) / "demand.rou.xml"
-        write_demand(demand, cfg, route_file, avs_as_humans=self.sumo_drives_avs)
+        write_demand(demand, cfg, route_file, self.sumo_drives_avs, self.scenario.vtypes)
         self._backend.start(sumo_args(self.scenario, cfg, route_file, seed=int(sumo_seed) % 2**31))
         self._boundary = PeriodicBoundary.for_demand(
             self.scenario, demand, cfg.human, cfg.step_length, cfg.fixed_fleet

@@ -142,6 +142,9 @@ class SumoBackend:
         self._lane_edge_arr = np.full(1, -1, np.int32)
         self._lane_idx_arr = np.zeros(1, np.int16)
         self.time = 0.0
+        """Simulated time since the simulation's begin [s] (a .sumocfg may begin at 25200)."""
+        self.begin = 0.0
+        """SUMO's begin time of the running simulation [s]."""
 
     def _check_libsumo_free(self) -> None:
         """Fall back to TraCI (or refuse) when another backend owns libsumo in this process."""
@@ -230,7 +233,8 @@ class SumoBackend:
         self._route_pos.clear()
         self._edge_last.clear()
         self._pending_move = False
-        self.time = self._api.simulation.getTime()
+        self.begin = self._api.simulation.getTime()
+        self.time = 0.0
 
     def close(self) -> None:
         """End the simulation; safe to call twice."""
@@ -269,7 +273,7 @@ class SumoBackend:
         (benchmarks time the two parts separately).
         """
         sim = self._api.simulation
-        self.time = sim.getTime()
+        self.time = sim.getTime() - self.begin
         departed = list(sim.getDepartedIDList())
         for vid in departed:
             self._register(vid)

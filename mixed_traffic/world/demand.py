@@ -53,6 +53,8 @@ class PlannedVehicle:
     depart_speed: float | None = None
     speed_factor: float | None = None
     """Desired speed / speed limit [-]; None = SUMO draws it from the vehicle type."""
+    vtype: str | None = None
+    """A user's vType (a .sumocfg's vehicle; "" = SUMO's default); None = the env's types."""
 
 
 @dataclass(frozen=True)
@@ -158,7 +160,7 @@ def _lane_count(length: float, per_lane: float) -> int:
 def av_count(scenario: Scenario, config: EnvConfig) -> int:
     """Number of AVs ``make_demand`` plans for ``config`` under any seed (without drawing it)."""
     if scenario.own_vehicles:
-        return int(round(config.penetration * len(scenario.own_vehicles)))
+        return int(round(config.penetration * len(scenario.own_in_episode(config.episode_length))))
     plan, hd = _plan(scenario, config), scenario.hdmap
     n_init = sum(ring_counts(scenario, plan.per_lane)) if scenario.ring else 0
     for edge in () if scenario.ring else _placement_edges(scenario):
@@ -341,7 +343,7 @@ def _vehicles(placed: _Placement, queue_routes: np.ndarray, is_av: np.ndarray, c
 
 def _own_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator) -> Demand:
     """The user's vehicles as given; exactly round(p*N) of them, drawn by the seed, become AVs."""
-    own = sorted(scenario.own_vehicles, key=lambda v: v.depart)  # SUMO wants sorted departures
+    own = scenario.own_in_episode(config.episode_length)  # sorted: SUMO wants it so
     n_av = int(round(config.penetration * len(own)))
     is_av = np.zeros(len(own), dtype=bool)
     is_av[rng.choice(len(own), size=n_av, replace=False)] = True
@@ -351,9 +353,17 @@ def _own_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
             vid, k = f"av_{k}", k + 1
         else:  # keep the user's id unless it could clash with an AV id
             vid = f"hv_{v.vid}" if v.vid.startswith("av_") else v.vid
-        vehicles.append(PlannedVehicle(vid, v.depart, v.route, bool(av)))
-    span = max(1.0, own[-1].depart - own[0].depart)
+        vehicles.append(PlannedVehicle(vid, v.depart, v.route, bool(av), vtype=v.vtype))
+    span = max(1.0, own[-1].depart - own[0].depart) if own else 1.0
     return Demand(scenario.routes, tuple(vehicles), (), 0.0, len(own) / span)
+
+
+def _type_of(v: PlannedVehicle, avs_as_humans: bool) -> str:
+    """A vehicle's vType id: the AV type for AVs (the human drivers' copy when SUMO drives
+    them), else the user's type of its own vehicles, else the env's human drivers."""
+    if v.vtype is not None and not (v.is_av and not avs_as_humans):
+        return v.vtype
+    return AV_TYPE if v.is_av else HUMAN_TYPE
 
 
 def _vehicle_ids(is_av: np.ndarray) -> list[str]:
@@ -364,21 +374,25 @@ def _vehicle_ids(is_av: np.ndarray) -> list[str]:
 
 
 def write_demand(
-    demand: Demand, config: EnvConfig, path: Path, avs_as_humans: bool = False
+    demand: Demand,
+    config: EnvConfig,
+    path: Path,
+    avs_as_humans: bool = False,
+    vtypes: tuple[str, ...] = (),
 ) -> None:
     """Write vehicle types and the planned vehicles as a SUMO route file (``avs_as_humans``: the
-    AV-labelled vehicles get the human drivers' types, for the all-human reference)."""
+    AV-labelled vehicles get the human drivers' types, for the all-human reference; ``vtypes``:
+    a user's vType elements as XML text, for its own vehicles)."""
     root = ET.Element("routes")
     add_vehicle_types(root, config.human, config.vehicle, avs_as_humans)
+    root.extend(ET.fromstring(t) for t in vtypes)
     for i, r in enumerate(demand.routes):
         ET.SubElement(root, "route", id=f"r{i}", edges=" ".join(r.edges or (r.origin,)))
     for v in demand.vehicles:
         r = demand.routes[v.route]
-        attrs = {
-            "id": v.vid,
-            "type": AV_TYPE if v.is_av else HUMAN_TYPE,
-            "depart": f"{v.depart:.2f}",
-        }
+        attrs = {"id": v.vid, "type": _type_of(v, avs_as_humans), "depart": f"{v.depart:.2f}"}
+        if not attrs["type"]:
+            del attrs["type"]  # SUMO's default type, as in the user's file
         attrs["departPos"] = f"{v.depart_pos:.2f}" if v.depart_pos is not None else "base"
         attrs["departLane"] = str(v.depart_lane) if v.depart_lane is not None else "free"
         attrs["departSpeed"] = f"{v.depart_speed:.2f}" if v.depart_speed is not None else "last"

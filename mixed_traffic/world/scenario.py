@@ -37,6 +37,8 @@ class OwnVehicle:
     """Departure time [s]."""
     route: int
     """Index into ``Scenario.routes``."""
+    vtype: str = ""
+    """The user's vType (or vTypeDistribution) id; "" = SUMO's default type."""
 
 
 @dataclass(frozen=True)
@@ -66,6 +68,22 @@ class Scenario:
     the whole episode, nobody enters or leaves."""
     own_vehicles: tuple[OwnVehicle, ...] = ()
     """A user's .sumocfg vehicles: used instead of generated demand (see ``user_scenario``)."""
+    vtypes: tuple[str, ...] = ()
+    """A user's vType / vTypeDistribution elements from its route files, as XML text (they go
+    into the episode's route file; those of additional files SUMO loads itself)."""
+    begin: float = 0.0
+    """A .sumocfg's begin [s of SUMO time]: the episode's clock starts there."""
+    step_length: float | None = None
+    """A .sumocfg's step length [s]: the episode adopts it."""
+    end: float | None = None
+    """A .sumocfg's end, in seconds after its begin [s]: episodes end there at the latest."""
+
+    def own_in_episode(self, episode_length: float) -> list[OwnVehicle]:
+        """The own vehicles that depart within an episode of ``episode_length`` [s], in
+        departure order: flows are instantiated over the episode only, so ``possible_agents``
+        holds the AVs an episode can have, not those of the whole file."""
+        last = self.begin + episode_length
+        return sorted((v for v in self.own_vehicles if v.depart <= last), key=lambda v: v.depart)
 
     @property
     def hdmap(self) -> HDMap:
@@ -85,10 +103,23 @@ class Scenario:
     def configure(self, config: EnvConfig) -> EnvConfig:
         """``config`` with this scenario's default density where it gives none, checked
         against the jam density (``ValueError``)."""
+        if self.own_vehicles:
+            return self._configure_own(config)
         if config.density is None:
             config = replace(config, density=self.density)
         self.check_density(config.density)
         return config
+
+    def _configure_own(self, config: EnvConfig) -> EnvConfig:
+        """A .sumocfg's own vehicles set the traffic: no density; its step length and end."""
+        if config.density is not None:
+            raise ValueError(
+                f"density={config.density} veh/km does not apply to {self.name}: a .sumocfg "
+                "drives its own vehicles (scale their flows in its route files instead)"
+            )
+        length = config.episode_length if self.end is None else min(config.episode_length, self.end)
+        return replace(config, step_length=self.step_length or config.step_length,
+                       episode_length=length)  # fmt: skip
 
     def check_density(self, density: float) -> None:
         """Raise ``ValueError`` unless 0 < ``density`` [veh/km] <= the jam density."""
@@ -101,8 +132,10 @@ class Scenario:
 
 
 def sumo_args(scenario: Scenario, config: EnvConfig, route_file: Path, seed: int) -> list[str]:
-    """SUMO command line (without the binary) for one episode."""
+    """SUMO command line (without the binary) for one episode. A .sumocfg is SUMO's own
+    configuration (additional files, begin, TLS programs, ...); these options override it."""
     return [
+        *(("-c", str(scenario.sumocfg)) if scenario.sumocfg else ()),
         "--net-file", str(scenario.net_file),
         "--route-files", str(route_file),
         "--step-length", f"{config.step_length}",

@@ -18,8 +18,9 @@ from mixed_traffic.world.scenario import OwnVehicle, Route, Scenario
 
 #: Fringe origin/destination pairs kept for a bare network (enough for route choice, few routes).
 MAX_OD_PAIRS = 12
-#: Horizon [s] for flows without an ``end`` (SUMO's default end is effectively unbounded).
-DEFAULT_FLOW_END = 3600.0
+#: End [s] of flows without an ``end`` when the configuration has none either (SUMO's default:
+#: 24 h); only the departures within an episode become vehicles (``Scenario.own_in_episode``).
+DEFAULT_FLOW_END = 86400.0
 
 
 def load_user_scenario(path: Path) -> Scenario:
@@ -170,8 +171,14 @@ def _from_sumocfg(path: Path) -> Scenario:
     seed = int(_cfg_value(root, "seed") or 0)
     routes: list[Route] = []
     own: list[OwnVehicle] = []
+    vtypes: list[str] = []
+    begin, end = (_seconds(root, path, key) for key in ("begin", "end"))
+    rng = np.random.default_rng(seed)
     for rf in route_files:
-        _read_routes(_parse(rf, "route file"), rf, net, routes, own, np.random.default_rng(seed))
+        rroot = _parse(rf, "route file")
+        _read_routes(rroot, rf, net, routes, own, rng, end or DEFAULT_FLOW_END)
+        vtypes += [ET.tostring(el, encoding="unicode") for el in rroot
+                   if el.tag in ("vType", "vTypeDistribution")]  # fmt: skip
     if not own:
         raise ValueError(f"SUMO configuration {path}: its route files define no vehicles")
     return Scenario(
@@ -185,7 +192,22 @@ def _from_sumocfg(path: Path) -> Scenario:
         lanes=net.common_lanes(),
         sumocfg=path.resolve(),
         own_vehicles=tuple(own),
+        vtypes=tuple(vtypes),
+        begin=begin or 0.0,
+        step_length=_seconds(root, path, "step-length"),
+        end=None if end is None else end - (begin or 0.0),
     )
+
+
+def _seconds(root: ET.Element, path: Path, key: str) -> float | None:
+    """A time option of the configuration [s] (SUMO's plain seconds), None if absent."""
+    value = _cfg_value(root, key)
+    if not value:
+        return None
+    try:
+        return float(value)
+    except ValueError:
+        raise ValueError(f"SUMO configuration {path}: {key}={value!r} is not in seconds") from None
 
 
 def _route_index(routes: list[Route], route: Route) -> int:
@@ -223,16 +245,18 @@ def _read_routes(
     routes: list[Route],
     own: list[OwnVehicle],
     rng: np.random.Generator,
+    flow_end: float,
 ) -> None:
     named = {r.get("id", ""): tuple(r.get("edges", "").split()) for r in root.findall("route")}
     for el in root:
+        vtype = el.get("type", "")
         if el.tag in ("vehicle", "trip"):
             r = _route_index(routes, _route_of(el, named, net, source))
-            own.append(OwnVehicle(el.get("id", ""), _depart(el, source), r))
+            own.append(OwnVehicle(el.get("id", ""), _depart(el, source), r, vtype))
         elif el.tag == "flow":
             r = _route_index(routes, _route_of(el, named, net, source))
-            for k, t in enumerate(_flow_departures(el, source, rng)):
-                own.append(OwnVehicle(f"{el.get('id')}.{k}", t, r))
+            for k, t in enumerate(_flow_departures(el, source, rng, flow_end)):
+                own.append(OwnVehicle(f"{el.get('id')}.{k}", t, r, vtype))
 
 
 def _depart(el: ET.Element, source: Path) -> float:
@@ -245,10 +269,12 @@ def _depart(el: ET.Element, source: Path) -> float:
         raise ValueError(f"{source}: {el.get('id')!r} has depart={value!r}") from None
 
 
-def _flow_departures(el: ET.Element, source: Path, rng: np.random.Generator) -> list[float]:
+def _flow_departures(
+    el: ET.Element, source: Path, rng: np.random.Generator, default_end: float
+) -> list[float]:
     """Departure times of a ``<flow>``, as SUMO defines number / period / vehsPerHour / probability."""
     begin = float(el.get("begin", 0.0))
-    end = float(el.get("end", DEFAULT_FLOW_END))
+    end = float(el.get("end", default_end))
     if el.get("number"):
         n = int(el.get("number", 0))
         period = float(el.get("period") or ((end - begin) / n if n else 1.0))
