@@ -40,7 +40,8 @@ def _netconvert(folder: Path, edges: str, name: str) -> Path:
 
 
 def _episode(net: Path, **kw) -> dict:
-    cfg = EnvConfig(scenario=str(net), penetration=0.5, episode_length=25.0, seed=0, **kw)
+    cfg = EnvConfig(**{"scenario": str(net), "penetration": 0.5, "episode_length": 25.0,
+                       "seed": 0, **kw})  # fmt: skip
     return run_episode(cfg, "acc-lc", warmup=0.0)
 
 
@@ -138,3 +139,44 @@ def test_a_sumocfg_runs_as_sumo_would_run_it(tmp_path: Path) -> None:
     for vid, vtype in types.items():  # each keeps its type; "plain" has none: SUMO's default
         assert vtype == {"cars": "car", "trucks": "truck"}.get(vid.split(".")[0], "DEFAULT_VEHTYPE")
     assert "loop0" in (tmp_path / "loops.xml").read_text()  # the additional file ran
+
+
+def test_acc_lc_gives_way_at_unsignalised_junctions(tmp_path: Path) -> None:
+    """Right of way from SUMO: the camera shows a give-way line, red while SUMO holds the AV's
+    link closed (issue 24, part 3). Without it this episode had 4 collisions at junctions."""
+    net = _netgenerate(tmp_path / "grid.net.xml")
+    hd = load_scenario(str(net)).hdmap
+    assert hd.lane_yields.any(), "netgenerate's priority junctions have minor links"
+    record = _episode(net, density=30.0, seed=2, episode_length=60.0)
+    m = record["metrics"]
+    assert m["av_trips"] >= 15 and m["collisions"] == 0 and m["terminal_collision"] == 0
+
+
+def test_avs_derive_from_a_sumocfg_type_of_another_class(tmp_path: Path) -> None:
+    """A file with only racing cars of class vip on vip-only lanes: the AVs are vip cars the
+    size of the racing type, and the lanes are theirs (issue 24, part 2)."""
+    net = _netconvert(tmp_path, '<edge id="AB" from="A" to="B" numLanes="2" speed="40" '
+                      'allow="vip"/><edge id="BC" from="B" to="C" numLanes="2" speed="40" '
+                      'allow="vip"/>', "track.net.xml")  # fmt: skip
+    (tmp_path / "race.rou.xml").write_text(
+        '<routes><vType id="racecar" vClass="vip" length="4.2" width="2.0" minGap="1"/>'
+        '<flow id="cars" type="racecar" begin="0" end="20" period="1" from="AB" to="BC"/>'
+        "</routes>"
+    )
+    cfg = tmp_path / "race.sumocfg"
+    cfg.write_text(f'<configuration><input><net-file value="{net.name}"/><route-files '
+                   'value="race.rou.xml"/></input></configuration>')  # fmt: skip
+    with pytest.raises(ValueError, match="no lane that passenger cars may use"):
+        load_scenario(str(net))  # a bare network gets passenger cars
+    sc = load_scenario(str(cfg))
+    assert (sc.vclass, sc.av_size) == ("vip", (4.2, 2.0)) and sc.hdmap.lane_car.any()
+    env = parallel_env(scenario=str(cfg), penetration=0.5, episode_length=20.0)
+    assert (env.config.vehicle.length, env.config.vehicle.width) == (4.2, 2.0)
+    env.reset(seed=0)
+    assert env._backend._api.vehicletype.getVehicleClass("av") == "vip"
+    seen = set()
+    while env.agents:
+        seen |= set(env.agents)
+        env.step({a: {"decision": 1, "params": np.zeros((3, 2), np.float32)} for a in env.agents})
+    env.close()
+    assert len(seen) >= 5

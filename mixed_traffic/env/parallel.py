@@ -81,6 +81,7 @@ from mixed_traffic.env.truth import (
 )
 from mixed_traffic.paths import scratch_dir
 from mixed_traffic.schema import METRICS
+from mixed_traffic.sensing.camera import GREEN, NO_LIGHT, RED
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import ttc
 from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
@@ -193,7 +194,8 @@ class MixedTrafficEnv(ParallelEnv):
         demand_seed, sumo_seed, noise_seed = np.random.SeedSequence(int(seed)).generate_state(3)
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
         route_file = Path(self._tmp) / "demand.rou.xml"
-        write_demand(demand, cfg, route_file, self.sumo_drives_avs, self.scenario.vtypes)
+        sc = self.scenario
+        write_demand(demand, cfg, route_file, self.sumo_drives_avs, sc.vtypes, sc.vclass)
         self._backend.start(sumo_args(self.scenario, cfg, route_file, seed=int(sumo_seed) % 2**31))
         self._boundary = PeriodicBoundary.for_demand(
             self.scenario, demand, cfg.human, cfg.step_length, cfg.fixed_fleet
@@ -331,7 +333,21 @@ class MixedTrafficEnv(ParallelEnv):
         r = rows.r
         nxt = self._table.next_edge(rows.slots, snap.route_index[r])
         tls = [self._tls[t] for t in self._perception.tls_ids]
-        return self._perception.sense(snap, r, nxt, tls, self._noise_rng)
+        return self._perception.sense(snap, r, nxt, tls, self._noise_rng, self._gates(snap, rows))
+
+    def _gates(self, snap: TrafficSnapshot, rows: Rows) -> np.ndarray:
+        """(A,) camera code of the give-way line ahead (``camera.give_way``) of agents within
+        camera range of an unsignalised junction where their lane yields; SUMO is asked only
+        for those whether their next link is open."""
+        hd, lane = self.hdmap, snap.lane[rows.r]
+        safe = np.maximum(lane, 0)
+        to_end = hd.lane_length[safe] - snap.lane_pos[rows.r]
+        near = (lane >= 0) & hd.lane_yields[safe] & (to_end <= self.config.sensors.camera_range)
+        out = np.full(len(lane), NO_LIGHT, dtype=np.int8)
+        if near.any():
+            idx = np.flatnonzero(near)
+            out[idx] = np.where(self._backend.must_yield([rows.ids[i] for i in idx]), RED, GREEN)
+        return out
 
     def _events(self, snap: TrafficSnapshot, rows: Rows, cmd) -> dict[str, str]:
         """'arrived', a terminal reason, or '' for every agent that acted."""

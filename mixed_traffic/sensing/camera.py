@@ -53,3 +53,17 @@ def traffic_lights(
     pos = snap.lane_pos[rows][:, None] * ratio
     dist = np.where(ok, np.maximum(hd.lane_length[lsafe] - pos, 0.0), np.inf)
     return state.astype(np.int8), dist
+
+
+def give_way(
+    hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray, lane: np.ndarray, gate: np.ndarray,
+    state: np.ndarray, dist: np.ndarray,
+) -> None:  # fmt: skip
+    """Mark in place the stop line at the end of each agent's current lane where it must give
+    way (``gate`` (A,): RED while SUMO's junction model holds the link closed, GREEN while it is
+    open, NO_LIGHT elsewhere) unless a nearer signal is seen: right of way as SUMO rules it."""
+    ok = (gate != NO_LIGHT) & (lane >= 0)
+    to_end = hd.lane_length[np.maximum(lane, 0)] - snap.lane_pos[rows]
+    mark = ok & ((state[:, CURRENT] == NO_LIGHT) | (to_end < dist[:, CURRENT]))
+    state[mark, CURRENT] = gate[mark]
+    dist[mark, CURRENT] = np.maximum(to_end[mark], 0.0)

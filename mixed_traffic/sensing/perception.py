@@ -58,10 +58,10 @@ from collections.abc import Sequence
 import numpy as np
 
 from mixed_traffic.config import SensorConfig
-from mixed_traffic.sensing.camera import NO_LIGHT, traffic_lights
+from mixed_traffic.sensing.camera import NO_LIGHT, give_way, traffic_lights
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.gnss import ego_features
-from mixed_traffic.sensing.lane_graph import lane_graph
+from mixed_traffic.sensing.lane_graph import CURRENT, lane_graph
 from mixed_traffic.sensing.lidar import vehicle_features
 from mixed_traffic.sensing.neighbours import find_neighbours
 from mixed_traffic.sensing.noise import WEATHER_PRESETS, WeatherPreset, degrade, noise_draws
@@ -100,6 +100,7 @@ class Perception:
         next_edge: np.ndarray,
         tls_states: Sequence[str],
         rng: np.random.Generator,
+        gates: np.ndarray | None = None,
     ) -> tuple[PerceptionFrame, PerceptionFrame]:
         """Ground truth and sensed frames for the agents at snapshot ``rows`` (A,).
 
@@ -107,6 +108,9 @@ class Perception:
             next_edge: (A,) next route edge row of each agent, -1 on its last edge.
             tls_states: state strings of ``self.tls_ids`` (``backend.tls_states``).
             rng: the env's generator; the only source of randomness.
+            gates: (A,) int8 camera code of the stop line where the agent's lane gives way at an
+                unsignalised junction: RED while SUMO holds the link closed, GREEN while open,
+                NO_LIGHT where the lane has none (``camera.give_way``).
         Returns:
             ``(truth, sensed)``; truth uses the nominal ranges and no noise. ``sensed is truth``
             when ``sensors.noise`` is False.
@@ -117,6 +121,8 @@ class Perception:
         state, dist = traffic_lights(
             self.graph, self.hdmap, snap, rows, nb.lane, next_edge, tls_states
         )
+        if gates is not None and (gates != NO_LIGHT).any():
+            give_way(self.hdmap, snap, rows, nb.lane[:, CURRENT], gates, state, dist)
         cam = self.sensors.camera_range
         state = np.where(dist <= cam, state, NO_LIGHT).astype(np.int8)
         dist = np.where(state != NO_LIGHT, dist, np.inf)

@@ -490,6 +490,16 @@ class SumoBackend:
         get = self._api.trafficlight.getRedYellowGreenState
         return [get(t) for t in tls_ids]
 
+    def must_yield(self, vehicle_ids: Sequence[str]) -> np.ndarray:
+        """(N,) bool: SUMO holds the vehicle's next link closed for it (a foe has the right of
+        way at a minor link, a stop sign not yet served); False without a next link."""
+        links = self._api.vehicle.getNextLinks
+        out = np.zeros(len(vehicle_ids), dtype=bool)
+        for i, vid in enumerate(vehicle_ids):
+            nxt = links(vid)
+            out[i] = bool(nxt) and not nxt[0][2]  # (lane, has priority, is open, has foe, ...)
+        return out
+
     def tls_links(self, tls_id: str) -> list[list[tuple[str, str, str]]]:
         """For each link index: the (incoming lane, outgoing lane, via lane) triples it controls."""
         return [

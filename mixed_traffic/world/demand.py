@@ -379,12 +379,14 @@ def write_demand(
     path: Path,
     avs_as_humans: bool = False,
     vtypes: tuple[str, ...] = (),
+    av_class: str = "passenger",
 ) -> None:
     """Write vehicle types and the planned vehicles as a SUMO route file (``avs_as_humans``: the
     AV-labelled vehicles get the human drivers' types, for the all-human reference; ``vtypes``:
-    a user's vType elements as XML text, for its own vehicles)."""
+    a user's vType elements as XML text, for its own vehicles; ``av_class``: the AVs' SUMO
+    vehicle class)."""
     root = ET.Element("routes")
-    add_vehicle_types(root, config.human, config.vehicle, avs_as_humans)
+    add_vehicle_types(root, config.human, config.vehicle, avs_as_humans, av_class)
     root.extend(ET.fromstring(t) for t in vtypes)
     for i, r in enumerate(demand.routes):
         ET.SubElement(root, "route", id=f"r{i}", edges=" ".join(r.edges or (r.origin,)))

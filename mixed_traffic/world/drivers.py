@@ -60,8 +60,9 @@ def _human_attrs(human: HumanConfig, vehicle: VehicleConfig) -> dict[str, str]:
 
 
 def add_vehicle_types(root: ET.Element, human: HumanConfig, vehicle: VehicleConfig,
-                      avs_as_humans: bool = False) -> None:  # fmt: skip
-    """Add the human ``vTypeDistribution`` and the AV ``vType`` to a route file's root.
+                      avs_as_humans: bool = False, av_class: str = "passenger") -> None:  # fmt: skip
+    """Add the human ``vTypeDistribution`` and the AV ``vType`` (of SUMO class ``av_class``)
+    to a route file's root.
 
     ``avs_as_humans``: the AV type is a copy of the human population (the all-human reference,
     where SUMO drives the AV-labelled vehicles too)."""
@@ -74,7 +75,7 @@ def add_vehicle_types(root: ET.Element, human: HumanConfig, vehicle: VehicleConf
                           tau=f"{headway:.3f}", accel=f"{accel:.3f}", **attrs)  # fmt: skip
     if not avs_as_humans:
         ET.SubElement(
-            root, "vType", id=AV_TYPE, vClass="passenger", carFollowModel="IDM",
+            root, "vType", id=AV_TYPE, vClass=av_class, carFollowModel="IDM",
             accel=f"{vehicle.max_accel}", decel=f"{vehicle.max_decel}", emergencyDecel="9.0",
             tau=f"{human.headway}", minGap=f"{human.min_gap}", length=f"{vehicle.length}",
             width=f"{vehicle.width}", speedFactor="1", laneChangeModel="SL2015",

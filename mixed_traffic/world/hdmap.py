@@ -26,9 +26,11 @@ import sumolib.net
 from mixed_traffic.paths import cache_dir
 
 SPACING = 1.0  # waypoint spacing along the centreline [m]
-_CACHE_VERSION = "hdmap-v3"  # v2: read with sumolib; v3: lane permissions
+_CACHE_VERSION = "hdmap-v4"  # v2: read with sumolib; v3: lane permissions; v4: yield links
+YIELD_STATES = frozenset("m=swZ")
+"""SUMO link states that give way to foes (minor, equal, stop, all-way stop, zipper)."""
 CAR = "passenger"
-"""The vehicle class of every car in the env (humans and AVs): lanes are usable by it or not."""
+"""The vehicle class of the env's cars (a .sumocfg may give its AVs another one)."""
 
 
 @dataclass
@@ -49,8 +51,11 @@ class HDMap:
     lane_speed: np.ndarray
     """(L,) speed limit [m/s]."""
     lane_car: np.ndarray
-    """(L,) bool: SUMO's permissions let vClass ``passenger`` use the lane (not a sidewalk,
-    bike, bus or rail lane)."""
+    """(L,) bool: SUMO's permissions let the AVs' vClass use the lane (``passenger``, or a
+    .sumocfg's own class): not a sidewalk, bike, bus or rail lane."""
+    lane_yields: np.ndarray
+    """(L,) bool: a connection at the lane's end must give way (SUMO link state m, =, s, w or
+    Z: a minor road, an all-way stop, a stop sign, right before left, a zipper merge)."""
     lane_next: np.ndarray
     """(L,) int32 primary successor lane row (via the junction lane if any; a car lane's is a
     car lane), -1 at a dead end."""
@@ -210,19 +215,20 @@ class HDMap:
 
 
 # --------------------------------------------------------------------------- building
-def load_hdmap(net_file: str | Path) -> HDMap:
-    """HD map of ``net_file``, from the cache when the file is unchanged."""
+def load_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
+    """HD map of ``net_file`` for AVs of ``vclass``, from the cache when the file is unchanged."""
     net_file = Path(net_file)
     if not net_file.is_file():
         raise FileNotFoundError(f"network file {net_file} does not exist")
-    digest = hashlib.sha256(net_file.read_bytes() + _CACHE_VERSION.encode()).hexdigest()[:20]
+    key = net_file.read_bytes() + _CACHE_VERSION.encode() + vclass.encode()
+    digest = hashlib.sha256(key).hexdigest()[:20]
     cache = cache_dir("hdmap") / f"{digest}.npz"
     if cache.exists():
         try:
             return _from_npz(cache, str(net_file))
         except (OSError, KeyError, ValueError):
             cache.unlink(missing_ok=True)  # corrupt cache: rebuild
-    hdmap = build_hdmap(net_file)
+    hdmap = build_hdmap(net_file, vclass)
     _to_npz(hdmap, cache)
     return hdmap
 
@@ -275,8 +281,9 @@ def _root_of(net_file: str | Path) -> tuple[str, bool]:
         return root.tag, event == "end" and elem is root
 
 
-def build_hdmap(net_file: str | Path) -> HDMap:
-    """Read a .net.xml (or .net.xml.gz) with sumolib and sample every lane centreline at 1 m."""
+def build_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
+    """Read a .net.xml (or .net.xml.gz) with sumolib and sample every lane centreline at 1 m;
+    ``lane_car`` holds SUMO's permissions for ``vclass``."""
     lanes, lane_edge, edge_ids, edge_lane_rows, edge_row = _lane_table(read_net(net_file))
     if not edge_ids:
         raise NetFileError(f"network file {net_file} contains no edges", "edges", "")
@@ -286,8 +293,9 @@ def build_hdmap(net_file: str | Path) -> HDMap:
     edge_lanes = np.full((len(edge_ids), kmax), -1, dtype=np.int32)
     for e, rows in enumerate(edge_lane_rows):
         edge_lanes[e, : len(rows)] = rows
-    lane_car = np.array([lane.allows(CAR) for lane in lanes], dtype=bool)
+    lane_car = np.array([lane.allows(vclass) for lane in lanes], dtype=bool)
     lane_next, conn_to, tls_links = _connections(lanes, lane_ids, lane_edge, edge_row, lane_car)
+    yields = np.array([any(c.getState() in YIELD_STATES for c in ln.getOutgoing()) for ln in lanes])
     samples = [_sample(np.reshape(ln.getShape3D(), (-1, 3)), ln.getLength()) for ln in lanes]
     counts = np.array([len(pts) for pts, _ in samples], dtype=np.int64)
     return HDMap(
@@ -299,6 +307,7 @@ def build_hdmap(net_file: str | Path) -> HDMap:
         lane_width=np.array([lane.getWidth() for lane in lanes]),
         lane_speed=np.array([lane.getSpeed() for lane in lanes]),
         lane_car=lane_car,
+        lane_yields=yields & (np.asarray(lane_edge) >= 0),
         lane_next=lane_next,
         edge_ids=edge_ids,
         edge_lanes=edge_lanes,
@@ -395,6 +404,7 @@ _ARRAYS = [
     "lane_width",
     "lane_speed",
     "lane_car",
+    "lane_yields",
     "lane_next",
     "edge_lanes",
     "edge_length",

@@ -68,6 +68,10 @@ class Scenario:
     the whole episode, nobody enters or leaves."""
     own_vehicles: tuple[OwnVehicle, ...] = ()
     """A user's .sumocfg vehicles: used instead of generated demand (see ``user_scenario``)."""
+    vclass: str = "passenger"
+    """SUMO vehicle class of the AVs: the lanes they may use (``HDMap.lane_car``)."""
+    av_size: tuple[float, float] | None = None
+    """(length, width) [m] of a .sumocfg's AVs, from the type they derive from."""
     vtypes: tuple[str, ...] = ()
     """A user's vType / vTypeDistribution elements from its route files, as XML text (they go
     into the episode's route file; those of additional files SUMO loads itself)."""
@@ -87,7 +91,7 @@ class Scenario:
 
     @property
     def hdmap(self) -> HDMap:
-        return load_hdmap(self.net_file)
+        return load_hdmap(self.net_file, self.vclass)
 
     @property
     def measurement_length(self) -> float:
@@ -118,8 +122,11 @@ class Scenario:
                 "drives its own vehicles (scale their flows in its route files instead)"
             )
         length = config.episode_length if self.end is None else min(config.episode_length, self.end)
+        vehicle = config.vehicle
+        if self.av_size is not None:  # AVs the size of the file's type they derive from
+            vehicle = replace(vehicle, length=self.av_size[0], width=self.av_size[1])
         return replace(config, step_length=self.step_length or config.step_length,
-                       episode_length=length)  # fmt: skip
+                       episode_length=length, vehicle=vehicle)  # fmt: skip
 
     def check_density(self, density: float) -> None:
         """Raise ``ValueError`` unless 0 < ``density`` [veh/km] <= the jam density."""

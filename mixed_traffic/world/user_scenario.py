@@ -48,7 +48,7 @@ def _parse(path: Path, what: str) -> ET.Element:
 class _Net:
     """Normal edges and their successor graph, read with sumolib from a .net.xml."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, vclass: str = CAR) -> None:
         if not path.is_file():
             raise ValueError(f"network file {path} does not exist")
         try:
@@ -64,21 +64,24 @@ class _Net:
                   if e.getFunction() not in ("internal", "walkingarea", "crossing")]  # fmt: skip
         if not normal:
             raise ValueError(f"network file {path} contains no edges")
-        edges = [e for e in normal if any(ln.allows(CAR) for ln in e.getLanes())]
+        edges = [e for e in normal if any(ln.allows(vclass) for ln in e.getLanes())]
         if not edges:
+            what = "passenger cars" if vclass == CAR else "the AVs"
             raise ValueError(
-                f"network file {path} has no lane that passenger cars may use (vClass "
-                f"{CAR!r}; its lanes allow only e.g. pedestrians, bicycles or rail)"
+                f"network file {path} has no lane that {what} may use (vClass {vclass!r}; its "
+                "lanes allow only e.g. pedestrians, bicycles or rail)"
             )
         self.path = path
         # lanes cars may use, per edge (sidewalks and bike lanes do not count for density)
         self.lanes: dict[str, int] = {
-            e.getID(): sum(ln.allows(CAR) for ln in e.getLanes()) for e in edges
+            e.getID(): sum(ln.allows(vclass) for ln in e.getLanes()) for e in edges
         }
         self.nodes: dict[str, tuple[str, str]] = {
             e.getID(): (e.getFromNode().getID(), e.getToNode().getID()) for e in edges
         }
-        self.succ: dict[str, set[str]] = {e.getID(): _car_successors(e, self.lanes) for e in edges}
+        self.succ: dict[str, set[str]] = {
+            e.getID(): _car_successors(e, self.lanes, vclass) for e in edges
+        }
 
     def reachable(self, start: str) -> set[str]:
         seen, todo = {start}, deque([start])
@@ -104,14 +107,14 @@ class _Net:
         return Counter(self.lanes.values()).most_common(1)[0][0]
 
 
-def _car_successors(edge, car_edges: dict[str, int]) -> set[str]:
-    """Edges a car can reach from ``edge`` through one junction: a connection from a lane
-    cars may use to one they may use (SUMO's permissions)."""
+def _car_successors(edge, car_edges: dict[str, int], vclass: str) -> set[str]:
+    """Edges a car of ``vclass`` can reach from ``edge`` through one junction: a connection
+    between lanes it may use (SUMO's permissions)."""
     return {
         to.getID()
         for to, conns in edge.getOutgoing().items()
         if to.getID() in car_edges
-        and any(c.getFromLane().allows(CAR) and c.getToLane().allows(CAR) for c in conns)
+        and any(c.getFromLane().allows(vclass) and c.getToLane().allows(vclass) for c in conns)
     }
 
 
@@ -162,23 +165,22 @@ def _from_sumocfg(path: Path) -> Scenario:
     if not net_value:
         raise ValueError(f"SUMO configuration {path} has no net-file")
     net_path = (path.parent / net_value).resolve()
-    net = _Net(net_path)
     route_files = [
         (path.parent / f.strip()).resolve()
         for f in _cfg_value(root, "route-files").split(",")
         if f.strip()
     ]
+    roots = [(rf, _parse(rf, "route file")) for rf in route_files]
+    types = [el for _, r in roots for el in r if el.tag in ("vType", "vTypeDistribution")]
+    vclass, size = _av_template(types, [el for _, r in roots for el in r])
+    net = _Net(net_path, vclass)
     seed = int(_cfg_value(root, "seed") or 0)
     routes: list[Route] = []
     own: list[OwnVehicle] = []
-    vtypes: list[str] = []
     begin, end = (_seconds(root, path, key) for key in ("begin", "end"))
     rng = np.random.default_rng(seed)
-    for rf in route_files:
-        rroot = _parse(rf, "route file")
+    for rf, rroot in roots:
         _read_routes(rroot, rf, net, routes, own, rng, end or DEFAULT_FLOW_END)
-        vtypes += [ET.tostring(el, encoding="unicode") for el in rroot
-                   if el.tag in ("vType", "vTypeDistribution")]  # fmt: skip
     if not own:
         raise ValueError(f"SUMO configuration {path}: its route files define no vehicles")
     return Scenario(
@@ -192,11 +194,39 @@ def _from_sumocfg(path: Path) -> Scenario:
         lanes=net.common_lanes(),
         sumocfg=path.resolve(),
         own_vehicles=tuple(own),
-        vtypes=tuple(vtypes),
+        vclass=vclass,
+        av_size=size,
+        vtypes=tuple(ET.tostring(el, encoding="unicode") for el in types),
         begin=begin or 0.0,
         step_length=_seconds(root, path, "step-length"),
         end=None if end is None else end - (begin or 0.0),
     )
+
+
+#: SUMO's default vType (a vehicle without ``type``): class, length and width [m].
+_DEFAULT_TYPE = (CAR, 5.0, 1.8)
+
+
+def _av_template(types: list[ET.Element], vehicles: list[ET.Element]) -> tuple[str, tuple]:
+    """(vClass, (length, width) [m]) of the type the AVs derive from: the file's most used
+    passenger type, else its most used type of any class (e.g. only racing cars)."""
+    defs: dict[str, ET.Element] = {}
+    for el in types:  # a distribution stands for its first member
+        first = el if el.tag == "vType" else next(iter(el.findall("vType")), None)
+        if first is not None:
+            defs[el.get("id", "")] = first
+    used = Counter(v.get("type", "") for v in vehicles if v.tag in ("vehicle", "trip", "flow"))
+
+    def spec(type_id: str) -> tuple[str, float, float]:
+        el = defs.get(type_id)
+        if el is None:
+            return _DEFAULT_TYPE
+        return (el.get("vClass", CAR), float(el.get("length", _DEFAULT_TYPE[1])),
+                float(el.get("width", _DEFAULT_TYPE[2])))  # fmt: skip
+
+    ranked = [spec(t) for t, _ in used.most_common()] or [_DEFAULT_TYPE]
+    vclass, length, width = next((s for s in ranked if s[0] == CAR), ranked[0])
+    return vclass, (length, width)
 
 
 def _seconds(root: ET.Element, path: Path, key: str) -> float | None:
