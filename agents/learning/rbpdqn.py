@@ -20,6 +20,10 @@ steering error 0.45° on demonstrator states, 3-5° on the agent's own).
 Deviation from the paper's printed actor loss: it puts the behaviour-cloning term inside the
 negated sum, which would *reward* drifting from the data; as in TD3+BC (the cited source) the
 regulariser is added: L_a = −Σ_p α·Q(s, p, u_p(s))/AvgQ + Σ_p ‖u_p(s) − a_p‖².
+
+Speed (issue 22; ``python -m mixed_traffic.bench --section learner``): Adam is fused, clipping
+and soft updates are foreach ops, and ``compile=True`` runs the two losses through
+``torch.compile``.
 """
 
 from __future__ import annotations
@@ -75,16 +79,25 @@ class LearnerConfig:
 
 
 def _soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
-    """target ← (1 − τ)·target + τ·source, in place."""
+    """target ← (1 − τ)·target + τ·source, in place (one foreach op: same values as a loop)."""
     with torch.no_grad():
-        for t, s in zip(target.parameters(), source.parameters(), strict=True):
-            t.lerp_(s, tau)
+        torch._foreach_lerp_(list(target.parameters()), list(source.parameters()), tau)
+
+
+def _fused_adam(opt: torch.optim.Optimizer) -> None:
+    """Use the fused Adam kernel (one op for all parameters instead of ~10 per parameter; same
+    update up to rounding). Also after ``load_state_dict``, which restores the saved flags."""
+    for group in opt.param_groups:
+        group["foreach"], group["fused"] = None, True
 
 
 class RBPDQN:
     """Actor, critic, their targets and optimisers; :meth:`update` does one gradient step each."""
 
-    def __init__(self, lca: LCAConfig, cfg: LearnerConfig | None = None, seed: int = 0) -> None:
+    def __init__(
+        self, lca: LCAConfig, cfg: LearnerConfig | None = None, seed: int = 0, compile: bool = False
+    ) -> None:
+        """``compile``: run the losses through ``torch.compile`` (see :meth:`_losses`)."""
         self.lca_cfg = lca
         self.cfg = cfg or LearnerConfig()
         # Parameter init is the only randomness in the learner; seed it without touching the
@@ -95,9 +108,11 @@ class RBPDQN:
             self.critic = Critic(lca)
         self.actor_targ = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_targ = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.lr)
-        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.lr, fused=True)
+        self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.lr, fused=True)
         self.steps = 0
+        self.compile = compile
+        self._compiled: tuple | None = None
 
     def td_target(self, batch: dict) -> Tensor:
         """y (B,) = r + γ(1 − done)·max over unmasked next decisions of Q_targ(s', p, u_targ(s'))."""
@@ -158,23 +173,16 @@ class RBPDQN:
 
     def update(self, batch: dict) -> dict[str, float]:
         """One critic step, one actor step (critic frozen), soft target update. → losses."""
-        c_loss = self.critic_loss(batch)
-        self.critic_opt.zero_grad(set_to_none=True)
-        c_loss.backward()
-        c_norm = nn.utils.clip_grad_norm_(self.critic.parameters(), self.cfg.grad_clip)
-        self.critic_opt.step()
-
+        critic_loss, actor_loss = self._losses()
+        c_loss = critic_loss(batch)
+        c_norm = self._step(c_loss, self.critic, self.critic_opt)
         # Freeze the critic so the actor loss does not build critic parameter gradients.
         self.critic.requires_grad_(False)
         try:
-            a_loss = self.actor_loss(batch)
-            self.actor_opt.zero_grad(set_to_none=True)
-            a_loss.backward()
-            a_norm = nn.utils.clip_grad_norm_(self.actor.parameters(), self.cfg.grad_clip)
-            self.actor_opt.step()
+            a_loss = actor_loss(batch)
+            a_norm = self._step(a_loss, self.actor, self.actor_opt)
         finally:
             self.critic.requires_grad_(True)
-
         _soft_update(self.critic_targ, self.critic, self.cfg.tau)
         _soft_update(self.actor_targ, self.actor, self.cfg.tau)
         self.steps += 1
@@ -184,6 +192,25 @@ class RBPDQN:
             "critic_grad_norm": float(c_norm),
             "actor_grad_norm": float(a_norm),
         }
+
+    def _losses(self) -> tuple:
+        """(critic_loss, actor_loss), compiled on first use with ``compile``: inductor fuses
+        each GRU step's elementwise ops (and their backward) into one kernel, ~1.4x the eager
+        updates/s, after a one-off compile (~40-60 s; seconds with a warm inductor cache;
+        changing ``cfg`` values recompiles once per new value)."""
+        if not self.compile:
+            return self.critic_loss, self.actor_loss
+        if self._compiled is None:
+            self._compiled = (torch.compile(self.critic_loss), torch.compile(self.actor_loss))
+        return self._compiled
+
+    def _step(self, loss: Tensor, net: nn.Module, opt: torch.optim.Optimizer) -> Tensor:
+        """Backward, clip to ``grad_clip``, optimiser step. → gradient norm before clipping."""
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        norm = nn.utils.clip_grad_norm_(net.parameters(), self.cfg.grad_clip, foreach=True)
+        opt.step()
+        return norm
 
     def state_dict(self) -> dict:
         """Tensors and plain values only (loadable with ``torch.load(weights_only=True)``)."""
@@ -205,6 +232,8 @@ class RBPDQN:
         self.actor_opt.load_state_dict(sd["actor_opt"])
         self.critic_opt.load_state_dict(sd["critic_opt"])
         self.set_lr(self.cfg.lr)  # the config's rate, not the saved one
+        _fused_adam(self.actor_opt)
+        _fused_adam(self.critic_opt)
         self.steps = int(sd["steps"])
 
     def set_lr(self, lr: float) -> None:

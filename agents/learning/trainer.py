@@ -119,7 +119,9 @@ class Trainer:
         self.env_base = env_base_config(cfg, env_base)
         self.lca = lca_config(cfg, self.env_base)
         torch.set_num_threads(cfg.learner_threads)
-        self.learner = RBPDQN(self.lca, _learner_config(cfg), seed=cfg.seed)
+        self.learner = RBPDQN(
+            self.lca, _learner_config(cfg), seed=cfg.seed, compile=cfg.learner_compile
+        )
         self.replay = ReplayBuffer(cfg.replay_capacity, self.lca)
         self.rng = np.random.default_rng([cfg.seed, 7])
         self.c: dict[str, Any] = _fresh_counters(cfg)

@@ -124,20 +124,21 @@ class HistoryGRU(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         """x (N, z, F) → h_z (N, D)."""
-        d = self.d
-        gi = torch.nn.functional.linear(x, self.w_ih, self.b_ih)  # (N, z, 3D)
+        # unbind/split instead of slicing: their backward is a stack/cat, whereas each slice's
+        # backward allocates and zero-fills a full-size gradient.
+        sizes = (2 * self.d, self.d)
+        steps = torch.nn.functional.linear(x, self.w_ih, self.b_ih).unbind(1)  # z × (N, 3D)
+        b_rz, b_n = self.b_hh.split(sizes)
         # Step 0 with h = 0: gh = b_hh.
-        g = gi[:, 0]
-        rz = torch.sigmoid(g[:, : 2 * d] + self.b_hh[: 2 * d])
-        r, u = rz[:, :d], rz[:, d:]
-        n = fast_tanh(g[:, 2 * d :] + r * self.b_hh[2 * d :])
+        g_rz, g_n = steps[0].split(sizes, dim=1)
+        r, u = torch.sigmoid(g_rz + b_rz).chunk(2, dim=1)
+        n = fast_tanh(g_n + r * b_n)
         h = n - u * n  # (1 - u)·n + u·0
-        for t in range(1, x.shape[1]):
-            g = gi[:, t]
-            gh = torch.addmm(self.b_hh, h, self.w_hh.t())
-            rz = torch.sigmoid(g[:, : 2 * d] + gh[:, : 2 * d])
-            r, u = rz[:, :d], rz[:, d:]
-            n = fast_tanh(g[:, 2 * d :] + r * gh[:, 2 * d :])
+        for g in steps[1:]:
+            g_rz, g_n = g.split(sizes, dim=1)
+            gh_rz, gh_n = torch.addmm(self.b_hh, h, self.w_hh.t()).split(sizes, dim=1)
+            r, u = torch.sigmoid(g_rz + gh_rz).chunk(2, dim=1)
+            n = fast_tanh(g_n + r * gh_n)
             h = n + u * (h - n)  # (1 - u)·n + u·h
         return h
 

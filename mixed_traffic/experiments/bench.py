@@ -16,7 +16,8 @@ snapshot adds ≤ 30 % to a raw step. Sections are functions in ``SECTIONS`` so 
 theirs.
 
 Section ``env`` is in ``bench_env``, ``soak`` (memory over a 600 s episode) in ``bench_soak``;
-``inference`` times AUTO's batched forward pass.
+``inference`` times AUTO's batched forward pass, ``learner`` the RBP-DQN update
+(``agents.bench_learner``).
 """
 
 from __future__ import annotations
@@ -164,12 +165,22 @@ def section_inference(args: argparse.Namespace) -> float:
     return us
 
 
+def section_learner(args: argparse.Namespace) -> object:
+    """RBP-DQN learner updates/s and samples/s vs the pre-issue-22 code, side by side (issue 22:
+    target >= 300 updates/s at batch 128, or the same samples/s)."""
+    from agents.bench_learner import run
+
+    return run(args.learner_batch, args.learner_threads, args.learner_blocks,
+               args.learner_block_seconds, args.learner_json, args.learner_compile)  # fmt: skip
+
+
 #: Section name -> function(args). Other modules' sections are registered here.
 SECTIONS: dict[str, Callable[[argparse.Namespace], object]] = {
     "snapshot": section_snapshot,
     "env": section_env,
     "inference": section_inference,
     "soak": section_soak,
+    "learner": section_learner,
 }
 
 
@@ -218,6 +229,30 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--soak-density", type=float, default=180.0,
         help="soak section: veh/km, 100 %% AVs (default: 180)",
+    )  # fmt: skip
+    p.add_argument(
+        "--learner-batch", type=int, nargs="+", default=[128, 1024], metavar="B",
+        help="learner section: batch sizes (default: 128 1024)",
+    )  # fmt: skip
+    p.add_argument(
+        "--learner-threads", type=int, nargs="+", default=[1, 2], metavar="T",
+        help="learner section: torch thread counts (default: 1 2)",
+    )  # fmt: skip
+    p.add_argument(
+        "--learner-blocks", type=int, default=6,
+        help="learner section: timed blocks per learner and setting (default: 6)",
+    )  # fmt: skip
+    p.add_argument(
+        "--learner-block-seconds", type=float, default=0.5,
+        help="learner section: seconds per timed block (default: 0.5)",
+    )  # fmt: skip
+    p.add_argument(
+        "--learner-json", default="", metavar="PATH",
+        help="learner section: also write the results as JSON to PATH",
+    )  # fmt: skip
+    p.add_argument(
+        "--learner-compile", action="store_true",
+        help="learner section: time the learner with torch.compile (compiles first, ~1 min)",
     )  # fmt: skip
     p.add_argument(
         "--backend", choices=("libsumo", "traci"), default="libsumo",
