@@ -116,8 +116,8 @@ class TrainConfig:
     """torch threads of the learner process."""
     learner_compile: bool = False
     """Compile the learner's losses with torch.compile (inductor; needs a C++ compiler). Measured
-    on a 2-core machine: ~2x the updates/s of the pre-issue-22 learner at batch 128 (eager
-    default: ~1.5x), after a one-off compile of ~40-60 s (`python -m mixed_traffic.bench
+    on a 2-core machine: 1.9x the updates/s of the pre-issue-22 learner at batch 128 (eager
+    default: 1.1-1.2x), after a one-off compile of ~25-60 s (`python -m mixed_traffic.bench
     --section learner`); off by default so short runs and tests do not pay it."""
     progress: bool = True
     """Show a tqdm progress bar."""

@@ -195,7 +195,7 @@ class RBPDQN:
 
     def _losses(self) -> tuple:
         """(critic_loss, actor_loss), compiled on first use with ``compile``: inductor fuses
-        each GRU step's elementwise ops (and their backward) into one kernel, ~1.4x the eager
+        each GRU step's elementwise ops (and their backward) into one kernel, ~1.6x the eager
         updates/s, after a one-off compile (~40-60 s; seconds with a warm inductor cache;
         changing ``cfg`` values recompiles once per new value)."""
         if not self.compile:

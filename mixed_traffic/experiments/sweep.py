@@ -263,9 +263,7 @@ def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
     """Run the missing cells of ``sweep``; returns the records file."""
     records_path = sweep.results / "records.jsonl"
     with exclusive_folder(sweep.results):  # a second run into the folder stops here
-        done = {_cell_key(r) for r in _records_of_this_code(records_path)
-                if r.get("status") == "ok"}  # fmt: skip
-        todo = [c for c in cells(sweep) if _planned_key(c, sweep) not in done]  # failed: again
+        todo = _missing(sweep, _records_of_this_code(records_path))  # failed ones: again
         bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode",
                    disable=not progress)  # fmt: skip
         if sweep.backend == "ray":
@@ -383,8 +381,13 @@ def _planned_key(cell: Cell, sweep: SweepConfig) -> tuple:
 
 def failed_cells(sweep: SweepConfig) -> list[Cell]:
     """The sweep's cells without a successful record of this code (after its run)."""
-    done = {_cell_key(r) for r in read_records(sweep.results / "records.jsonl")
-            if r.get("status") == "ok" and r.get("code") == current_code_key()}  # fmt: skip
+    return _missing(sweep, read_records(sweep.results / "records.jsonl"))
+
+
+def _missing(sweep: SweepConfig, records: list[dict]) -> list[Cell]:
+    """The sweep's cells that ``records`` hold no successful record of this code for."""
+    ours = current_code_key()
+    done = {_cell_key(r) for r in records if r.get("status") == "ok" and r.get("code") == ours}
     return [c for c in cells(sweep) if _planned_key(c, sweep) not in done]
 
 

@@ -25,6 +25,7 @@ from mixed_traffic.world.drivers import (
     add_vehicle_types,
     cautious,
 )
+from mixed_traffic.world.hdmap import CAR
 from mixed_traffic.world.placement import (
     Placed,
     cap_followers,
@@ -379,7 +380,7 @@ def write_demand(
     path: Path,
     avs_as_humans: bool = False,
     vtypes: tuple[str, ...] = (),
-    av_class: str = "passenger",
+    av_class: str = CAR,
 ) -> None:
     """Write vehicle types and the planned vehicles as a SUMO route file (``avs_as_humans``: the
     AV-labelled vehicles get the human drivers' types, for the all-human reference; ``vtypes``:

@@ -17,6 +17,7 @@ from dataclasses import replace
 from statistics import NormalDist
 
 from mixed_traffic.config import HumanConfig, VehicleConfig
+from mixed_traffic.world.hdmap import CAR
 
 SPEED_FACTOR_RANGE = (0.8, 1.2)
 """Truncation of human drivers' speed factor (desired speed / speed limit) [-]."""
@@ -44,7 +45,7 @@ def cautious(human: HumanConfig) -> HumanConfig:
 def _human_attrs(human: HumanConfig, vehicle: VehicleConfig) -> dict[str, str]:
     lo, hi = SPEED_FACTOR_RANGE
     attrs = {
-        "vClass": "passenger", "carFollowModel": human.car_following,
+        "vClass": CAR, "carFollowModel": human.car_following,
         "decel": f"{human.decel}", "emergencyDecel": "9.0", "minGap": f"{human.min_gap}",
         "delta": f"{human.delta}", "length": f"{vehicle.length}", "width": f"{vehicle.width}",
         "speedFactor": f"normc(1,{human.speed_factor_dev},{lo},{hi})",
@@ -60,7 +61,7 @@ def _human_attrs(human: HumanConfig, vehicle: VehicleConfig) -> dict[str, str]:
 
 
 def add_vehicle_types(root: ET.Element, human: HumanConfig, vehicle: VehicleConfig,
-                      avs_as_humans: bool = False, av_class: str = "passenger") -> None:  # fmt: skip
+                      avs_as_humans: bool = False, av_class: str = CAR) -> None:  # fmt: skip
     """Add the human ``vTypeDistribution`` and the AV ``vType`` (of SUMO class ``av_class``)
     to a route file's root.
 

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from mixed_traffic.config import JAM_DENSITY_PER_LANE, EnvConfig
-from mixed_traffic.world.hdmap import HDMap, load_hdmap
+from mixed_traffic.world.hdmap import CAR, HDMap, load_hdmap
 
 
 @dataclass(frozen=True)
@@ -68,7 +68,7 @@ class Scenario:
     the whole episode, nobody enters or leaves."""
     own_vehicles: tuple[OwnVehicle, ...] = ()
     """A user's .sumocfg vehicles: used instead of generated demand (see ``user_scenario``)."""
-    vclass: str = "passenger"
+    vclass: str = CAR
     """SUMO vehicle class of the AVs: the lanes they may use (``HDMap.lane_car``)."""
     av_size: tuple[float, float] | None = None
     """(length, width) [m] of a .sumocfg's AVs, from the type they derive from."""
