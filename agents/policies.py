@@ -59,8 +59,9 @@ class RandomPolicy:
 
 
 class AutoPolicy:
-    """The AUTO agent (LCA + RBP-DQN actor/critic) from a checkpoint, greedy, behind the safety
-    module (``agents.rules.safety``) unless ``safety=False`` (name ``auto-raw``)."""
+    """The AUTO agent (LCA + RBP-DQN actor/critic) from a checkpoint, greedy, deciding every
+    decision interval of its checkpoint (``agents.driver``), behind the safety module
+    (``agents.rules.safety``) unless ``safety=False`` (name ``auto-raw``)."""
 
     def __init__(
         self,
@@ -68,20 +69,28 @@ class AutoPolicy:
         z: int | None = None,
         m: int | None = None,
         safety: bool = True,
+        dt: float = 0.1,
     ) -> None:
-        from agents.checkpoint import load_policy
+        """``dt``: the env's simulation step [s]."""
+        from agents.checkpoint import load_checkpoint
+        from agents.driver import Driver
+        from agents.learning.rbpdqn import Policy
         from agents.rules.safety import SafetyModule
 
         path = Path(checkpoint) if checkpoint is not None else SHIPPED_CHECKPOINT
         self.checkpoint = path.resolve()
         self.name = "auto" if safety else "auto-raw"
-        self._policy = load_policy(path, z=z, m=m, threads=1)
+        learner, _ = load_checkpoint(path, z=z, m=m)
+        policy = Policy(learner.actor.eval(), learner.critic.eval(), threads=1)
+        self.driver = Driver(policy, learner.cfg, dt)
         self.safety = SafetyModule() if safety else None
 
     def act(
         self, obs: dict[str, np.ndarray], agents: Sequence[str] | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
-        decision, params = self._policy.act(obs, explore=False)
+        names = list(agents) if agents is not None else [str(i) for i in range(len(obs["ego"]))]
+        cmd = self.driver.act(obs, names)
+        decision, params = cmd.decision, cmd.params
         if self.safety is not None:
             decision, params, _ = self.safety.filter(obs, decision, params)
         return decision, params
@@ -99,7 +108,7 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
 
         return AccLcPolicy(conservative() if name == "acc-lc-conservative" else None)
     if name in ("auto", "auto-raw"):
-        return AutoPolicy(checkpoint, z=z, m=m, safety=name == "auto")
+        return AutoPolicy(checkpoint, z=z, m=m, safety=name == "auto", dt=dt)
     if name in ("follower-stopper", "pi-saturation"):
         from agents.rules.stern import FollowerStopper, PISaturation, SternConfig
 

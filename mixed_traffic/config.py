@@ -17,6 +17,7 @@ WEATHERS = ("normal", "rain", "fog", "night")
 CAR_FOLLOWING = ("EIDM", "IDM")
 BACKENDS = ("libsumo", "traci", "auto")
 SECOND_INSTANCE = ("traci", "error")
+LANE_TERMS = ("offset", "waypoint")
 #: Highest density accepted, veh/km per lane: a 5 m car plus a 2 m standstill gap.
 JAM_DENSITY_PER_LANE = 1000.0 / 7.0
 
@@ -104,6 +105,14 @@ class RewardConfig:
     """r1,3 on a terminal event [-]."""
     lane_change_gain: float = 20.0
     """Scale of the tactical lane-change reward r2,2 [-]."""
+    lane_change_cap: float = 0.5
+    """Bound on the gap ratio's change in r2,2, |gap_new/gap_old - 1| <= cap, so one lane change
+    is worth at most lane_change_gain x cap [-]. 0 = the paper's unbounded term, measured from
+    -19.9 to +3,580 per change (a change out from behind a car 0.5 m ahead)."""
+    lane_term: str = "offset"
+    """How r1,2 measures the distance from the lane centre: offset (SUMO's lateral offset, 0 when
+    centred) | waypoint (the paper: distance to the nearest 1 m centreline waypoint, about
+    -0.078 when centred because the vehicle sits between waypoints)."""
 
     def __post_init__(self) -> None:
         for name in ("w_safety", "w_efficiency", "w_comfort", "w_impact"):
@@ -113,6 +122,8 @@ class RewardConfig:
         _check_range(self, "rear_speed_drop", 0.0, 10.0)
         _check_range(self, "terminal_penalty", -1000.0, 0.0)
         _check_range(self, "lane_change_gain", 0.0, 1000.0)
+        _check_range(self, "lane_change_cap", 0.0, 1000.0)
+        _check_choice(self, "lane_term", LANE_TERMS)
 
 
 @dataclass(frozen=True)

@@ -33,6 +33,7 @@ from mixed_traffic.world.network import build_network
 from .test_control import DT, isolate, pick_av, start_straight
 
 CFG = RewardConfig()
+PAPER = RewardConfig(lane_change_cap=0.0, lane_term="waypoint")
 
 
 def base_inputs(n: int = 1) -> dict:
@@ -48,8 +49,8 @@ def base_inputs(n: int = 1) -> dict:
     )  # fmt: skip
 
 
-def terms(**over) -> dict:
-    return reward_terms(CFG, DT, **{**base_inputs(), **over})
+def terms(cfg: RewardConfig = CFG, **over) -> dict:
+    return reward_terms(cfg, DT, **{**base_inputs(), **over})
 
 
 def test_calm_situation() -> None:
@@ -92,15 +93,26 @@ def test_tactical_lane_change() -> None:
     )
     assert changed.tolist() == [True, False, False]  # same edge only
     # old lane: 20 m gap; new lane: 50 m -> (50/20 - 1) * 20 = 30
-    t = terms(lane_changed=np.array([True]), gap_old=np.array([20.0]), gap_new=np.array([50.0]))
+    t = terms(PAPER, lane_changed=np.array([True]), gap_old=np.array([20.0]), gap_new=np.array([50.0]))
     assert t["r2_lane_change"][0] == pytest.approx(30.0)
     # new lane empty -> capped at the LiDAR range: (90/30 - 1) * 20 = 40
-    t = terms(lane_changed=np.array([True]), gap_old=np.array([30.0]), gap_new=np.array([np.inf]))
+    t = terms(PAPER, lane_changed=np.array([True]), gap_old=np.array([30.0]), gap_new=np.array([np.inf]))
     assert t["r2_lane_change"][0] == pytest.approx(40.0)
     # into a tighter gap: (10/40 - 1) * 20 = -15; no completed change: 0
-    t = terms(lane_changed=np.array([True]), gap_old=np.array([40.0]), gap_new=np.array([10.0]))
+    t = terms(PAPER, lane_changed=np.array([True]), gap_old=np.array([40.0]), gap_new=np.array([10.0]))
     assert t["r2_lane_change"][0] == pytest.approx(-15.0)
     assert terms(gap_old=np.array([40.0]), gap_new=np.array([10.0]))["r2_lane_change"][0] == 0
+
+
+def test_lane_change_cap() -> None:
+    """The default bounds the gap ratio's change at 0.5: at most 20 x 0.5 = 10 per change."""
+    def change(old: float, new: float) -> float:
+        t = terms(lane_changed=np.array([True]), gap_old=np.array([old]), gap_new=np.array([new]))
+        return float(t["r2_lane_change"][0])
+
+    assert change(0.5, np.inf) == pytest.approx(10.0)  # unbounded: (90/0.5 - 1) * 20 = 3580
+    assert change(40.0, 10.0) == pytest.approx(-10.0)  # (10/40 - 1) = -0.75 -> -0.5
+    assert change(20.0, 25.0) == pytest.approx(5.0)  # within the bound: unchanged
 
 
 def test_jerk() -> None:

@@ -150,7 +150,9 @@ def test_one_worker_is_deterministic(tmp_path: Path) -> None:
 
 
 def test_policy_transitions_carry_the_demonstrators_labels(tmp_path: Path) -> None:
-    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1, demo_steps=0))
+    """The paper's form with expert relabelling: ACC-LC's action labels every transition."""
+    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1, demo_steps=0, residual=False,
+                      decision_interval=0.1))  # fmt: skip
     worker = RolloutWorker(tr.worker_specs()[0])
     worker.set_weights(tr.weights())  # an untrained policy drives
     try:
@@ -163,6 +165,26 @@ def test_policy_transitions_carry_the_demonstrators_labels(tmp_path: Path) -> No
     np.testing.assert_allclose(chunk["label_params"], par, atol=1e-6)
     # the labels are the demonstrator's, not copies of what the policy did
     assert np.abs(chunk["label_params"] - chunk["params"]).max() > 0.1
+
+
+def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None:
+    """The residual form: one transition per 0.5 s decision (discount γ = 0.95 over a whole
+    interval, more where a trip ended sooner), labels u = 0 and ACC-LC's decision, and an
+    untrained network drives as ACC-LC plus the exploration noise on u."""
+    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1, demo_steps=0, episode_length=6.0))
+    worker = RolloutWorker(tr.worker_specs()[0])
+    worker.set_weights(tr.weights())
+    try:
+        chunk = worker.collect(200)
+    finally:
+        worker.close()
+    n = len(chunk["decision"])
+    assert chunk["labelled"].max() == 0.0 and not chunk["label_params"].any()
+    np.testing.assert_array_equal(chunk["label_decision"], AccLcPolicy().act(chunk["obs"])[0])
+    full = np.isclose(chunk["discount"], 0.95, atol=1e-5)
+    assert full.mean() > 0.8 and (chunk["discount"][~full] > 0.95).all()
+    assert chunk["sim_steps"] * 0.5 > n / 5 * 0.1  # far fewer transitions than agent-steps
+    assert 0 < np.abs(chunk["params"]).max() <= 1.0  # u: exploration noise around 0
 
 
 def test_worker_crash_is_recovered(tmp_path: Path) -> None:

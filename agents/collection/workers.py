@@ -33,7 +33,10 @@ import numpy as np
 import torch
 from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
-from agents.learning.rbpdqn import Policy
+from agents.collection.intervals import Intervals, Rows
+from agents.driver import Driver
+from agents.learning.config import feasible_densities
+from agents.learning.rbpdqn import LearnerConfig, Policy
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
 from agents.policies import OBS_KEYS, make_policy, stack_obs, to_actions
@@ -44,8 +47,9 @@ TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "sp
 
 Chunk = dict[str, Any]
 """A LocalBuffer flush: ``obs``/``next_obs`` dicts of float32 (n, ...) arrays, ``decision``
-(n,) int64, ``params`` (n, 3, 2) float32, ``reward`` (n,) float32, ``done`` (n,) float32, the
-expert labels ``labelled`` (n,) float32, ``label_decision`` (n,) int64, ``label_params``
+(n,) int64, ``params`` (n, 3, 2) float32 (the network output u the agent held), ``reward``
+(n,) float32, ``done`` (n,) float32, ``discount`` (n,) float32 (one transition per decision,
+:mod:`agents.collection.intervals`), the expert labels ``labelled`` (n,) float32, ``label_decision`` (n,) int64, ``label_params``
 (n, 3, 2) float32 (see :class:`agents.learning.replay.ReplayBuffer`), plus ``worker_id``,
 ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo`` (transitions in
 the chunk driven by the demonstrator), ``sim_steps`` (env steps taken),
@@ -81,7 +85,17 @@ class WorkerSpec:
     """Probability that a later episode is driven by the demonstrator [-]."""
     demo_policy: str = "acc-lc"
     expert_labels: bool = False
-    """Label the transitions the policy drives with the demonstrator's action (DAgger)."""
+    """Label the transitions the policy drives with the demonstrator's action (DAgger; the
+    paper's form only: the residual form's label is always u = 0)."""
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
+    """The policy's form (residual or not, decision interval, deltas, bonus) and γ per
+    decision."""
+    reward_scale: float = 0.0
+    """Factor on the rewards stored [-] (0 = 1 - γ per simulation step, so Q is about the
+    mean reward per step)."""
+    bootstrap_arrival: bool = True
+    """An arrival at the end of the route bootstraps from its last observation (False: a
+    terminal state of value 0, as every other trip end)."""
     crash_after_chunks: int = 0
     """Test hook: SIGKILL itself after sending this many chunks (incarnation 0 only)."""
     extra: dict[str, Any] = field(default_factory=dict)
@@ -135,35 +149,32 @@ def episode_stats(
 
 
 class LocalBuffer:
-    """Per-step stacked transitions; :meth:`take` concatenates and empties (the B_l flush)."""
+    """Closed transitions (:data:`agents.collection.intervals.Rows`); :meth:`take`
+    concatenates and empties (the B_l flush)."""
 
     def __init__(self) -> None:
-        self._parts: list[tuple] = []
+        self._parts: list[Rows] = []
         self.size = 0
 
-    def add(self, obs: dict, dec: np.ndarray, par: np.ndarray, rew: np.ndarray, nxt: dict,
-            done: np.ndarray, label: tuple[np.ndarray, np.ndarray] | None = None) -> None:  # fmt: skip
-        """One env step's transitions of A agents (arrays with leading dim A); ``label``: the
-        demonstrator's (decision, params) for these observations, if any."""
-        labelled = np.full(len(dec), label is not None, np.float32)
-        ldec, lpar = label if label is not None else (dec, par)
-        self._parts.append((obs, dec, par, rew, nxt, done, labelled, ldec, lpar))
-        self.size += len(dec)
+    def add(self, rows: Rows) -> None:
+        n = len(rows["decision"])
+        if n:
+            self._parts.append(rows)
+            self.size += n
 
     def take(self) -> Chunk:
         parts, self._parts, self.size = self._parts, [], 0
         cat = np.concatenate
-        return {
-            "obs": {k: cat([p[0][k] for p in parts]).astype(np.float32) for k in OBS_KEYS},
-            "decision": cat([p[1] for p in parts]).astype(np.int64),
-            "params": cat([p[2] for p in parts]).astype(np.float32).reshape(-1, 3, 2),
-            "reward": cat([p[3] for p in parts]).astype(np.float32),
-            "next_obs": {k: cat([p[4][k] for p in parts]).astype(np.float32) for k in OBS_KEYS},
-            "done": cat([p[5] for p in parts]).astype(np.float32),
-            "labelled": cat([p[6] for p in parts]),
-            "label_decision": cat([p[7] for p in parts]).astype(np.int64),
-            "label_params": cat([p[8] for p in parts]).astype(np.float32).reshape(-1, 3, 2),
-        }
+        out: Chunk = {k: {o: cat([p[k][o] for p in parts]).astype(np.float32) for o in OBS_KEYS}
+                      for k in ("obs", "next_obs")}  # fmt: skip
+        for k, dtype in _ROW_DTYPES.items():
+            out[k] = cat([p[k] for p in parts]).astype(dtype)
+        return out
+
+
+_ROW_DTYPES = {"decision": np.int64, "params": np.float32, "reward": np.float32,
+               "done": np.float32, "discount": np.float32, "labelled": np.float32,
+               "label_decision": np.int64, "label_params": np.float32}  # fmt: skip
 
 
 class RolloutWorker:
@@ -209,10 +220,12 @@ class RolloutWorker:
         s = self.spec
         self.rng = np.random.default_rng([s.seed, s.worker_id, s.run, s.incarnation, self.episode])
         self.episode += 1
+        scenario = str(self.rng.choice(s.scenarios))
+        densities = feasible_densities(scenario, s.densities)
         cfg = replace(
             s.env_base,
-            scenario=str(self.rng.choice(s.scenarios)),
-            density=float(self.rng.choice(s.densities)),
+            scenario=scenario,
+            density=densities[int(self.rng.integers(len(densities)))],
             penetration=float(self.rng.choice(s.penetrations)),
             weather=str(self.rng.choice(s.weathers)),
             seed=int(self.rng.integers(2**31 - 1)),
@@ -227,9 +240,15 @@ class RolloutWorker:
         self.acted: set[str] = set()
         self.obs, _ = self.env.reset(seed=cfg.seed, options={"allow_no_agents": True})
         self.ep_reward, self.ep_actions = 0.0, 0
+        lc = s.learner
+        self.driver = Driver(self.policy, lc, self.env.config.step_length, self._demonstrator())
+        # γ per decision_interval, so per simulation step of any scenario's length
+        gamma_step = lc.gamma ** (self.env.config.step_length / lc.decision_interval)
+        self.intervals = Intervals(gamma_step, s.reward_scale or 1.0 - gamma_step,
+                                   s.bootstrap_arrival)  # fmt: skip
 
     def _step(self) -> None:
-        """One env step for all current agents; transitions go to the LocalBuffer."""
+        """One env step for all current agents; closed transitions go to the LocalBuffer."""
         env = self.env
         agents = list(env.agents)
         if not agents:  # AVs queued upstream: let the simulation run on
@@ -240,37 +259,52 @@ class RolloutWorker:
         if not env.agents and env.sim_time >= env.config.episode_length - 1e-6:
             self._end_episode(env)
 
-    def _choose(self, batch: dict[str, np.ndarray]) -> tuple[Any, Any, Any, bool]:
-        """(decision, params, expert label or None, driven by the demonstrator) for ``batch``:
-        the demonstrator drives until this worker's quota is met (switching mid-episode), and
-        whole episodes with probability demo_share afterwards."""
+    def _mode(self) -> str:
+        """The driver's mode: ``teacher`` until this worker's demonstration quota is met
+        (switching mid-episode) and for whole episodes with probability demo_share after,
+        else ``explore``."""
         is_demo = self.demo_episode or self.demo_done < self.spec.demo_quota
         self.any_demo |= is_demo
         if not is_demo and not self.has_weights:
             raise RuntimeError("worker has no weights from the learner yet")
-        if is_demo:
-            dec, par = self._demonstrator().act(batch)
-            label = dec, par
-        else:
-            dec, par = self.policy.act(batch, explore=True, rng=self.rng)
-            label = self._demonstrator().act(batch) if self.spec.expert_labels else None
-        return dec, par, label, is_demo
+        return "teacher" if is_demo else "explore"
+
+    def _labels(self, cmd: Any, mode: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(labelled, label_decision, label_params) of every agent: the residual form labels
+        u = 0 (behaviour cloning pulls towards ACC-LC) and marks teacher-driven rows for the
+        DQfD margin; the paper's form labels ACC-LC's action (expert relabelling) or, without
+        labels, the taken action."""
+        n = len(cmd.decision)
+        teacher = np.full(n, mode == "teacher", np.float32)
+        if self.spec.learner.residual:
+            return teacher, cmd.teacher_decision, np.zeros_like(cmd.u)
+        if mode == "teacher" or self.spec.expert_labels:
+            return np.ones(n, np.float32), cmd.teacher_decision, cmd.teacher_params
+        return teacher, cmd.decision, cmd.u
 
     def _step_agents(self, env: Any, agents: list[str]) -> None:
-        """Act for ``agents``, step the env and buffer their transitions."""
+        """Act for ``agents``, step the env, and buffer the transitions that closed."""
         batch = stack_obs(self.obs, agents)
-        dec, par, label, is_demo = self._choose(batch)
-        obs2, rew, term, _, info = env.step(to_actions(agents, dec, par))
+        mode = self._mode()
+        cmd = self.driver.act(batch, agents, mode, self.rng, labels=self.spec.expert_labels)
+        due = np.flatnonzero(cmd.due)
+        self._buf.add(self.intervals.decide(agents, batch, due, cmd.decision, cmd.u,
+                                            self._labels(cmd, mode)))  # fmt: skip
+        obs2, rew, term, trunc, info = env.step(to_actions(agents, cmd.decision, cmd.params))
         self._count_trips(agents, info)
         r = np.array([rew[a] for a in agents], np.float32)
-        done = np.array([bool(term[a]) for a in agents], np.float32)
-        self._buf.add(batch, dec, par, r, stack_obs(obs2, agents), done, label)
+        self.intervals.reward(agents, r)
+        ended = [a for a in agents if term[a] or trunc[a]]
+        if ended:
+            arrived = np.array([info[a].get("event") == "arrived" for a in ended])
+            terminal = np.array([bool(term[a]) for a in ended])
+            self._buf.add(self.intervals.end(ended, stack_obs(obs2, ended), terminal, arrived))
         self.acted.update(agents)
         self.ep_reward += float(r.sum())
         self.ep_actions += len(agents)
-        if is_demo:
-            self.demo_done += len(agents)
-            self._demo_in_buf += len(agents)
+        if mode == "teacher":
+            self.demo_done += len(due)
+            self._demo_in_buf += len(due)
         self.obs = obs2
 
     def _count_trips(self, agents: list[str], info: dict) -> None:

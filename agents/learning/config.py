@@ -29,8 +29,10 @@ class TrainConfig:
     """Ray cluster address for ray.init(address=...), e.g. 'auto' or 'host:6379' ('' = local)."""
     scenarios: tuple[str, ...] = ()
     """Training scenarios sampled per episode ('' = every train-split scenario)."""
-    densities: tuple[float, ...] = (60.0, 120.0, 180.0)
-    """Traffic densities sampled per episode [veh/km]."""
+    densities: tuple[float, ...] = (60.0, 120.0, 180.0, 0.0)
+    """Traffic densities sampled per episode [veh/km]; 0 = the scenario's own default (85 on
+    the rings, 30 on the urban grid). Each episode samples among those its scenario can hold
+    (the rings' one lane jams at 143 veh/km)."""
     penetrations: tuple[float, ...] = (0.2, 0.5, 1.0)
     """AV penetration rates sampled per episode [0-1]."""
     weathers: tuple[str, ...] = WEATHERS
@@ -59,6 +61,29 @@ class TrainConfig:
     """Label every transition the learning policy drives with the demonstrator's action for
     the same observation; behaviour cloning and the DQfD margin then target it (DAgger-style
     deviation from the paper, see agents.learning.rbpdqn; off = BC on the taken action)."""
+    residual: bool = True
+    """Train the residual form (``LearnerConfig.residual``): the actor learns a bounded
+    correction to ACC-LC, starting from zero; False = the paper's form (the actor outputs the
+    parameters)."""
+    decision_interval: float = 0.5
+    """Time between the policy's decisions [s], rounded to whole simulation steps; the command
+    is held in between (``agents.driver``; 0.1 = the paper's one decision per step)."""
+    horizon: float = 10.0
+    """Effective horizon 1/(1 - γ) of the discount [s]: γ per decision = 1 - decision_interval
+    / horizon (0.95 at 0.5 s; the paper's γ = 0.9 per 0.1 s step is a 1 s horizon)."""
+    steer_delta: float = 0.05
+    """Residual form: largest steering correction [action units; 0.05 = 3°]."""
+    accel_delta: float = 0.25
+    """Residual form: largest accel_brake correction [action units; 0.25 = +0.75/-1.5 m/s²]."""
+    teacher_bonus: float = 0.05
+    """Residual form: Q bonus of ACC-LC's decision when the policy selects one [Q units, about
+    the mean scaled reward per step]."""
+    reward_scale: float = 0.0
+    """Factor on the stored rewards [-] (0 = 1 - γ per simulation step: Q is then about the
+    mean reward per step)."""
+    bootstrap_arrival: bool = True
+    """Bootstrap at the end of the route from the last observation (False: arrival is a
+    terminal state of value 0, which punishes progress)."""
     alpha: float = 0.6
     """Weight α of the normalised Q term in the actor loss after pretraining [-] (paper 0.6)."""
     lr: float = 1e-3
@@ -133,6 +158,7 @@ class TrainConfig:
         self._check_budgets()
         self._check_optimiser()
         self._check_learner_loop()
+        self._check_form()
 
     def _bad(self, name: str, why: str) -> NoReturn:
         raise ValueError(f"TrainConfig.{name}={getattr(self, name)!r}: {why}")
@@ -154,8 +180,8 @@ class TrainConfig:
 
     def _check_sampling(self) -> None:
         """The per-episode densities, penetrations and weathers."""
-        if not self.densities or any(d <= 0 for d in self.densities):
-            self._bad("densities", "need positive densities")
+        if not self.densities or any(not d >= 0 for d in self.densities):
+            self._bad("densities", "need densities >= 0 (0 = the scenario's default)")
         if not self.penetrations or any(not 0 < p <= 1 for p in self.penetrations):
             self._bad("penetrations", "need penetrations in (0, 1]")
         if not self.weathers or any(w not in WEATHERS for w in self.weathers):
@@ -191,6 +217,25 @@ class TrainConfig:
         if not 0 < self.bc_accel_expectile < 1:
             self._bad("bc_accel_expectile", "must be in (0, 1)")
 
+    def _check_form(self) -> None:
+        """The policy's form: decision interval, horizon, residual bounds."""
+        if not 0 < self.decision_interval <= 5:
+            self._bad("decision_interval", "must be in (0, 5] s")
+        if not self.horizon > self.decision_interval:
+            self._bad("horizon", "must exceed decision_interval (γ = 1 - interval / horizon)")
+        for name in ("steer_delta", "accel_delta"):
+            if not 0 < getattr(self, name) <= 2:
+                self._bad(name, "must be in (0, 2] action units")
+        if self.residual and self.demo_policy not in ("acc-lc", "acc-lc-conservative"):
+            self._bad("demo_policy", "the residual form corrects ACC-LC: use acc-lc")
+        if not self.teacher_bonus >= 0 or not self.reward_scale >= 0:
+            self._bad("teacher_bonus", "teacher_bonus and reward_scale must be >= 0")
+
+    @property
+    def gamma(self) -> float:
+        """Discount per decision [-]."""
+        return 1.0 - self.decision_interval / self.horizon
+
     def _check_learner_loop(self) -> None:
         """Buffer sizes, the update ratio and the checkpoint period."""
         for name in ("local_buffer", "replay_capacity", "batch_size", "sync_every", "log_every"):
@@ -211,6 +256,23 @@ class TrainConfig:
         names = {f.name for f in fields(cls)}
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()
                       if k in names})  # fmt: skip
+
+
+def feasible_densities(scenario: str, densities: tuple[float, ...]) -> tuple[float | None, ...]:
+    """The ``densities`` [veh/km] ``scenario`` can hold (up to its jam density), 0 as None
+    (its default); ValueError naming the scenario when none fits."""
+    from mixed_traffic.world.registry import load_scenario
+
+    sc = load_scenario(scenario)
+    out: list[float | None] = []
+    for d in densities:
+        if not d:
+            out.append(None)
+        elif d <= sc.max_density:
+            out.append(d)
+    if not out:
+        raise ValueError(f"no density of {list(densities)} veh/km fits scenario {scenario!r}")
+    return tuple(out)
 
 
 def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:

@@ -5,7 +5,8 @@ Batch layout (what :meth:`agents.learning.replay.ReplayBuffer.sample` returns), 
 - ``obs``, ``next_obs``: dicts of float tensors (B, ...) per DESIGN §6 (``next_obs`` includes
   ``action_mask`` (B, 3), used to mask the TD target);
 - ``decision`` (B,) int64, ``params`` (B, 3, 2) float (all three rows as stored, A^t),
-  ``reward`` (B,), ``done`` (B,) float (1 = terminal, no bootstrap);
+  ``reward`` (B,), ``done`` (B,) float (1 = terminal, no bootstrap), optional ``discount``
+  (B,) float (the bootstrap's discount; NaN or absent = ``LearnerConfig.gamma``);
 - optional expert labels: ``labelled`` (B,) float (1 = the demonstrator labelled the
   observation), ``label_decision`` (B,) int64 and ``label_params`` (B, 3, 2) (its action, or
   the taken action on unlabelled rows).
@@ -45,6 +46,7 @@ class LearnerConfig:
     """Learner hyper-parameters (paper §IV-F / DESIGN §10 defaults)."""
 
     gamma: float = 0.9
+    """Discount per decision [-] (a transition's own ``discount`` wins where the batch has one)."""
     tau: float = 0.01
     """Soft target update rate."""
     alpha: float = 0.6
@@ -73,6 +75,22 @@ class LearnerConfig:
     (0.5 = the paper's squared error). τ > 0.5 fits an upper expectile of the label where the
     observation cannot separate holding from going (e.g. a queue starting), and the safety
     module's clamp removes what is above ACC-LC's braking."""
+
+    residual: bool = False
+    """Residual form (issue 22): the actor's output u is a bounded correction to ACC-LC's
+    parameters, executed as clip(ACC-LC + (steer_delta, accel_delta)·u, -1, 1), its last
+    layer starts at zero (u = 0 is ACC-LC), and behaviour cloning is ‖u‖² (the labels are 0).
+    False = the paper's form: u is the parameters themselves."""
+    steer_delta: float = 0.05
+    """Residual form: largest steering correction [action units; 0.05 = 3°]."""
+    accel_delta: float = 0.25
+    """Residual form: largest accel_brake correction [action units; 0.25 = +0.75 / -1.5 m/s²]."""
+    teacher_bonus: float = 0.0
+    """Residual form: Q bonus of ACC-LC's decision at selection; another decision is taken only
+    where the critic values it higher by more than this [Q units]."""
+    decision_interval: float = 0.1
+    """Time between the policy's decisions [s], rounded to whole simulation steps; the command
+    is held in between (``agents.driver``). 0.1 s = one decision per step, as in the paper."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
@@ -106,6 +124,9 @@ class RBPDQN:
             torch.manual_seed(seed)
             self.actor = Actor(lca)
             self.critic = Critic(lca)
+        if self.cfg.residual:  # u = 0 and Q = 0: the teacher bonus picks ACC-LC's decisions
+            self.actor.zero_output()
+            self.critic.zero_output()
         self.actor_targ = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_targ = copy.deepcopy(self.critic).requires_grad_(False)
         self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.lr, fused=True)
@@ -115,7 +136,9 @@ class RBPDQN:
         self._compiled: tuple | None = None
 
     def td_target(self, batch: dict) -> Tensor:
-        """y (B,) = r + γ(1 − done)·max over unmasked next decisions of Q_targ(s', p, u_targ(s'))."""
+        """y (B,) = r + γ(1 − done)·max over unmasked next decisions of Q_targ(s', p, u_targ(s')),
+        with the batch's per-row ``discount`` as γ where it has one (decision intervals cut
+        short by the episode's end span fewer steps)."""
         nxt = batch["next_obs"]
         with torch.no_grad():
             q_next = masked_q(self.critic_targ(nxt, self.actor_targ(nxt)), nxt["action_mask"])
@@ -123,7 +146,10 @@ class RBPDQN:
             # A row with every decision masked has no successor value; treat it as 0 rather
             # than letting -inf poison the loss (the env never emits such a row, DESIGN §6).
             best = torch.where(torch.isfinite(best), best, torch.zeros_like(best))
-            return batch["reward"] + self.cfg.gamma * (1.0 - batch["done"]) * best
+            gamma = self.cfg.gamma
+            if "discount" in batch:  # NaN rows: the learner's γ
+                gamma = torch.nan_to_num(batch["discount"], nan=gamma)
+            return batch["reward"] + gamma * (1.0 - batch["done"]) * best
 
     def critic_loss(self, batch: dict) -> Tensor:
         """½·mean (y − Q(s, p_taken, A_taken))² + λ·DQfD margin loss on demonstrations."""
@@ -288,15 +314,19 @@ class Policy:
             self._fused.refresh()
 
     @torch.inference_mode()
-    def q_and_params(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-        """→ (q (A, 3), params (A, 3, 2)) without exploration."""
+    def q_and_params(
+        self, obs: dict[str, Tensor], noise: Tensor | None = None
+    ) -> tuple[Tensor, Tensor]:
+        """→ (q (A, 3), params (A, 3, 2)): the actor's output plus ``noise`` (A, 3, 2) if
+        given, clipped to [-1, 1], and the critic's Q of exactly those params."""
         if self._fused is not None:
-            params, q = self._fused(obs)
+            params, q = self._fused(obs, noise=noise)
             return q, params
         params = self.actor(obs)
+        if noise is not None:
+            params = (params + noise).clamp_(-1.0, 1.0)
         return self.critic(obs, params), params
 
-    @torch.inference_mode()
     def act(
         self, obs: dict[str, np.ndarray], explore: bool, rng: np.random.Generator | None = None
     ) -> tuple[np.ndarray, np.ndarray]:
@@ -314,19 +344,24 @@ class Policy:
             return select(q, mask).numpy(), params.numpy().copy()
         if rng is None:
             raise ValueError("explore=True needs an rng")
-        shape = (t["ego"].shape[0], 3, 2)
         std = self.noise_std * np.array([STEER_NOISE_FACTOR, 1.0], np.float32)  # per param
-        noise = torch.from_numpy((rng.normal(0.0, 1.0, size=shape) * std).astype(np.float32))
-        if self._fused is not None:
-            params, q = self._fused(t, noise=noise)
-        else:
-            params = (self.actor(t) + noise).clamp_(-1.0, 1.0)
-            q = self.critic(t, params)
-        dec = select(q, mask)
-        dec_np = dec.numpy().copy()
-        mask_np = mask.numpy()
-        rand_rows = rng.random(len(dec_np)) < self.epsilon
-        for i in np.flatnonzero(rand_rows):  # ε rows only: a short loop
-            ok = np.flatnonzero(mask_np[i])
-            dec_np[i] = rng.choice(ok) if len(ok) else FOLLOW
-        return dec_np, params.numpy().copy()
+        q, params = self.q_and_params(t, gaussian(rng, len(mask), std))
+        dec = explore_decisions(select(q, mask).numpy().copy(), mask.numpy(), self.epsilon, rng)
+        return dec, params.numpy().copy()
+
+
+def gaussian(rng: np.random.Generator, n: int, std: np.ndarray) -> Tensor:
+    """(n, 3, 2) float32 Gaussian noise with ``std`` per parameter column (2,)."""
+    return torch.from_numpy((rng.normal(0.0, 1.0, size=(n, 3, 2)) * std).astype(np.float32))
+
+
+def explore_decisions(
+    dec: np.ndarray, mask: np.ndarray, epsilon: float, rng: np.random.Generator
+) -> np.ndarray:
+    """``dec`` (A,) with each row replaced, with probability ``epsilon``, by a uniformly random
+    allowed decision of ``mask`` (A, 3) (in place; FOLLOW if none is allowed)."""
+    rand_rows = rng.random(len(dec)) < epsilon
+    for i in np.flatnonzero(rand_rows):  # ε rows only: a short loop
+        ok = np.flatnonzero(mask[i])
+        dec[i] = rng.choice(ok) if len(ok) else FOLLOW
+    return dec

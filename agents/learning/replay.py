@@ -4,7 +4,8 @@ One array per observation key for ``obs`` and ``next_obs`` (``next_obs`` keeps i
 ``action_mask``, needed to mask the TD target), plus decision, params, reward, done, and the
 expert label of the transition: the demonstrator's decision and params for the same
 observation (``labelled`` = 1; for demonstrator-driven rows they equal the taken action) or, on
-unlabelled rows, a copy of the taken action.
+unlabelled rows, a copy of the taken action; and the transition's ``discount`` (γ per decision,
+less for a decision interval cut short; NaN = the learner's γ).
 """
 
 from __future__ import annotations
@@ -37,6 +38,8 @@ class ReplayBuffer:
         self.label_decision = np.zeros(capacity, np.int64)
         self.label_params = np.zeros((capacity, 3, 2), np.float32)
         """Behaviour-cloning targets: the demonstrator's action, else the taken one."""
+        self.discount = np.full(capacity, np.nan, np.float32)
+        """Discount of the bootstrap term [-] (NaN: the learner's γ)."""
         self.pos = 0
         """Next write index."""
         self.size = 0
@@ -55,6 +58,7 @@ class ReplayBuffer:
         labelled: np.ndarray | None = None,
         label_decision: np.ndarray | None = None,
         label_params: np.ndarray | None = None,
+        discount: np.ndarray | None = None,
     ) -> None:
         """Append n transitions (arrays with leading dim n); the oldest are overwritten.
         Without labels the rows are unlabelled and their targets are the taken action."""
@@ -64,6 +68,7 @@ class ReplayBuffer:
         labelled = np.zeros(n, np.float32) if labelled is None else np.asarray(labelled)
         label_decision = decision if label_decision is None else label_decision
         label_params = params if label_params is None else label_params
+        discount = np.full(n, np.nan, np.float32) if discount is None else np.asarray(discount)
         if n > self.capacity:  # only the newest `capacity` survive anyway
             sl = slice(n - self.capacity, n)
             obs = {k: v[sl] for k, v in obs.items()}
@@ -74,6 +79,7 @@ class ReplayBuffer:
                 label_decision[sl],
                 label_params[sl],
             )
+            discount = discount[sl]
             n = self.capacity
         idx = (self.pos + np.arange(n)) % self.capacity
         for k in OBS_KEYS:
@@ -86,6 +92,7 @@ class ReplayBuffer:
         self.labelled[idx] = labelled
         self.label_decision[idx] = label_decision
         self.label_params[idx] = np.reshape(label_params, (n, 3, 2))
+        self.discount[idx] = discount
         self.pos = int((self.pos + n) % self.capacity)
         self.size = min(self.size + n, self.capacity)
 
@@ -102,6 +109,7 @@ class ReplayBuffer:
             "params": t(self.params[idx]),
             "reward": t(self.reward[idx]),
             "done": t(self.done[idx]),
+            "discount": t(self.discount[idx]),
             **{k: t(getattr(self, k)[idx]) for k in LABEL_KEYS},
         }
 
@@ -123,6 +131,7 @@ class ReplayBuffer:
             "params": t(self.params),
             "reward": t(self.reward),
             "done": t(self.done),
+            "discount": t(self.discount),
             **{k: t(getattr(self, k)) for k in LABEL_KEYS},
         }
 
@@ -138,4 +147,6 @@ class ReplayBuffer:
             self.next_obs[k][:n] = np.asarray(sd["next_obs"][k])
         for name in ("decision", "params", "reward", "done", *LABEL_KEYS):
             getattr(self, name)[:n] = np.asarray(sd[name])
+        if "discount" in sd:  # replays saved before per-row discounts use the learner's γ
+            self.discount[:n] = np.asarray(sd["discount"])
         self.pos, self.size = int(sd["pos"]), n

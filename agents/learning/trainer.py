@@ -72,7 +72,14 @@ def _learner_config(cfg: TrainConfig) -> LearnerConfig:
     """The RBP-DQN learner's settings from the run's."""
     return LearnerConfig(batch_size=cfg.batch_size, regularize=not cfg.bp_dqn, alpha=cfg.alpha,
                          lr=cfg.lr, bc_accel_weight=cfg.bc_accel_weight,
-                         bc_accel_expectile=cfg.bc_accel_expectile)  # fmt: skip
+                         bc_accel_expectile=cfg.bc_accel_expectile, gamma=cfg.gamma,
+                         residual=cfg.residual, steer_delta=cfg.steer_delta,
+                         accel_delta=cfg.accel_delta, teacher_bonus=cfg.teacher_bonus,
+                         decision_interval=cfg.decision_interval,
+                         # u of the residual form is already in bounded units, and ACC-LC's
+                         # decisions get a selection bonus instead of the DQfD margin
+                         **({"bc_steer_weight": 1.0, "demo_weight": 0.0} if cfg.residual
+                            else {}))  # fmt: skip
 
 
 def _fresh_counters(cfg: TrainConfig) -> dict[str, Any]:
@@ -249,6 +256,8 @@ class Trainer:
                 seed=cfg.seed, run=self.c["run"], epsilon=ladder[i][0], noise_std=ladder[i][1],
                 demo_quota=max(0, share - self.c["demo_received"][i]), demo_share=cfg.demo_share,
                 demo_policy=cfg.demo_policy, expert_labels=cfg.expert_labels,
+                learner=self.learner.cfg, reward_scale=cfg.reward_scale,
+                bootstrap_arrival=cfg.bootstrap_arrival,
                 crash_after_chunks=cfg.crash_after_chunks if i == 0 and self.c["run"] == 0 else 0,
             )
             for i in range(cfg.workers)
@@ -268,7 +277,8 @@ class Trainer:
         """Chunk → replay, counters, curve window."""
         self.replay.add_batch(chunk["obs"], chunk["decision"], chunk["params"], chunk["reward"],
                               chunk["next_obs"], chunk["done"], chunk["labelled"],
-                              chunk["label_decision"], chunk["label_params"])  # fmt: skip
+                              chunk["label_decision"], chunk["label_params"],
+                              chunk["discount"])  # fmt: skip
         n = len(chunk["decision"])
         key = (self.c["run"], chunk["worker_id"], chunk["incarnation"])
         if chunk["seq"] != self.received.get(key, 0) + 1:

@@ -23,7 +23,17 @@ following the current lane is always physically possible; the env stops the car 
 assert N_DECISIONS == N_LANES  # one decision per target lane (left, current, right)
 
 
-class Actor(nn.Module):
+class _ZeroOutput:
+    head: nn.Sequential
+
+    def zero_output(self) -> None:
+        """Zero the last layer: the output is 0 for every input (a residual's start)."""
+        with torch.no_grad():
+            self.head[-1].weight.zero_()
+            self.head[-1].bias.zero_()
+
+
+class Actor(_ZeroOutput, nn.Module):
     """LCA → MLP → tanh. obs dict (B, ...) → params (B, 3, 2) in [-1, 1]."""
 
     def __init__(self, cfg: LCAConfig) -> None:
@@ -37,7 +47,7 @@ class Actor(nn.Module):
         return out.view(-1, N_DECISIONS, N_PARAMS)
 
 
-class Critic(nn.Module):
+class Critic(_ZeroOutput, nn.Module):
     """Own LCA + ReLU(W10·A) → MLP → Q for all three decisions.
 
     obs dict (B, ...), params (B, 3, 2) → Q (B, 3) where Q[:, p] = Q(s, p, params[:, p]).

@@ -8,12 +8,14 @@ Terms (``reward_terms`` returns them by these names)::
 
     r1_ttc         max(-3, ln(TTC/G)) if 0 < TTC < G else 0,
                    TTC = (along-lane distance to C1 - (len_A + len_C1)/2) / (v_A - v_C1)
-    r1_lane        -(distance to the nearest centreline waypoint) / lane width
+    r1_lane        -|lateral offset from the lane centre| / lane width (``lane_term="waypoint"``:
+                   the paper's distance to the nearest centreline waypoint)
     r1_terminal    terminal_penalty (-20) on a terminal event, else 0
     r2_speed       v / speed limit
     r2_lane_change (gap_new(t+1) / gap_old(t) - 1) * lane_change_gain (20) on a completed lane
                    change, else 0; bumper gaps to the front vehicle, capped at the LiDAR range
-                   (no vehicle = the range), floored at MIN_GAP
+                   (no vehicle = the range), floored at MIN_GAP; |gap_new/gap_old - 1| is
+                   bounded by lane_change_cap (0 = unbounded, the paper)
     r3_comfort     -|a_t - a_{t-1}| / (2 acc_thr)
     r4_impact      (v_C2(t+1) - v_C2(t)) / (2 acc_thr dt) if the same rear vehicle C2 slowed by
                    more than v_thr, else 0
@@ -119,21 +121,25 @@ def r2_lane_change(
     gap_old: np.ndarray,
     lidar_range: float,
     gain: float,
+    cap: float = 0.0,
 ) -> np.ndarray:
-    """(A,) (gap_new/gap_old - 1)·gain where ``completed``, else 0.
+    """(A,) (gap_new/gap_old - 1)·gain where ``completed``, else 0; the ratio's change is
+    clipped to ±``cap`` unless ``cap`` is 0.
 
     Args:
         gap_new: bumper gap to the front vehicle in the new lane at t+1 [m] (NaN/inf = none).
         gap_old: bumper gap to the front vehicle in the old lane at t [m] (NaN/inf = none).
     """
 
-    def cap(g: np.ndarray) -> np.ndarray:
+    def clip(g: np.ndarray) -> np.ndarray:
         g = np.asarray(g, float)
         g = np.where(np.isfinite(g), g, lidar_range)
         return np.clip(g, MIN_GAP, lidar_range)
 
-    ratio = cap(gap_new) / cap(gap_old)
-    return np.where(np.asarray(completed, bool), (ratio - 1.0) * gain, 0.0)
+    change = clip(gap_new) / clip(gap_old) - 1.0
+    if cap > 0:
+        change = np.clip(change, -cap, cap)
+    return np.where(np.asarray(completed, bool), change * gain, 0.0)
 
 
 def r4_impact(
@@ -192,7 +198,7 @@ def reward_terms(
         "r1_terminal": np.where(np.asarray(terminal, bool), cfg.terminal_penalty, 0.0),
         "r2_speed": np.asarray(speed, float) / np.asarray(speed_limit, float),
         "r2_lane_change": r2_lane_change(
-            lane_changed, gap_new, gap_old, lidar_range, cfg.lane_change_gain
+            lane_changed, gap_new, gap_old, lidar_range, cfg.lane_change_gain, cfg.lane_change_cap
         ),
         "r3_comfort": -np.abs(np.asarray(accel, float) - np.asarray(prev_accel, float))
         / (2.0 * cfg.acc_threshold),
@@ -258,11 +264,15 @@ def _terms(cfg: EnvConfig, hd: HDMap, memory: StepMemory, snap: TrafficSnapshot,
     rear_now = speeds_of(snap, [prev.rear_ids[i] for i in p.tolist()])
     lane = snap.lane[r]
     changed = lane_change_completed(prev.lane[p], lane, prev.edge[p], snap.edge[r])
+    if cfg.reward.lane_term == "offset":
+        centre = np.abs(snap.lateral[r])
+    else:
+        centre = centreline_distance(hd, lane, snap.lane_pos[r], snap.x[r], snap.y[r])
     terms = reward_terms(
         cfg.reward, cfg.step_length,
         front_distance=front.distance, closing_speed=front.closing, length=snap.length[r],
         front_length=front.length,
-        centre_distance=centreline_distance(hd, lane, snap.lane_pos[r], snap.x[r], snap.y[r]),
+        centre_distance=centre,
         lane_width=hd.lane_width[lane], terminal=np.fromiter(map(failed.__contains__, ids), bool, len(ids)),
         speed=snap.speed[r], speed_limit=hd.lane_speed[lane],
         lane_changed=changed, gap_new=front.gap, gap_old=prev.front_gap[p],

@@ -29,7 +29,7 @@ _SHORT = {"workers", "backend", "address", "scenarios", "densities", "penetratio
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from agents.learning.config import TrainConfig
+    from agents.learning.config import TrainConfig, feasible_densities
 
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.train",
@@ -58,7 +58,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Any:
     """TrainConfig from the options; validates scenarios and densities (parser.error on bad)."""
-    from agents.learning.config import TrainConfig
+    from agents.learning.config import TrainConfig, feasible_densities
     from mixed_traffic.world.registry import list_scenarios, train_scenarios, train_split_scenario
 
     try:
@@ -72,14 +72,13 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
                 f"--scenarios: unknown scenario {s!r}; known: {', '.join(list_scenarios())}"
             )
         try:
-            sc = train_split_scenario(s)
+            train_split_scenario(s)
         except ValueError as e:
             parser.error(f"--scenarios: {e}")
-        for d in cfg.densities:
-            try:
-                sc.check_density(d)
-            except ValueError as e:
-                parser.error(f"--densities: {e}")
+        try:
+            feasible_densities(s, cfg.densities)
+        except ValueError as e:
+            parser.error(f"--densities: {e}")
     return dataclasses.replace(cfg, scenarios=scen)
 
 

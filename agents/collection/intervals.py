@@ -1,0 +1,105 @@
+"""Decision-level transitions from per-step env output (the decision interval of ``agents.driver``).
+
+An agent's transition opens when it decides (observation, decision, u, label) and closes
+
+- at its next decision: ``next_obs`` is that step's observation, ``done`` = 0;
+- when its trip ends: the env's last observation, ``done`` = 1, except an arrival with
+  ``bootstrap_arrival`` (reaching the end of the route is not a failure; its value is that
+  of driving on, estimated from the last observation);
+- at truncation: the last observation, ``done`` = 0 (the episode's time limit is not part of
+  the task).
+
+Its reward is ``scale``·Σ_i γ_s^i r_i over the n steps it spans, and its ``discount`` γ_s^n,
+with γ_s the discount per simulation step. With one step per decision this is the usual
+one-step transition.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from agents.rules.obs_batch import OBS_KEYS
+
+Rows = dict[str, np.ndarray | dict[str, np.ndarray]]
+"""Closed transitions: ``obs``/``next_obs`` dicts of (n, ...) arrays, ``decision``, ``params``
+(the held u), ``reward``, ``done``, ``discount``, ``labelled``, ``label_decision``,
+``label_params``."""
+
+
+@dataclass
+class _Open:
+    obs: dict[str, np.ndarray]
+    decision: int
+    u: np.ndarray
+    labelled: float
+    label_decision: int
+    label_params: np.ndarray
+    reward: float = 0.0
+    steps: int = 0
+
+
+class Intervals:
+    """The open transition of every agent of one episode."""
+
+    def __init__(self, gamma_step: float, scale: float, bootstrap_arrival: bool) -> None:
+        """``gamma_step`` discount per simulation step [-], ``scale`` reward scale [-]."""
+        self.gamma_step, self.scale = gamma_step, scale
+        self.bootstrap_arrival = bootstrap_arrival
+        self._open: dict[str, _Open] = {}
+
+    def decide(self, agents: list[str], obs: dict[str, np.ndarray], idx: np.ndarray,
+               decision: np.ndarray, u: np.ndarray, label: tuple[np.ndarray, ...]) -> Rows:  # fmt: skip
+        """The agents at ``idx`` decided on the stacked ``obs``: close their open transitions
+        (next_obs = this observation) and open new ones. ``label`` = (labelled (A,),
+        label_decision (A,), label_params (A, 3, 2)). → the closed transitions."""
+        names = [agents[i] for i in idx.tolist()]
+        closed = self._close(names, obs, idx, np.zeros(len(idx), bool))
+        labelled, ldec, lpar = label
+        for a, i in zip(names, idx.tolist()):
+            rows = {k: obs[k][i] for k in OBS_KEYS}
+            self._open[a] = _Open(rows, int(decision[i]), u[i], float(labelled[i]),
+                                  int(ldec[i]), lpar[i])  # fmt: skip
+        return closed
+
+    def reward(self, agents: list[str], rewards: np.ndarray) -> None:
+        """Add one simulation step's rewards (A,) of ``agents`` to their open transitions."""
+        for a, r in zip(agents, rewards.tolist()):
+            t = self._open.get(a)
+            if t is not None:
+                t.reward += self.scale * self.gamma_step**t.steps * r
+                t.steps += 1
+
+    def end(self, agents: list[str], obs: dict[str, np.ndarray], terminal: np.ndarray,
+            arrived: np.ndarray) -> Rows:  # fmt: skip
+        """Close the transitions of ``agents`` whose trip or episode ended; ``obs`` their last
+        stacked observations, ``terminal`` (A,) terminated (not truncated), ``arrived`` (A,)
+        the termination was an arrival."""
+        done = terminal & ~(arrived & self.bootstrap_arrival)
+        return self._close(agents, obs, np.arange(len(agents)), done)
+
+    def _close(self, names: list[str], obs: dict[str, np.ndarray], idx: np.ndarray,
+               done: np.ndarray) -> Rows:  # fmt: skip
+        keep = [j for j, a in enumerate(names) if a in self._open]
+        items = [self._open.pop(names[j]) for j in keep]
+        rows = idx[keep]
+        return {
+            "obs": {k: _stack([t.obs[k] for t in items], obs[k]) for k in OBS_KEYS},
+            "next_obs": {k: obs[k][rows] for k in OBS_KEYS},
+            "decision": np.array([t.decision for t in items], np.int64),
+            "params": _stack([t.u for t in items], np.zeros((0, 3, 2), np.float32)),
+            "reward": np.array([t.reward for t in items], np.float32),
+            "done": done[keep].astype(np.float32),
+            "discount": np.array([self.gamma_step**t.steps for t in items], np.float32),
+            "labelled": np.array([t.labelled for t in items], np.float32),
+            "label_decision": np.array([t.label_decision for t in items], np.int64),
+            "label_params": _stack([t.label_params for t in items], np.zeros((0, 3, 2))),
+        }
+
+
+def _stack(rows: list[np.ndarray], like: np.ndarray) -> np.ndarray:
+    """``np.stack(rows)``, or an empty array shaped like ``like``'s rows."""
+    if rows:
+        return np.stack(rows)
+    return np.zeros((0, *like.shape[1:]), like.dtype)

@@ -1,0 +1,193 @@
+"""AUTO's driver: the network decides every k simulation steps and the command is held between.
+
+Decision interval (issue 22): ``LearnerConfig.decision_interval`` [s] is rounded to
+k = max(1, round(interval / step_length)) steps of the scenario. An agent decides when it
+enters and then every k steps; in between its decision and the network's output u are held.
+A held lane change becomes ``follow`` once the lane switch happened (the ego's lateral offset
+jumps by more than ``SWITCH_JUMP``: it is now measured from the new lane), and a held decision
+the mask forbids now becomes the teacher's (the residual form) or ``follow``.
+
+Two forms (``LearnerConfig.residual``):
+
+- paper: u is the parameters themselves; held for k steps they are the executed command.
+- residual: u is a bounded correction to ACC-LC (``agents.rules.acc_lc``), which is evaluated
+  on every step's observation: params = clip(ACC-LC's params + (steer_delta, accel_delta)·u,
+  -1, 1). ACC-LC is the low-level controller that tracks the held command: it keeps the lane
+  centre, keeps the gap and only shifts towards a changed lane while its gap checks accept it.
+  The decision is the critic's masked argmax of Q + ``teacher_bonus`` on ACC-LC's decision.
+
+Modes of :meth:`Driver.act`: ``greedy`` (evaluation), ``explore`` (Gaussian noise on u and
+ε-random decisions; needs an rng) and ``teacher`` (ACC-LC drives: u = 0 in the residual form,
+ACC-LC's parameters in the paper's).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
+
+import numpy as np
+
+from agents.learning.rbpdqn import (
+    STEER_NOISE_FACTOR,
+    LearnerConfig,
+    Policy,
+    explore_decisions,
+    gaussian,
+    obs_to_torch,
+)
+from agents.nets.networks import FOLLOW
+from agents.rules.acc_lc import AccLcPolicy
+from mixed_traffic.env.api import EGO_SCALE
+
+MODES = ("greedy", "explore", "teacher")
+SWITCH_JUMP = 1.5
+"""Jump of the ego's lateral offset between two frames that marks a lane switch [m]."""
+
+
+class Command(NamedTuple):
+    """What :meth:`Driver.act` decided for A agents."""
+
+    decision: np.ndarray
+    """(A,) int64 executed decision."""
+    params: np.ndarray
+    """(A, 3, 2) float32 executed (steering, accel_brake) of every decision."""
+    due: np.ndarray
+    """(A,) bool: the agent decided at this step (a transition starts)."""
+    u: np.ndarray
+    """(A, 3, 2) float32 network output being held (the stored action of a transition)."""
+    teacher_decision: np.ndarray
+    """(A,) int64 ACC-LC's decision (FOLLOW where ACC-LC was not evaluated)."""
+    teacher_params: np.ndarray
+    """(A, 3, 2) float32 ACC-LC's parameters (zeros where not evaluated)."""
+
+
+def steps_per_decision(interval: float, step_length: float) -> int:
+    """k: the decision interval [s] in whole simulation steps of ``step_length`` [s], >= 1."""
+    return max(1, round(interval / step_length))
+
+
+def lane_switched(ego: np.ndarray) -> np.ndarray:
+    """(A,) bool: the ego's lateral offset jumped between the last two frames of ``ego``
+    (A, z, 5) (a lane switch), False with a single frame or an unobserved previous one."""
+    if ego.shape[1] < 2:
+        return np.zeros(len(ego), bool)
+    d = ego[:, -2:, 4] * EGO_SCALE[4]
+    seen = ego[:, -2, 2] > 0
+    return seen & (np.abs(d[:, 1] - d[:, 0]) > SWITCH_JUMP)
+
+
+class Driver:
+    """Batched decisions for the agents of one env step, with the hold between decisions."""
+
+    def __init__(self, policy: Policy | None, cfg: LearnerConfig, step_length: float,
+                 teacher: AccLcPolicy | None = None) -> None:  # fmt: skip
+        """``policy`` may be None for teacher-only driving; ``teacher`` defaults to ACC-LC."""
+        self.policy, self.cfg = policy, cfg
+        self.k = steps_per_decision(cfg.decision_interval, step_length)
+        self.teacher = teacher if teacher is not None else AccLcPolicy()
+        self.delta = np.array([cfg.steer_delta, cfg.accel_delta], np.float32)
+        # per agent: [steps left, held decision, held u (3, 2)]
+        self._held: dict[str, list] = {}
+
+    def act(self, obs: Mapping[str, np.ndarray], agents: Sequence[str], mode: str = "greedy",
+            rng: np.random.Generator | None = None, labels: bool = False) -> Command:  # fmt: skip
+        """Stacked observations (A, ...) of ``agents`` → :class:`Command`. ``labels``: also
+        evaluate ACC-LC in the paper's form (its action labels the transitions)."""
+        if mode not in MODES:
+            raise ValueError(f"Driver mode {mode!r} is not one of {MODES}")
+        if mode == "explore" and rng is None:
+            raise ValueError("Driver mode 'explore' needs an rng")
+        agents = list(agents)
+        n = len(agents)
+        self._forget(agents)
+        mask = np.asarray(obs["action_mask"]) > 0.5
+        with_teacher = self.cfg.residual or labels or mode == "teacher"
+        t_dec, t_par = self._teacher(obs, n) if with_teacher else _no_teacher(n)
+        due = np.array([self._held.get(a, (0,))[0] <= 0 for a in agents], bool)
+        if due.any():
+            self._decide(obs, agents, np.flatnonzero(due), mask, t_dec, t_par, mode, rng)
+        decision, u = self._hold(agents, obs, mask, t_dec)
+        return Command(decision, self._execute(u, t_par), due, u, t_dec, t_par)
+
+    # ------------------------------------------------------------------ steps of act()
+    def _forget(self, agents: list[str]) -> None:
+        """Drop the hold of agents that are gone (ended trips; a new episode)."""
+        if len(self._held) > len(agents) or any(a not in self._held for a in agents):
+            live = set(agents)
+            self._held = {a: h for a, h in self._held.items() if a in live}
+
+    def _teacher(self, obs: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
+        if n == 0:
+            return _no_teacher(0)
+        dec, par = self.teacher.act(obs)
+        return np.asarray(dec, np.int64), np.asarray(par, np.float32)
+
+    def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,
+                mask: np.ndarray, t_dec: np.ndarray, t_par: np.ndarray, mode: str,
+                rng: np.random.Generator | None) -> None:  # fmt: skip
+        """New decisions and u of the agents at ``idx``, held for k steps from now."""
+        residual = self.cfg.residual
+        if mode == "teacher":
+            dec = t_dec[idx]
+            u = np.zeros((len(idx), 3, 2), np.float32) if residual else t_par[idx]
+        else:
+            q, u = self._network(obs, idx, mode, rng)
+            if residual and self.cfg.teacher_bonus:
+                q[np.arange(len(idx)), t_dec[idx]] += self.cfg.teacher_bonus
+            dec = masked_argmax(q, mask[idx])
+            if mode == "explore":
+                dec = explore_decisions(dec, mask[idx], self.policy.epsilon, rng)
+        for j, i in enumerate(idx.tolist()):
+            self._held[agents[i]] = [self.k, int(dec[j]), u[j]]
+
+    def _network(self, obs: Mapping[str, np.ndarray], idx: np.ndarray, mode: str,
+                 rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """(q (n, 3), u (n, 3, 2)) of the network for the rows ``idx``, with exploration
+        noise on u in ``explore`` mode (the critic scores the noisy u)."""
+        if self.policy is None:
+            raise ValueError("this Driver has no network: only mode='teacher' can drive")
+        sub = {k: np.asarray(v)[idx] for k, v in obs.items()}
+        noise = None
+        if mode == "explore":
+            std = self.policy.noise_std * (
+                np.ones(2, np.float32) if self.cfg.residual
+                else np.array([STEER_NOISE_FACTOR, 1.0], np.float32)
+            )  # fmt: skip
+            noise = gaussian(rng, len(idx), std)
+        q, u = self.policy.q_and_params(obs_to_torch(sub), noise)
+        return q.numpy().copy(), u.numpy().copy()
+
+    def _hold(self, agents: list[str], obs: Mapping[str, np.ndarray], mask: np.ndarray,
+              t_dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """(decision (A,), u (A, 3, 2)) held by every agent; counts the step down."""
+        n = len(agents)
+        held = [self._held[a] for a in agents]
+        decision = np.fromiter((h[1] for h in held), np.int64, n)
+        u = np.stack([h[2] for h in held]) if n else np.zeros((0, 3, 2), np.float32)
+        switched = lane_switched(np.asarray(obs["ego"])) & (decision != FOLLOW)
+        fallback = t_dec if self.cfg.residual else np.full(n, FOLLOW, np.int64)
+        decision = np.where(switched, FOLLOW, decision)
+        forbidden = ~mask[np.arange(n), decision] if n else np.zeros(0, bool)
+        decision = np.where(forbidden, fallback, decision)
+        for h, d in zip(held, decision.tolist()):
+            h[0] -= 1
+            h[1] = d
+        return decision, u.astype(np.float32)
+
+    def _execute(self, u: np.ndarray, t_par: np.ndarray) -> np.ndarray:
+        """(A, 3, 2) executed parameters of the held u."""
+        if not self.cfg.residual:
+            return u
+        return np.clip(t_par + self.delta * u, -1.0, 1.0).astype(np.float32)
+
+
+def masked_argmax(q: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """(A,) int64 argmax of ``q`` (A, 3) over the allowed entries of ``mask`` (A, 3) bool;
+    FOLLOW where nothing is allowed (as ``agents.nets.networks.select``)."""
+    dec = np.where(mask, q, -np.inf).argmax(axis=1)
+    return np.where(mask.any(axis=1), dec, FOLLOW).astype(np.int64)
+
+
+def _no_teacher(n: int) -> tuple[np.ndarray, np.ndarray]:
+    return np.full(n, FOLLOW, np.int64), np.zeros((n, 3, 2), np.float32)
