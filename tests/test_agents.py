@@ -15,7 +15,7 @@ from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy, obs_to_torch
 from agents.learning.replay import ReplayBuffer
 from agents.nets.fused import FusedActorCritic
 from agents.nets.lca import LCA, LCAConfig
-from agents.nets.networks import FOLLOW, Actor, Critic, select
+from agents.nets.networks import FOLLOW, Actor, Critic, masked_q, select
 
 ABLATIONS = [
     {},
@@ -215,6 +215,32 @@ def test_td_target_ignores_masked_decisions() -> None:
     torch.testing.assert_close(y, batch["reward"] + 0.9 * q[:, 2])
 
 
+def test_td_target_uses_each_rows_discount() -> None:
+    """A decision interval cut short discounts less; NaN rows fall back to the learner's γ."""
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg)
+    batch = _batch(4, cfg)
+    batch["done"][:] = 0.0
+    nxt = batch["next_obs"]
+    with torch.no_grad():
+        best = masked_q(learner.critic_targ(nxt, learner.actor_targ(nxt)), nxt["action_mask"])
+        best = best.max(dim=1).values
+    batch["discount"] = torch.tensor([0.95, 0.99, float("nan"), 0.5])
+    y = learner.td_target(batch)
+    gamma = torch.tensor([0.95, 0.99, 0.9, 0.5])
+    torch.testing.assert_close(y, batch["reward"] + gamma * best)
+
+
+def test_residual_form_starts_at_zero() -> None:
+    """The residual learner's actor outputs u = 0 and its critic Q = 0 everywhere at start."""
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg, LearnerConfig(residual=True))
+    obs = _obs(6, cfg)
+    u = learner.actor(obs)
+    assert torch.equal(u, torch.zeros_like(u))
+    assert torch.equal(learner.critic(obs, u), torch.zeros(6, 3))
+
+
 def test_determinism() -> None:
     cfg = LCAConfig()
 
@@ -259,6 +285,11 @@ def test_replay_shapes_and_wraparound() -> None:
     other.load_state_dict(buf.state_dict())
     assert other.pos == buf.pos and len(other) == len(buf)
     np.testing.assert_array_equal(other.obs["lanes"], buf.obs["lanes"])
+    assert np.isnan(other.discount[:10]).all()  # none given: the learner's γ
+    buf.add_batch(obs, np.zeros(4), np.zeros((4, 3, 2)), np.zeros(4), obs, np.zeros(4),
+                  discount=np.full(4, 0.95))  # fmt: skip
+    other.load_state_dict(buf.state_dict())
+    np.testing.assert_allclose(other.discount[2:6], 0.95)
 
 
 def test_checkpoint_round_trip(tmp_path) -> None:

@@ -93,19 +93,26 @@ def test_tactical_lane_change() -> None:
     )
     assert changed.tolist() == [True, False, False]  # same edge only
     # old lane: 20 m gap; new lane: 50 m -> (50/20 - 1) * 20 = 30
-    t = terms(PAPER, lane_changed=np.array([True]), gap_old=np.array([20.0]), gap_new=np.array([50.0]))
+    t = terms(
+        PAPER, lane_changed=np.array([True]), gap_old=np.array([20.0]), gap_new=np.array([50.0])
+    )
     assert t["r2_lane_change"][0] == pytest.approx(30.0)
     # new lane empty -> capped at the LiDAR range: (90/30 - 1) * 20 = 40
-    t = terms(PAPER, lane_changed=np.array([True]), gap_old=np.array([30.0]), gap_new=np.array([np.inf]))
+    t = terms(
+        PAPER, lane_changed=np.array([True]), gap_old=np.array([30.0]), gap_new=np.array([np.inf])
+    )
     assert t["r2_lane_change"][0] == pytest.approx(40.0)
     # into a tighter gap: (10/40 - 1) * 20 = -15; no completed change: 0
-    t = terms(PAPER, lane_changed=np.array([True]), gap_old=np.array([40.0]), gap_new=np.array([10.0]))
+    t = terms(
+        PAPER, lane_changed=np.array([True]), gap_old=np.array([40.0]), gap_new=np.array([10.0])
+    )
     assert t["r2_lane_change"][0] == pytest.approx(-15.0)
     assert terms(gap_old=np.array([40.0]), gap_new=np.array([10.0]))["r2_lane_change"][0] == 0
 
 
 def test_lane_change_cap() -> None:
     """The default bounds the gap ratio's change at 0.5: at most 20 x 0.5 = 10 per change."""
+
     def change(old: float, new: float) -> float:
         t = terms(lane_changed=np.array([True]), gap_old=np.array([old]), gap_new=np.array([new]))
         return float(t["r2_lane_change"][0])
@@ -364,3 +371,27 @@ def test_route_deviation_fires_at_a_dead_end_lane(tmp_path) -> None:
         )[0]
     finally:
         backend.close()
+
+
+def test_lane_term_from_the_offset_vanishes_at_the_centre() -> None:
+    """ACC-LC keeps the lane centre: r1_lane from SUMO's lateral offset is about 0 there, the
+    paper's distance to the nearest 1 m waypoint is not (the car sits between waypoints)."""
+    from agents.policies import make_policy, stack_obs, to_actions
+    from mixed_traffic.env import parallel_env
+
+    means = {}
+    for term in ("offset", "waypoint"):
+        env = parallel_env(scenario="straight-3lane", penetration=0.5, episode_length=8.0,
+                           seed=0, reward=RewardConfig(lane_term=term))  # fmt: skip
+        pol, values = make_policy("acc-lc"), []
+        obs, _ = env.reset(seed=0)
+        for _ in range(79):
+            agents = list(env.agents)
+            obs, _, _, _, infos = env.step(to_actions(agents, *pol.act(stack_obs(obs, agents))))
+            values += [
+                infos[a]["reward_terms"]["r1_lane"] for a in agents if infos[a]["reward_terms"]
+            ]
+        env.close()
+        means[term] = float(np.mean(values))
+    assert -0.02 < means["offset"] <= 0.0
+    assert means["waypoint"] < -0.04

@@ -16,7 +16,7 @@ import torch
 
 from agents.checkpoint import load_checkpoint
 from agents.collection.workers import RolloutWorker
-from agents.learning.config import TrainConfig
+from agents.learning.config import TrainConfig, feasible_densities
 from agents.learning.trainer import Trainer
 from agents.rules.acc_lc import AccLcPolicy
 from mixed_traffic.experiments.train import main
@@ -187,6 +187,13 @@ def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None
     assert 0 < np.abs(chunk["params"]).max() <= 1.0  # u: exploration noise around 0
 
 
+def test_each_scenario_samples_the_densities_it_can_hold() -> None:
+    assert feasible_densities("ring-220m", (60.0, 180.0, 0.0)) == (60.0, None)
+    assert feasible_densities("straight-3lane", (60.0, 180.0)) == (60.0, 180.0)
+    with pytest.raises(ValueError, match="ring-220m"):
+        feasible_densities("ring-220m", (180.0,))
+
+
 def test_worker_crash_is_recovered(tmp_path: Path) -> None:
     tr = Trainer(_cfg(tmp_path, workers=2, env_steps=3500, crash_after_chunks=2))
     info = tr.run()
@@ -218,6 +225,10 @@ def test_ray_backend_smoke_with_crash(tmp_path: Path) -> None:
         (["--densities", "5000", "--env-steps", "10"], "--densities"),
         (["--minutes", "1", "--lr-final", "1e-4"], "env_steps budget"),
         (["--env-steps", "10", "--lr-final", "0.1"], "lr_final"),
+        (["--env-steps", "10", "--decision-interval", "0"], "decision_interval"),
+        (["--env-steps", "10", "--horizon", "0.4"], "horizon"),
+        (["--env-steps", "10", "--demo-policy", "random"], "residual form corrects ACC-LC"),
+        (["--env-steps", "10", "--scenarios", "ring-220m", "--densities", "180"], "ring-220m"),
     ],
 )
 def test_cli_errors(argv: list[str], message: str, capsys: pytest.CaptureFixture) -> None:

@@ -14,6 +14,8 @@ from agents.nets.lca import LCAConfig
 from mixed_traffic.config import WEATHERS, EnvConfig
 
 BACKENDS = ("process", "ray")
+RESIDUAL_BC_ACCEL = 0.05
+"""Default weight of ‖u_accel‖² in the residual form's behaviour-cloning term [-]."""
 ABLATIONS = ("none", "nohis", "nolane", "nostar", "noimp", "nomul", "novec")
 
 
@@ -71,16 +73,22 @@ class TrainConfig:
     horizon: float = 10.0
     """Effective horizon 1/(1 - γ) of the discount [s]: γ per decision = 1 - decision_interval
     / horizon (0.95 at 0.5 s; the paper's γ = 0.9 per 0.1 s step is a 1 s horizon)."""
-    steer_delta: float = 0.05
-    """Residual form: largest steering correction [action units; 0.05 = 3°]."""
+    steer_delta: float = 0.005
+    """Residual form: largest steering correction [action units; 0.005 = 0.3°]. Held for a
+    0.5 s decision at 30 m/s, 0.05 (3°) moved a car up to 2 m sideways: exploration noise on it
+    collided 24 times in 176 AV trips on straight-4lane, none at 0.005 (docs/agent.md)."""
     accel_delta: float = 0.25
     """Residual form: largest accel_brake correction [action units; 0.25 = +0.75/-1.5 m/s²]."""
-    teacher_bonus: float = 0.05
+    teacher_bonus: float = 0.02
     """Residual form: Q bonus of ACC-LC's decision when the policy selects one [Q units, about
     the mean scaled reward per step]."""
     reward_scale: float = 0.0
     """Factor on the stored rewards [-] (0 = 1 - γ per simulation step: Q is then about the
     mean reward per step)."""
+    impact_weight: float = 2.0
+    """w4, weight of the impact term r4 in the training episodes' reward [-] (the paper's 0.2
+    made r4 0.4 % of the reward's magnitude under ACC-LC; 2.0 makes it about 5 %, docs/agent.md).
+    The NoIMP ablation sets it to 0."""
     bootstrap_arrival: bool = True
     """Bootstrap at the end of the route from the last observation (False: arrival is a
     terminal state of value 0, which punishes progress)."""
@@ -92,9 +100,11 @@ class TrainConfig:
     """Learning rate reached at the end of the ``env_steps`` budget by cosine decay from
     ``lr``, a function of transitions received, so it survives --resume and keeps one-worker
     runs deterministic [-] (0 = constant ``lr``)."""
-    bc_accel_weight: float = 1.0
-    """Weight of accel_brake errors in the behaviour-cloning term, relative to 1 per unit²
-    (steering: ``LearnerConfig.bc_steer_weight``) [-] (1 = the paper's loss)."""
+    bc_accel_weight: float = 0.0
+    """Weight of accel_brake errors in the behaviour-cloning term, relative to 1 per unit² on
+    steering [-]; 0 = the form's default: 1 in the paper's form (its loss; steering weighs
+    ``LearnerConfig.bc_steer_weight``), 0.05 on u in the residual form, so that the normalised
+    Q term can move u against the pull of ‖u‖² (u's effect on a 0.5 s return is small)."""
     bc_accel_expectile: float = 0.5
     """Expectile τ of the accel_brake fit: errors below the label weigh 2τ, above it 2(1 − τ)
     [-] (0.5 = the paper's squared error; see ``LearnerConfig.bc_accel_expectile``)."""
@@ -213,7 +223,7 @@ class TrainConfig:
         if self.lr_final and not self.env_steps:
             self._bad("lr_final", "the decay runs over the env_steps budget: give env_steps > 0")
         if not self.bc_accel_weight >= 0:
-            self._bad("bc_accel_weight", "must be >= 0")
+            self._bad("bc_accel_weight", "must be >= 0 (0 = the form's default)")
         if not 0 < self.bc_accel_expectile < 1:
             self._bad("bc_accel_expectile", "must be in (0, 1)")
 
@@ -228,8 +238,15 @@ class TrainConfig:
                 self._bad(name, "must be in (0, 2] action units")
         if self.residual and self.demo_policy not in ("acc-lc", "acc-lc-conservative"):
             self._bad("demo_policy", "the residual form corrects ACC-LC: use acc-lc")
+        if not 0 <= self.impact_weight <= 10:
+            self._bad("impact_weight", "must be in [0, 10]")
         if not self.teacher_bonus >= 0 or not self.reward_scale >= 0:
             self._bad("teacher_bonus", "teacher_bonus and reward_scale must be >= 0")
+
+    @property
+    def accel_bc_weight(self) -> float:
+        """``bc_accel_weight`` with 0 resolved to the form's default [-]."""
+        return self.bc_accel_weight or (RESIDUAL_BC_ACCEL if self.residual else 1.0)
 
     @property
     def gamma(self) -> float:
@@ -284,8 +301,7 @@ def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:
 
 
 def env_base_config(cfg: TrainConfig, env_base: EnvConfig | None = None) -> EnvConfig:
-    """Fixed env fields for every episode: episode length and, for NoIMP, w_impact = 0."""
+    """Fixed env fields for every episode: episode length and w_impact (0 for NoIMP)."""
     base = replace(env_base or EnvConfig(), episode_length=cfg.episode_length)
-    if cfg.ablation == "noimp":
-        base = replace(base, reward=replace(base.reward, w_impact=0.0))
-    return base
+    w4 = 0.0 if cfg.ablation == "noimp" else cfg.impact_weight
+    return replace(base, reward=replace(base.reward, w_impact=w4))

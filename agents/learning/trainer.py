@@ -71,7 +71,7 @@ def atomic_write_json(path: Path, data: dict) -> None:
 def _learner_config(cfg: TrainConfig) -> LearnerConfig:
     """The RBP-DQN learner's settings from the run's."""
     return LearnerConfig(batch_size=cfg.batch_size, regularize=not cfg.bp_dqn, alpha=cfg.alpha,
-                         lr=cfg.lr, bc_accel_weight=cfg.bc_accel_weight,
+                         lr=cfg.lr, bc_accel_weight=cfg.accel_bc_weight,
                          bc_accel_expectile=cfg.bc_accel_expectile, gamma=cfg.gamma,
                          residual=cfg.residual, steer_delta=cfg.steer_delta,
                          accel_delta=cfg.accel_delta, teacher_bonus=cfg.teacher_bonus,

@@ -29,7 +29,7 @@ _SHORT = {"workers", "backend", "address", "scenarios", "densities", "penetratio
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from agents.learning.config import TrainConfig, feasible_densities
+    from agents.learning.config import TrainConfig
 
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.train",
