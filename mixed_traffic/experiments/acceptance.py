@@ -1,0 +1,186 @@
+"""Check an AUTO checkpoint against the "done when" list of issue 22 (held-out eval variants).
+
+    python -m mixed_traffic.experiments.acceptance --checkpoint runs/auto/auto.pt
+
+Each check runs its cells through :mod:`mixed_traffic.experiments.sweep` (parallel, cached by
+code and checkpoint content, resumable) and compares paired seeds with 95 % t-intervals
+(:func:`analysis.stats.paired_difference`):
+
+- ``dt_gain``: AUTO's AvgDT-A gain over ACC-LC [%] on straight-eval and merge-eval at 50 %
+  AVs: at least 3 % and the interval excludes 0;
+- ``at_c``: AvgAT-C (AUTO − ACC-LC) not significantly above 0;
+- ``terminal``: no terminal event of AUTO in those cells;
+- ``sm_share``: the safety module changes at most 10 % of AUTO's actions;
+- ``raw_terminal``: ``auto-raw`` at 100 % AVs ends at most 0.2 % of its AV trips in a terminal
+  event on both;
+- ``dt_tf``: on straight at 120 veh/km, DT-TF with 100 % AUTO is at most the all-human one;
+- ``ring``: on the ring (85 veh/km, one AV, 300 s), AUTO's speed std is at most half the
+  all-human one (FollowerStopper's is shown beside it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import pandas as pd
+
+from analysis.stats import paired_difference
+from mixed_traffic.experiments.cli import add_config_args, config_from_args
+from mixed_traffic.experiments.runner import check_checkpoint
+from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
+from mixed_traffic.provenance import FolderBusyError, current_code_key, read_records
+
+EVAL = ("straight-eval", "merge-eval")
+
+
+@dataclass(frozen=True)
+class AcceptanceConfig:
+    """The checkpoint and how many episodes back each check."""
+
+    checkpoint: Path | None = None
+    """AUTO checkpoint to check (default: the shipped agents/checkpoints/auto.pt)."""
+    seeds: tuple[int, ...] = (0, 1, 2, 3, 4, 5)
+    """Root seeds; every cell runs once per seed (paired across policies)."""
+    episode_length: float = 150.0
+    """Simulated time per episode on the open roads [s] (the ring runs 300 s)."""
+    warmup: float = 30.0
+    """Time before flow metrics are recorded [s]."""
+    workers: int = 2
+    """Parallel worker processes."""
+    out: Path = Path("results/acceptance")
+    """Records folder; a re-run skips the episodes already recorded with the same code."""
+
+    def __post_init__(self) -> None:
+        if len(self.seeds) < 2:
+            raise ValueError(f"--seeds: {list(self.seeds)} gives no interval; give at least 2")
+        if self.checkpoint is not None:
+            check_checkpoint(self.checkpoint)
+
+    @property
+    def path(self) -> Path:
+        """The checkpoint file checked."""
+        from agents.policies import SHIPPED_CHECKPOINT
+
+        return self.checkpoint if self.checkpoint is not None else SHIPPED_CHECKPOINT
+
+    def records(self, name: str, scenario: str, policies: tuple[str, ...],
+                penetration: float, density: float | None = None, length: float | None = None,
+                reference: bool = False) -> pd.DataFrame:  # fmt: skip
+        """Run (or reuse) one cell per policy and seed (``reference``: plus the all-human
+        ``idm`` cell at 0 %) → one row per episode: policy, seed and the record's metrics."""
+        key = hashlib.sha256(self.path.read_bytes()).hexdigest()[:12]
+        folder = self.out / f"code-{current_code_key()}" / key / name
+        sweep = SweepConfig(
+            scenario=scenario, at_density=density, values=(penetration,), reference=reference,
+            policies=policies, seeds=self.seeds, episode_length=length or self.episode_length,
+            warmup=self.warmup, checkpoint=self.path, workers=self.workers, out=folder,
+            report=False, traffic=False,
+        )  # fmt: skip
+        rows = [{"policy": r["cell"]["policy"], "seed": r["cell"]["seed"], **r["metrics"]}
+                for r in read_records(run_sweep(sweep, progress=False))
+                if r["status"] == "ok" and r["cell"]["seed"] in self.seeds]  # fmt: skip
+        return pd.DataFrame(rows)
+
+
+def _by_seed(df: pd.DataFrame, policy: str, metric: str) -> pd.Series:
+    rows = df[df["policy"] == policy]
+    return pd.Series(rows[metric].astype(float).to_numpy(), index=rows["seed"].to_numpy())
+
+
+def _terminal(df: pd.DataFrame, policy: str) -> float:
+    cols = [c for c in df.columns if c.startswith("terminal_")]
+    return float(df.loc[df["policy"] == policy, cols].fillna(0).to_numpy().sum())
+
+
+def _row(check: str, where: str, value: str, passed: bool) -> dict:
+    return {"check": check, "where": where, "value": value, "pass": bool(passed)}
+
+
+def eval_checks(cfg: AcceptanceConfig) -> list[dict]:
+    """:func:`eval_rows` of each eval variant."""
+    out = []
+    for sc in EVAL:
+        half = cfg.records(f"{sc}-50", sc, ("auto", "acc-lc"), 0.5)
+        out += eval_rows(sc, half, cfg.records(f"{sc}-100-raw", sc, ("auto-raw",), 1.0))
+    return out
+
+
+def eval_rows(where: str, half: pd.DataFrame, raw: pd.DataFrame) -> list[dict]:
+    """dt_gain, at_c, terminal and sm_share from the 50 % episodes ``half`` (auto and acc-lc),
+    raw_terminal from the 100 % ``auto-raw`` episodes ``raw``."""
+    acc, auto = _by_seed(half, "acc-lc", "avg_dt_a"), _by_seed(half, "auto", "avg_dt_a")
+    gain = paired_difference(100 * (1 - auto / acc), 0 * acc)
+    at = paired_difference(_by_seed(half, "auto", "avg_at_c"), _by_seed(half, "acc-lc", "avg_at_c"))
+    term = _terminal(half, "auto")
+    share = float(half.loc[half["policy"] == "auto", "sm_share"].mean())  # [%]
+    trips = float(raw["av_trips"].sum())
+    rate = 100 * _terminal(raw, "auto-raw") / trips if trips else math.nan  # [%]
+    return [
+        _row("dt_gain", where, f"{gain.mean:+.2f} ± {gain.half_width:.2f} % (n={gain.n})",
+             gain.mean >= 3 and gain.mean - gain.half_width > 0),
+        _row("at_c", where, f"{at.mean:+.3f} ± {at.half_width:.3f} s", at.mean - at.half_width <= 0),
+        _row("terminal", where, f"{term:g} events", term == 0),
+        _row("sm_share", where, f"{share:.1f} %", share <= 10),
+        _row("raw_terminal", where, f"{rate:.2f} % of {trips:g} trips", rate <= 0.2),
+    ]  # fmt: skip
+
+
+def flow_checks(cfg: AcceptanceConfig) -> list[dict]:
+    """:func:`flow_rows` of straight at 120 veh/km and of the ring."""
+    full = cfg.records("straight-120", "straight", ("auto",), 1.0, density=120.0, reference=True)
+    ring = cfg.records("ring", "ring", ("auto", "follower-stopper"), 0.05, density=85.0,
+                       length=300.0, reference=True)  # fmt: skip
+    return flow_rows(full, ring)
+
+
+def flow_rows(full: pd.DataFrame, ring: pd.DataFrame) -> list[dict]:
+    """dt_tf from ``full`` (100 % auto and the all-human idm episodes) and the ring's speed
+    std from ``ring`` (auto, follower-stopper, idm)."""
+    d = paired_difference(_by_seed(full, "auto", "dt_tf"), _by_seed(full, "idm", "dt_tf"))
+    std = {p: _by_seed(ring, p, "speed_std").mean() for p in ("auto", "idm", "follower-stopper")}
+    return [
+        _row("dt_tf", "straight 120 veh/km", f"{d.mean:+.2f} ± {d.half_width:.2f} s/km "
+             "(100 % AUTO − all human)", d.mean - d.half_width <= 0),
+        _row("ring", "ring 85 veh/km, 1 AV", f"speed std {std['auto']:.2f} m/s vs all human "
+             f"{std['idm']:.2f} (FollowerStopper {std['follower-stopper']:.2f})",
+             std["auto"] <= 0.5 * std["idm"]),
+    ]  # fmt: skip
+
+
+def table(rows: list[dict]) -> str:
+    """The checks as aligned text, one per line."""
+    head = {"check": "check", "where": "where", "value": "value", "pass": "pass"}
+    cells = [head, *({**r, "pass": "yes" if r["pass"] else "NO"} for r in rows)]
+    widths = {k: max(len(str(c[k])) for c in cells) for k in head}
+    return "\n".join("  ".join(str(c[k]).ljust(widths[k]) for k in head) for c in cells)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m mixed_traffic.experiments.acceptance",
+        description="Check an AUTO checkpoint against issue 22's done list on the held-out "
+        "eval variants (paired seeds, 95 % t-intervals).",
+    )
+    add_config_args(p, AcceptanceConfig)
+    p.add_argument("--json", action="store_true", help="print the checks as JSON")
+    args = p.parse_args(argv)
+    try:
+        cfg = config_from_args(args, AcceptanceConfig)
+    except ValueError as e:
+        p.error(str(e))
+    try:
+        rows = eval_checks(cfg) + flow_checks(cfg)
+    except FolderBusyError as e:
+        p.error(str(e))
+    print(json.dumps(rows, indent=1) if args.json else table(rows))
+    return 0 if all(r["pass"] for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
