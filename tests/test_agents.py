@@ -108,12 +108,14 @@ def test_policy_respects_mask_with_exploration() -> None:
         assert np.abs(params).max() <= 1.0
 
 
-@pytest.mark.parametrize("ego_fusion", [True, False])
+@pytest.mark.parametrize(
+    ("ego_fusion", "multi_pass"), [(True, False), (False, False), (True, True)]
+)
 @pytest.mark.parametrize("b", [1, 7, 128])
-def test_fused_matches_reference(b: int, ego_fusion: bool) -> None:
+def test_fused_matches_reference(b: int, ego_fusion: bool, multi_pass: bool) -> None:
     cfg = LCAConfig(ego_fusion=ego_fusion)
     torch.manual_seed(3)
-    actor, critic = Actor(cfg), Critic(cfg)
+    actor, critic = Actor(cfg), Critic(cfg, multi_pass=multi_pass)
     obs = _obs(b, cfg, seed=b)
     obs["node_mask"][0] = 0.0  # a fully masked agent
     with torch.no_grad():
@@ -122,6 +124,29 @@ def test_fused_matches_reference(b: int, ego_fusion: bool) -> None:
     p, q = FusedActorCritic(actor, critic)(obs)
     torch.testing.assert_close(p, p_ref, atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(q, q_ref, atol=1e-5, rtol=1e-4)
+
+
+def test_multi_pass_q_sees_only_its_own_parameters() -> None:
+    """MP-DQN: dQ_p/du_r = 0 for r != p, and each pass equals the single-pass critic fed only
+    row p (the others zeroed)."""
+    cfg = LCAConfig()
+    torch.manual_seed(4)
+    critic = Critic(cfg, multi_pass=True)
+    obs = _obs(5, cfg)
+    u = torch.rand(5, 3, 2, requires_grad=True)
+    q = critic(obs, u)
+    for p in range(3):
+        (g,) = torch.autograd.grad(q[:, p].sum(), u, retain_graph=True)
+        others = [r for r in range(3) if r != p]
+        assert torch.equal(g[:, others], torch.zeros_like(g[:, others]))
+        assert g[:, p].abs().sum() > 0
+    single = Critic(cfg)
+    single.load_state_dict(critic.state_dict())
+    with torch.no_grad():
+        for p in range(3):
+            only = torch.zeros_like(u)
+            only[:, p] = u[:, p]
+            torch.testing.assert_close(q[:, p], single(obs, only)[:, p])
 
 
 def test_policy_sync_after_update() -> None:

@@ -185,7 +185,8 @@ class RolloutWorker:
         self.spec = spec
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)  # overwritten by the first set_weights
-            self.actor, self.critic = Actor(spec.lca).eval(), Critic(spec.lca).eval()
+            self.actor = Actor(spec.lca).eval()
+            self.critic = Critic(spec.lca, multi_pass=spec.learner.multi_pass).eval()
         self.policy = Policy(self.actor, self.critic, spec.noise_std, spec.epsilon, threads=1)
         self.has_weights = False
         self._demo: Any = None

@@ -70,6 +70,10 @@ class TrainConfig:
     decision_interval: float = 0.5
     """Time between the policy's decisions [s], rounded to whole simulation steps; the command
     is held in between (``agents.driver``; 0.1 = the paper's one decision per step)."""
+    multi_pass: bool = True
+    """MP-DQN critic: each decision's Q sees only its own parameters, so the actor's update of
+    one row is not pushed by the other decisions' Q (``LearnerConfig.multi_pass``; False = the
+    paper's P-DQN critic)."""
     horizon: float = 10.0
     """Effective horizon 1/(1 - γ) of the discount [s]: γ per decision = 1 - decision_interval
     / horizon (0.95 at 0.5 s; the paper's γ = 0.9 per 0.1 s step is a 1 s horizon)."""

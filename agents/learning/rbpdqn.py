@@ -93,6 +93,9 @@ class LearnerConfig:
     decision_interval: float = 0.1
     """Time between the policy's decisions [s], rounded to whole simulation steps; the command
     is held in between (``agents.driver``). 0.1 s = one decision per step, as in the paper."""
+    multi_pass: bool = False
+    """MP-DQN critic (``agents.nets.networks.Critic``): each decision's Q sees only its own
+    parameters (False = the paper's P-DQN critic)."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
@@ -125,7 +128,7 @@ class RBPDQN:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.actor = Actor(lca)
-            self.critic = Critic(lca)
+            self.critic = Critic(lca, multi_pass=self.cfg.multi_pass)
         if self.cfg.residual:  # u = 0 and Q = 0: the teacher bonus picks ACC-LC's decisions
             self.actor.zero_output()
             self.critic.zero_output()

@@ -75,7 +75,7 @@ def _learner_config(cfg: TrainConfig) -> LearnerConfig:
                          bc_accel_expectile=cfg.bc_accel_expectile, gamma=cfg.gamma,
                          residual=cfg.residual, steer_delta=cfg.steer_delta,
                          accel_delta=cfg.accel_delta, teacher_bonus=cfg.teacher_bonus,
-                         decision_interval=cfg.decision_interval,
+                         decision_interval=cfg.decision_interval, multi_pass=cfg.multi_pass,
                          # u of the residual form is already in bounded units, and ACC-LC's
                          # decisions get a selection bonus instead of the DQfD margin
                          **({"bc_steer_weight": 1.0, "demo_weight": 0.0} if cfg.residual

@@ -212,10 +212,20 @@ class FusedActorCritic:
         params = torch.sigmoid(2.0 * torch.addmm(b2, hid, w2.t())) * 2.0 - 1.0  # tanh
         if noise is not None:
             params = (params + noise.view(b, -1)).clamp_(-1.0, 1.0)
-        w10, b10 = self.critic_w10
-        e_a = torch.relu(torch.addmm(b10, params, w10.t()))
-        c1, cb1, c2, cb2 = self.critic_head
-        hid = torch.relu(torch.addmm(cb1, torch.cat((e_s[1], e_a), dim=1), c1.t()))
-        q_val = torch.addmm(cb2, hid, c2.t())
         assert params.shape[1] == ACTION_DIM
-        return params.view(b, N_DECISIONS, N_PARAMS), q_val
+        params = params.view(b, N_DECISIONS, N_PARAMS)
+        return params, self._critic_head(e_s[1], params)
+
+    def _critic_head(self, e_s: Tensor, params: Tensor) -> Tensor:
+        """Q (B, 3) from the critic's state embedding (B, D) and params (B, 3, 2)."""
+        w10, b10 = self.critic_w10
+        c1, cb1, c2, cb2 = self.critic_head
+        b = len(params)
+        if not self.critic.multi_pass:
+            e_a = torch.relu(torch.addmm(b10, params.view(b, ACTION_DIM), w10.t()))
+            hid = torch.relu(torch.addmm(cb1, torch.cat((e_s, e_a), dim=1), c1.t()))
+            return torch.addmm(cb2, hid, c2.t())
+        w = w10.view(-1, N_DECISIONS, N_PARAMS)
+        e_a = torch.relu(torch.einsum("bpk,dpk->bpd", params, w) + b10)
+        hid = torch.relu(torch.cat((e_s.unsqueeze(1).expand_as(e_a), e_a), dim=-1) @ c1.t() + cb1)
+        return torch.einsum("bpd,pd->bp", hid, c2) + cb2

@@ -51,19 +51,32 @@ class Critic(_ZeroOutput, nn.Module):
     """Own LCA + ReLU(W10·A) → MLP → Q for all three decisions.
 
     obs dict (B, ...), params (B, 3, 2) → Q (B, 3) where Q[:, p] = Q(s, p, params[:, p]).
+    ``multi_pass`` (MP-DQN, Bester et al. 2019): Q[:, p] sees only decision p's parameters
+    (the other rows are zeroed in its pass). In the paper's single pass every Q[:, p] depends
+    on all six numbers, so the actor's update of one row is pushed by the other decisions' Q
+    (P-DQN's "false gradient").
     """
 
-    def __init__(self, cfg: LCAConfig) -> None:
+    def __init__(self, cfg: LCAConfig, multi_pass: bool = False) -> None:
         super().__init__()
         d = cfg.d
         self.lca = LCA(cfg)
         self.act_embed = nn.Linear(ACTION_DIM, d)  # W10
         self.head = nn.Sequential(nn.Linear(2 * d, d), nn.ReLU(), nn.Linear(d, N_DECISIONS))  # W11
+        self.multi_pass = multi_pass
 
     def forward(self, obs: dict[str, Tensor], params: Tensor) -> Tensor:
         e_s = self.lca(obs)
-        e_a = torch.relu(self.act_embed(params.reshape(-1, ACTION_DIM)))
-        return self.head(torch.cat((e_s, e_a), dim=-1))
+        if not self.multi_pass:
+            e_a = torch.relu(self.act_embed(params.reshape(-1, ACTION_DIM)))
+            return self.head(torch.cat((e_s, e_a), dim=-1))
+        # pass p embeds W10's columns of row p only: (B, 3, D)
+        w = self.act_embed.weight.view(-1, N_DECISIONS, N_PARAMS)
+        e_a = torch.relu(torch.einsum("bpk,dpk->bpd", params, w) + self.act_embed.bias)
+        x = torch.cat((e_s.unsqueeze(1).expand_as(e_a), e_a), dim=-1)
+        hid = self.head[1](self.head[0](x))  # (B, 3, D)
+        out = self.head[2]
+        return torch.einsum("bpd,pd->bp", hid, out.weight) + out.bias  # pass p's Q of p
 
 
 def masked_q(q: Tensor, action_mask: Tensor) -> Tensor:
