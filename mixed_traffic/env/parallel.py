@@ -340,10 +340,12 @@ class MixedTrafficEnv(ParallelEnv):
         camera range of an unsignalised junction where their lane yields; SUMO is asked only
         for those whether their next link is open."""
         hd, lane = self.hdmap, snap.lane[rows.r]
+        out = np.full(len(lane), NO_LIGHT, dtype=np.int8)
+        if not hd.any_yield:  # e.g. every bundled scenario: nothing to ask SUMO
+            return out
         safe = np.maximum(lane, 0)
         to_end = hd.lane_length[safe] - snap.lane_pos[rows.r]
         near = (lane >= 0) & hd.lane_yields[safe] & (to_end <= self.config.sensors.camera_range)
-        out = np.full(len(lane), NO_LIGHT, dtype=np.int8)
         if near.any():
             idx = np.flatnonzero(near)
             out[idx] = np.where(self._backend.must_yield([rows.ids[i] for i in idx]), RED, GREEN)

@@ -87,6 +87,11 @@ class HDMap:
         return len(self.lane_ids)
 
     @cached_property
+    def any_yield(self) -> bool:
+        """Some lane must give way at its end (``lane_yields``)."""
+        return bool(self.lane_yields.any())
+
+    @cached_property
     def edge_num_lanes(self) -> np.ndarray:
         """(E,) lanes per edge."""
         return (self.edge_lanes >= 0).sum(axis=1)
