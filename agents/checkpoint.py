@@ -9,7 +9,6 @@ their own keys (command, git revision, env steps, ...).
 from __future__ import annotations
 
 import os
-import tempfile
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -18,6 +17,7 @@ import torch
 
 from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy
 from agents.nets.lca import LCAConfig
+from mixed_traffic.provenance import atomic_write
 
 FORMAT = "mixed_traffic.rbpdqn/1"
 _REQUIRED = ("format", "learner", "meta")
@@ -32,7 +32,7 @@ def save_checkpoint(
     """
     path = Path(path)
     payload = checkpoint_payload(learner, meta)
-    atomic_write_bytes(path, lambda f: torch.save(payload, f))
+    atomic_write(path, lambda f: torch.save(payload, f))
     return path
 
 
@@ -45,22 +45,6 @@ def checkpoint_payload(learner: RBPDQN, meta: dict[str, Any] | None = None) -> d
         obs_shapes={k: list(v) for k, v in learner.lca_cfg.obs_shapes().items()},
     )
     return {"format": FORMAT, "learner": learner.state_dict(), "meta": full_meta}
-
-
-def atomic_write_bytes(path: Path, writer: Any) -> None:
-    """``writer(file)`` into a temp file beside ``path``, fsync, ``os.replace``: a crash
-    mid-write leaves the previous file intact."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            writer(f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:

@@ -20,10 +20,10 @@ import os
 import subprocess
 import tempfile
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.paths import REPO_ROOT, SCENARIOS_DIR
@@ -184,7 +184,7 @@ def write_record_atomic(path: str | Path, record: dict[str, Any]) -> None:
         old = path.read_bytes() if path.exists() else b""
         if old and not old.endswith(b"\n"):
             old += b"\n"
-        _replace(path, old + line)
+        atomic_write(path, lambda fh: fh.write(old + line))
 
 
 def rewrite_records(path: str | Path, records: list[dict[str, Any]]) -> None:
@@ -192,15 +192,19 @@ def rewrite_records(path: str | Path, records: list[dict[str, Any]]) -> None:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with _locked(path):
-        _replace(path, b"".join(record_line(r).encode("utf-8") + b"\n" for r in records))
+        data = b"".join(record_line(r).encode("utf-8") + b"\n" for r in records)
+        atomic_write(path, lambda fh: fh.write(data))
 
 
-def _replace(path: Path, data: bytes) -> None:
-    """Write ``data`` to a temp file beside ``path``, fsync, keep the mode, ``os.replace``."""
+def atomic_write(path: Path, writer: Callable[[IO[bytes]], Any]) -> None:
+    """``writer(file)`` into a temp file beside ``path``, fsync, keep the mode, ``os.replace``,
+    fsync the folder: a crash mid-write leaves the previous file whole."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
+            writer(fh)
             fh.flush()
             os.fsync(fh.fileno())
         mode = path.stat().st_mode & 0o777 if path.exists() else 0o666 & ~_umask()
@@ -210,7 +214,7 @@ def _replace(path: Path, data: bytes) -> None:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
-    _fsync_dir(path.parent)
+    fsync_dir(path.parent)
 
 
 def _umask() -> int:
@@ -219,7 +223,8 @@ def _umask() -> int:
     return mask
 
 
-def _fsync_dir(folder: Path) -> None:
+def fsync_dir(folder: Path) -> None:
+    """Make a rename inside ``folder`` durable (where the platform allows it)."""
     with contextlib.suppress(OSError):
         fd = os.open(folder, os.O_RDONLY)
         try:

@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import BinaryIO
 
-from agents.checkpoint import atomic_write_bytes
+from mixed_traffic.provenance import atomic_write, fsync_dir
 
 MANIFEST = "COMMIT"
 FOLDER = "commits"
@@ -56,12 +56,12 @@ def commit(out: Path, files: dict[str, Writer]) -> Path:
             writer(f)
             f.flush()
             os.fsync(f.fileno())
-    _fsync_dir(tmp)
+    fsync_dir(tmp)
     os.replace(tmp, final)
-    _fsync_dir(root)
+    fsync_dir(root)
     entry = {"commit": final.name, "files": sorted(files)}
-    atomic_write_bytes(out / MANIFEST, lambda f: f.write(json.dumps(entry).encode()))
-    _fsync_dir(out)
+    atomic_write(out / MANIFEST, lambda f: f.write(json.dumps(entry).encode()))
+    fsync_dir(out)
     for old in root.iterdir():
         if old != final:
             shutil.rmtree(old, ignore_errors=True)
@@ -72,12 +72,3 @@ def remove_leftovers(out: Path) -> None:
     """Delete temp files that a killed atomic write left in ``out`` (``.<name>.*.tmp``)."""
     for tmp in out.glob(".*.tmp"):
         tmp.unlink(missing_ok=True)
-
-
-def _fsync_dir(folder: Path) -> None:
-    """Make a rename inside ``folder`` durable."""
-    fd = os.open(folder, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)

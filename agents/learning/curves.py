@@ -11,8 +11,8 @@ from typing import Any
 
 import numpy as np
 
-from agents.checkpoint import atomic_write_bytes
 from agents.collection.workers import Chunk
+from mixed_traffic.provenance import atomic_write
 
 CURVE_COLUMNS = (
     "env_steps", "wall_time", "episodes", "updates", "replay_size", "mean_episode_reward",
@@ -89,7 +89,7 @@ def trim_curves(path: Path, env_steps: int) -> None:
         w = csv.DictWriter(text, fieldnames=CURVE_COLUMNS)
         w.writeheader()
         w.writerows(keep)
-        atomic_write_bytes(path, lambda f: f.write(text.getvalue().encode()))
+        atomic_write(path, lambda f: f.write(text.getvalue().encode()))
 
 
 def _steps(row: dict[str, str]) -> float:

@@ -45,12 +45,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from agents.checkpoint import (
-    atomic_write_bytes,
-    checkpoint_payload,
-    load_checkpoint,
-    save_checkpoint,
-)
+from agents.checkpoint import checkpoint_payload, load_checkpoint, save_checkpoint
 from agents.collection.workers import Chunk, WorkerSpec, exploration_ladder, weight_vector
 from agents.learning.collectors import make_collector
 from agents.learning.commit import commit, committed, remove_leftovers
@@ -59,13 +54,14 @@ from agents.learning.curves import Window, progress, tensorboard, trim_curves, w
 from agents.learning.rbpdqn import RBPDQN, LearnerConfig
 from agents.learning.replay import ReplayBuffer
 from mixed_traffic.config import EnvConfig
+from mixed_traffic.provenance import atomic_write
 
 __all__ = ["TrainConfig", "Trainer", "atomic_write_json"]
 
 
 def atomic_write_json(path: Path, data: dict) -> None:
     """Write ``data`` as indented JSON to ``path`` atomically."""
-    atomic_write_bytes(path, lambda f: f.write(json.dumps(data, indent=2).encode()))
+    atomic_write(path, lambda f: f.write(json.dumps(data, indent=2).encode()))
 
 
 def _learner_config(cfg: TrainConfig) -> LearnerConfig:
@@ -219,7 +215,7 @@ class Trainer:
             copies.append(self.out / "snapshots" / f"{self.c['env_steps']:09d}.pt")
         data = (folder / "checkpoint.pt").read_bytes()
         for path in copies:
-            atomic_write_bytes(path, lambda f: f.write(data))
+            atomic_write(path, lambda f: f.write(data))
 
     def _meta(self) -> dict[str, Any]:
         """Provenance and counters stored with every checkpoint."""
