@@ -49,8 +49,15 @@ class Intervals:
         self.bootstrap_arrival = bootstrap_arrival
         self._open: dict[str, _Open] = {}
 
-    def decide(self, agents: list[str], obs: dict[str, np.ndarray], idx: np.ndarray,
-               decision: np.ndarray, u: np.ndarray, label: tuple[np.ndarray, ...]) -> Rows:  # fmt: skip
+    def decide(
+        self,
+        agents: list[str],
+        obs: dict[str, np.ndarray],
+        idx: np.ndarray,
+        decision: np.ndarray,
+        u: np.ndarray,
+        label: tuple[np.ndarray, ...],
+    ) -> Rows:
         """The agents at ``idx`` decided on the stacked ``obs``: close their open transitions
         (next_obs = this observation) and open new ones. ``label`` = (labelled (A,),
         label_decision (A,), label_params (A, 3, 2)). → the closed transitions."""

@@ -46,15 +46,16 @@ from mixed_traffic.env import parallel_env
 TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
 
 Chunk = dict[str, Any]
-"""A LocalBuffer flush: ``obs``/``next_obs`` dicts of float32 (n, ...) arrays, ``decision``
-(n,) int64, ``params`` (n, 3, 2) float32 (the network output u the agent held), ``reward``
-(n,) float32, ``done`` (n,) float32, ``discount`` (n,) float32 (one transition per decision,
-:mod:`agents.collection.intervals`), the expert labels ``labelled`` (n,) float32, ``label_decision`` (n,) int64, ``label_params``
-(n, 3, 2) float32 (see :class:`agents.learning.replay.ReplayBuffer`), plus ``worker_id``,
-``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo`` (transitions in
-the chunk driven by the demonstrator), ``sim_steps`` (env steps taken),
+"""A LocalBuffer flush of transitions, one per decision (:mod:`agents.collection.intervals`):
+``obs``/``next_obs`` dicts of float32 (n, ...) arrays, ``decision`` (n,) int64, ``params``
+(n, 3, 2) float32 (the network output u the agent held), ``reward``, ``done`` and ``discount``
+(n,) float32, the expert labels ``labelled`` (n,) float32, ``label_decision`` (n,) int64 and
+``label_params`` (n, 3, 2) float32 (see :class:`agents.learning.replay.ReplayBuffer`); plus
+``worker_id``, ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo``
+(decisions in the chunk taken by the demonstrator), ``sim_steps`` (env steps taken),
 ``trips``/``terminals``/``collisions`` (AV trips that ended in the chunk: arrived or terminal;
-terminal events; collisions) and ``episodes`` (list of :func:`episode_stats` dicts of the episodes that ended)."""
+terminal events; collisions) and ``episodes`` (list of :func:`episode_stats` dicts of the
+episodes that ended)."""
 
 
 @dataclass(frozen=True)
