@@ -6,10 +6,12 @@ imported explicitly (torch is heavy):
 - ``agents.learning``: ``rbpdqn`` (``RBPDQN`` learner, batched ``Policy``), ``replay``
   (``ReplayBuffer``), ``config`` (``TrainConfig``), ``collectors`` (process / Ray rollout
   collectors), ``curves``, ``trainer`` (``Trainer``; the CLI is ``python -m mixed_traffic.train``).
-- ``agents.collection.workers``: ``RolloutWorker`` (env + local policy + local buffer).
+- ``agents.collection``: ``workers`` (``RolloutWorker``: env + local policy + local buffer),
+  ``intervals`` (one transition per decision).
+- ``agents.driver``: ``Driver`` (the decision interval and the residual form on ACC-LC).
 - ``agents.rules``: ``acc_lc`` (the ACC-LC baseline, ``AccLcPolicy``; ``plan`` exposes its
   checks), ``safety`` (``SafetyModule`` behind the learned policy), ``obs_batch``.
-- ``agents.policies``: policies by name (``auto``, ``auto-raw``, ``acc-lc``, ``random``).
+- ``agents.policies``: policies by name (``auto``, ``auto-raw``, ``acc-lc``, ``random``, ...).
 - ``agents.checkpoint``: ``save_checkpoint`` / ``load_checkpoint`` / ``load_policy``.
 - ``agents.bench_inference``: ``avg_inference_us`` (AvgIT per decision).
 
