@@ -15,6 +15,7 @@ from typing import Any
 
 import torch
 
+from agents.driver import Driver
 from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy
 from agents.nets.lca import LCAConfig
 from mixed_traffic.provenance import atomic_write
@@ -161,5 +162,17 @@ def load_policy(
     path: str | os.PathLike, z: int | None = None, m: int | None = None, **policy_kw: Any
 ) -> Policy:
     """Checkpoint → batched inference :class:`Policy` (eval mode); kwargs go to ``Policy``."""
+    return _policy(load_checkpoint(path, z=z, m=m)[0], **policy_kw)
+
+
+def load_driver(
+    path: str | os.PathLike, dt: float, z: int | None = None, m: int | None = None
+) -> Driver:
+    """Checkpoint → its :class:`agents.driver.Driver` (one thread, the checkpoint's form and
+    decision interval) for an env stepping ``dt`` [s]."""
     learner, _ = load_checkpoint(path, z=z, m=m)
+    return Driver(_policy(learner, threads=1), learner.cfg, dt)
+
+
+def _policy(learner: RBPDQN, **policy_kw: Any) -> Policy:
     return Policy(learner.actor.eval(), learner.critic.eval(), **policy_kw)

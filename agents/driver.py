@@ -28,14 +28,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from agents.learning.rbpdqn import (
-    STEER_NOISE_FACTOR,
-    LearnerConfig,
-    Policy,
-    explore_decisions,
-    gaussian,
-    obs_to_torch,
-)
+from agents.learning.rbpdqn import LearnerConfig, Policy
 from agents.nets.networks import FOLLOW
 from agents.rules.acc_lc import AccLcPolicy
 from mixed_traffic.env.api import EGO_SCALE
@@ -106,7 +99,7 @@ class Driver:
         t_dec, t_par = self._teacher(obs, n) if with_teacher else _no_teacher(n)
         due = np.array([self._held.get(a, (0,))[0] <= 0 for a in agents], bool)
         if due.any():
-            self._decide(obs, agents, np.flatnonzero(due), mask, t_dec, t_par, mode, rng)
+            self._decide(obs, agents, np.flatnonzero(due), t_dec, t_par, mode, rng)
         decision, u = self._hold(agents, obs, mask, t_dec)
         return Command(decision, self._execute(u, t_par), due, u, t_dec, t_par)
 
@@ -124,7 +117,7 @@ class Driver:
         return np.asarray(dec, np.int64), np.asarray(par, np.float32)
 
     def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,
-                mask: np.ndarray, t_dec: np.ndarray, t_par: np.ndarray, mode: str,
+                t_dec: np.ndarray, t_par: np.ndarray, mode: str,
                 rng: np.random.Generator | None) -> None:  # fmt: skip
         """New decisions and u of the agents at ``idx``, held for k steps from now."""
         residual = self.cfg.residual
@@ -132,31 +125,16 @@ class Driver:
             dec = t_dec[idx]
             u = np.zeros((len(idx), 3, 2), np.float32) if residual else t_par[idx]
         else:
-            q, u = self._network(obs, idx, mode, rng)
+            if self.policy is None:
+                raise ValueError("this Driver has no network: only mode='teacher' can drive")
+            bonus = None
             if residual and self.cfg.teacher_bonus:
-                q[np.arange(len(idx)), t_dec[idx]] += self.cfg.teacher_bonus
-            dec = masked_argmax(q, mask[idx])
-            if mode == "explore":
-                dec = explore_decisions(dec, mask[idx], self.policy.epsilon, rng)
+                bonus = np.zeros((len(idx), 3), np.float32)
+                bonus[np.arange(len(idx)), t_dec[idx]] = self.cfg.teacher_bonus
+            sub = {k: np.asarray(v)[idx] for k, v in obs.items()}
+            dec, u = self.policy.act(sub, mode == "explore", rng, bonus)
         for j, i in enumerate(idx.tolist()):
             self._held[agents[i]] = [self.k, int(dec[j]), u[j]]
-
-    def _network(self, obs: Mapping[str, np.ndarray], idx: np.ndarray, mode: str,
-                 rng: np.random.Generator | None) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-        """(q (n, 3), u (n, 3, 2)) of the network for the rows ``idx``, with exploration
-        noise on u in ``explore`` mode (the critic scores the noisy u)."""
-        if self.policy is None:
-            raise ValueError("this Driver has no network: only mode='teacher' can drive")
-        sub = {k: np.asarray(v)[idx] for k, v in obs.items()}
-        noise = None
-        if mode == "explore":
-            std = self.policy.noise_std * (
-                np.ones(2, np.float32) if self.cfg.residual
-                else np.array([STEER_NOISE_FACTOR, 1.0], np.float32)
-            )  # fmt: skip
-            noise = gaussian(rng, len(idx), std)
-        q, u = self.policy.q_and_params(obs_to_torch(sub), noise)
-        return q.numpy().copy(), u.numpy().copy()
 
     def _hold(self, agents: list[str], obs: Mapping[str, np.ndarray], mask: np.ndarray,
               t_dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
@@ -180,13 +158,6 @@ class Driver:
         if not self.cfg.residual:
             return u
         return np.clip(t_par + self.delta * u, -1.0, 1.0).astype(np.float32)
-
-
-def masked_argmax(q: np.ndarray, mask: np.ndarray) -> np.ndarray:
-    """(A,) int64 argmax of ``q`` (A, 3) over the allowed entries of ``mask`` (A, 3) bool;
-    FOLLOW where nothing is allowed (as ``agents.nets.networks.select``)."""
-    dec = np.where(mask, q, -np.inf).argmax(axis=1)
-    return np.where(mask.any(axis=1), dec, FOLLOW).astype(np.int64)
 
 
 def _no_teacher(n: int) -> tuple[np.ndarray, np.ndarray]:

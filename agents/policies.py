@@ -72,17 +72,13 @@ class AutoPolicy:
         dt: float = 0.1,
     ) -> None:
         """``dt``: the env's simulation step [s]."""
-        from agents.checkpoint import load_checkpoint
-        from agents.driver import Driver
-        from agents.learning.rbpdqn import Policy
+        from agents.checkpoint import load_driver
         from agents.rules.safety import SafetyModule
 
         path = Path(checkpoint) if checkpoint is not None else SHIPPED_CHECKPOINT
         self.checkpoint = path.resolve()
         self.name = "auto" if safety else "auto-raw"
-        learner, _ = load_checkpoint(path, z=z, m=m)
-        policy = Policy(learner.actor.eval(), learner.critic.eval(), threads=1)
-        self.driver = Driver(policy, learner.cfg, dt)
+        self.driver = load_driver(path, dt, z=z, m=m)
         self.safety = SafetyModule() if safety else None
 
     def act(

@@ -226,14 +226,22 @@ def test_accel_expectile_weighs_errors_below_the_label_more() -> None:
     assert losses[-1.0] - steer == pytest.approx(3 * 0.4 * 0.04, rel=1e-4)
 
 
-def test_td_target_ignores_masked_decisions() -> None:
+def _bootstrap_case(b: int) -> tuple[RBPDQN, dict, torch.Tensor]:
+    """A fresh learner, a batch of ``b`` non-terminal rows and the target networks' Q (b, 3)
+    of their next observations."""
     cfg = LCAConfig()
     learner = RBPDQN(cfg)
-    batch = _batch(8, cfg)
+    batch = _batch(b, cfg)
     batch["done"][:] = 0.0
     nxt = batch["next_obs"]
     with torch.no_grad():
         q = learner.critic_targ(nxt, learner.actor_targ(nxt))
+    return learner, batch, q
+
+
+def test_td_target_ignores_masked_decisions() -> None:
+    learner, batch, q = _bootstrap_case(8)
+    nxt = batch["next_obs"]
     nxt["action_mask"][:] = 0.0
     nxt["action_mask"][:, 2] = 1.0
     y = learner.td_target(batch)
@@ -242,14 +250,8 @@ def test_td_target_ignores_masked_decisions() -> None:
 
 def test_td_target_uses_each_rows_discount() -> None:
     """A decision interval cut short discounts less; NaN rows fall back to the learner's γ."""
-    cfg = LCAConfig()
-    learner = RBPDQN(cfg)
-    batch = _batch(4, cfg)
-    batch["done"][:] = 0.0
-    nxt = batch["next_obs"]
-    with torch.no_grad():
-        best = masked_q(learner.critic_targ(nxt, learner.actor_targ(nxt)), nxt["action_mask"])
-        best = best.max(dim=1).values
+    learner, batch, q = _bootstrap_case(4)
+    best = masked_q(q, batch["next_obs"]["action_mask"]).max(dim=1).values
     batch["discount"] = torch.tensor([0.95, 0.99, float("nan"), 0.5])
     y = learner.td_target(batch)
     gamma = torch.tensor([0.95, 0.99, 0.9, 0.5])

@@ -20,6 +20,7 @@ from agents.learning.config import TrainConfig, feasible_densities
 from agents.learning.trainer import Trainer
 from agents.rules.acc_lc import AccLcPolicy
 from mixed_traffic.experiments.train import main
+from mixed_traffic.world.registry import load_scenario
 
 DEMO = "acc-lc"
 
@@ -188,10 +189,11 @@ def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None
 
 
 def test_each_scenario_samples_the_densities_it_can_hold() -> None:
-    assert feasible_densities("ring-220m", (60.0, 180.0, 0.0)) == (60.0, None)
-    assert feasible_densities("straight-3lane", (60.0, 180.0)) == (60.0, 180.0)
+    ring = load_scenario("ring-220m")
+    assert feasible_densities(ring, (60.0, 180.0, 0.0)) == (60.0, None)
+    assert feasible_densities(load_scenario("straight-3lane"), (60.0, 180.0)) == (60.0, 180.0)
     with pytest.raises(ValueError, match="ring-220m"):
-        feasible_densities("ring-220m", (180.0,))
+        feasible_densities(ring, (180.0,))
 
 
 def test_worker_crash_is_recovered(tmp_path: Path) -> None:

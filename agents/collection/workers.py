@@ -42,6 +42,7 @@ from agents.nets.networks import Actor, Critic
 from agents.policies import OBS_KEYS, make_policy, stack_obs, to_actions
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
+from mixed_traffic.world.registry import load_scenario
 
 TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
 
@@ -184,11 +185,15 @@ class RolloutWorker:
     def __init__(self, spec: WorkerSpec) -> None:
         torch.set_num_threads(1)
         self.spec = spec
+        # each scenario's feasible densities, once (an episode samples among them)
+        self._densities = {n: feasible_densities(load_scenario(n), spec.densities)
+                           for n in set(spec.scenarios)}  # fmt: skip
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)  # overwritten by the first set_weights
             self.actor = Actor(spec.lca).eval()
             self.critic = Critic(spec.lca, multi_pass=spec.learner.multi_pass).eval()
-        self.policy = Policy(self.actor, self.critic, spec.noise_std, spec.epsilon, threads=1)
+        self.policy = Policy(self.actor, self.critic, spec.noise_std, spec.epsilon, threads=1,
+                             **({"steer_noise_factor": 1.0} if spec.learner.residual else {}))  # fmt: skip
         self.has_weights = False
         self._demo: Any = None
         self.demo_done = 0
@@ -223,7 +228,7 @@ class RolloutWorker:
         self.rng = np.random.default_rng([s.seed, s.worker_id, s.run, s.incarnation, self.episode])
         self.episode += 1
         scenario = str(self.rng.choice(s.scenarios))
-        densities = feasible_densities(scenario, s.densities)
+        densities = self._densities[scenario]
         cfg = replace(
             s.env_base,
             scenario=scenario,

@@ -8,10 +8,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Any, NoReturn
 
 from agents.nets.lca import LCAConfig
 from mixed_traffic.config import WEATHERS, EnvConfig
+
+if TYPE_CHECKING:
+    from mixed_traffic.world.scenario import Scenario
 
 BACKENDS = ("process", "ray")
 RESIDUAL_BC_ACCEL = 0.05
@@ -244,8 +247,9 @@ class TrainConfig:
             self._bad("demo_policy", "the residual form corrects ACC-LC: use acc-lc")
         if not 0 <= self.impact_weight <= 10:
             self._bad("impact_weight", "must be in [0, 10]")
-        if not self.teacher_bonus >= 0 or not self.reward_scale >= 0:
-            self._bad("teacher_bonus", "teacher_bonus and reward_scale must be >= 0")
+        for name in ("teacher_bonus", "reward_scale"):
+            if not getattr(self, name) >= 0:
+                self._bad(name, "must be >= 0")
 
     @property
     def accel_bc_weight(self) -> float:
@@ -279,21 +283,15 @@ class TrainConfig:
                       if k in names})  # fmt: skip
 
 
-def feasible_densities(scenario: str, densities: tuple[float, ...]) -> tuple[float | None, ...]:
+def feasible_densities(
+    scenario: Scenario, densities: tuple[float, ...]
+) -> tuple[float | None, ...]:
     """The ``densities`` [veh/km] ``scenario`` can hold (up to its jam density), 0 as None
     (its default); ValueError naming the scenario when none fits."""
-    from mixed_traffic.world.registry import load_scenario
-
-    sc = load_scenario(scenario)
-    out: list[float | None] = []
-    for d in densities:
-        if not d:
-            out.append(None)
-        elif d <= sc.max_density:
-            out.append(d)
+    out = tuple(d or None for d in densities if d <= scenario.max_density)
     if not out:
-        raise ValueError(f"no density of {list(densities)} veh/km fits scenario {scenario!r}")
-    return tuple(out)
+        raise ValueError(f"no density of {list(densities)} veh/km fits scenario {scenario.name!r}")
+    return out
 
 
 def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:

@@ -300,11 +300,15 @@ class Policy:
         epsilon: float = 0.05,
         threads: int | None = None,
         fused: bool = True,
+        steer_noise_factor: float = STEER_NOISE_FACTOR,
     ) -> None:
+        """``steer_noise_factor``: the steering column's share of ``noise_std`` [-] (1 in the
+        residual form, whose steering bound already scales it)."""
         if threads is not None:
             torch.set_num_threads(threads)  # rollout workers: one core each, no oversubscription
         self.actor, self.critic = actor, critic
         self.noise_std = noise_std
+        self.steer_noise_factor = steer_noise_factor
         self.epsilon = epsilon
         c = actor.lca.cfg
         self._fused = (
@@ -333,25 +337,34 @@ class Policy:
         return self.critic(obs, params), params
 
     def act(
-        self, obs: dict[str, np.ndarray], explore: bool, rng: np.random.Generator | None = None
+        self,
+        obs: dict[str, np.ndarray],
+        explore: bool,
+        rng: np.random.Generator | None = None,
+        bonus: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """obs numpy (A, ...) → (decision (A,) int64, params (A, 3, 2) float32 in [-1, 1]).
 
-        Exploration: Gaussian noise (std ``noise_std``, times ``STEER_NOISE_FACTOR`` for the
-        steering column) on all params, clipped to [-1, 1], and
-        the critic scores the *noisy* params (they are what gets executed and stored); then with
-        probability ``epsilon`` a uniformly random unmasked decision replaces the argmax.
+        ``bonus`` (A, 3), if given, is added to Q before the masked argmax. Exploration:
+        Gaussian noise (std ``noise_std``, times ``steer_noise_factor`` for the steering
+        column) on all params, clipped to [-1, 1], and the critic scores the *noisy* params
+        (they are what gets executed and stored); then with probability ``epsilon`` a uniformly
+        random unmasked decision replaces the argmax.
         """
         t = obs_to_torch(obs)
         mask = t["action_mask"] > 0.5
-        if not explore:
-            q, params = self.q_and_params(t)
-            return select(q, mask).numpy(), params.numpy().copy()
-        if rng is None:
-            raise ValueError("explore=True needs an rng")
-        std = self.noise_std * np.array([STEER_NOISE_FACTOR, 1.0], np.float32)  # per param
-        q, params = self.q_and_params(t, gaussian(rng, len(mask), std))
-        dec = explore_decisions(select(q, mask).numpy().copy(), mask.numpy(), self.epsilon, rng)
+        noise = None
+        if explore:
+            if rng is None:
+                raise ValueError("explore=True needs an rng")
+            std = self.noise_std * np.array([self.steer_noise_factor, 1.0], np.float32)
+            noise = gaussian(rng, len(mask), std)
+        q, params = self.q_and_params(t, noise)
+        if bonus is not None:
+            q = q + torch.from_numpy(np.asarray(bonus, np.float32))
+        dec = select(q, mask).numpy().copy()
+        if explore:
+            dec = explore_decisions(dec, mask.numpy(), self.epsilon, rng)
         return dec, params.numpy().copy()
 
 

@@ -21,7 +21,6 @@ code and checkpoint content, resumable) and compares paired seeds with 95 % t-in
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import math
 import sys
@@ -32,6 +31,7 @@ import pandas as pd
 
 from analysis.stats import paired_difference
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
+from mixed_traffic.experiments.compare import content_key
 from mixed_traffic.experiments.runner import check_checkpoint
 from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
 from mixed_traffic.provenance import FolderBusyError, current_code_key, read_records
@@ -74,8 +74,7 @@ class AcceptanceConfig:
                 reference: bool = False) -> pd.DataFrame:  # fmt: skip
         """Run (or reuse) one cell per policy and seed (``reference``: plus the all-human
         ``idm`` cell at 0 %) → one row per episode: policy, seed and the record's metrics."""
-        key = hashlib.sha256(self.path.read_bytes()).hexdigest()[:12]
-        folder = self.out / f"code-{current_code_key()}" / key / name
+        folder = self.out / f"code-{current_code_key()}" / content_key(self.path) / name
         sweep = SweepConfig(
             scenario=scenario, at_density=density, values=(penetration,), reference=reference,
             policies=policies, seeds=self.seeds, episode_length=length or self.episode_length,

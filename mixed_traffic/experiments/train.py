@@ -72,11 +72,11 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
                 f"--scenarios: unknown scenario {s!r}; known: {', '.join(list_scenarios())}"
             )
         try:
-            train_split_scenario(s)
+            sc = train_split_scenario(s)
         except ValueError as e:
             parser.error(f"--scenarios: {e}")
         try:
-            feasible_densities(s, cfg.densities)
+            feasible_densities(sc, cfg.densities)
         except ValueError as e:
             parser.error(f"--densities: {e}")
     return dataclasses.replace(cfg, scenarios=scen)
