@@ -12,7 +12,8 @@ Two forms (``LearnerConfig.residual``):
 - paper: u is the parameters themselves; held for k steps they are the executed command.
 - residual: u is a bounded correction to ACC-LC (``agents.rules.acc_lc``), which is evaluated
   on every step's observation: params = clip(ACC-LC's params + (steer_delta, accel_delta)·u,
-  -1, 1). ACC-LC is the low-level controller that tracks the held command: it keeps the lane
+  -1, 1); with ``speed_governor`` the accel_brake correction lifts no row above what the speed
+  limits and curves ahead allow (ACC-LC's ``speed_cap``). ACC-LC is the low-level controller that tracks the held command: it keeps the lane
   centre, keeps the gap and only shifts towards a changed lane while its gap checks accept it.
   The decision is the critic's masked argmax of Q + ``teacher_bonus`` on ACC-LC's decision.
 
@@ -31,6 +32,7 @@ import numpy as np
 from agents.learning.rbpdqn import LearnerConfig, Policy
 from agents.nets.networks import FOLLOW
 from agents.rules.acc_lc import AccLcPolicy
+from agents.rules.acc_lc_longitudinal import speed_cap, to_ab
 from mixed_traffic.env.api import EGO_SCALE
 
 MODES = ("greedy", "explore", "teacher")
@@ -96,12 +98,12 @@ class Driver:
         self._forget(agents)
         mask = np.asarray(obs["action_mask"]) > 0.5
         with_teacher = self.cfg.residual or labels or mode == "teacher"
-        t_dec, t_par = self._teacher(obs, n) if with_teacher else _no_teacher(n)
+        t_dec, t_par, cap = self._teacher(obs, n) if with_teacher else _no_teacher(n)
         due = np.array([self._held.get(a, (0,))[0] <= 0 for a in agents], bool)
         if due.any():
             self._decide(obs, agents, np.flatnonzero(due), t_dec, t_par, mode, rng)
         decision, u = self._hold(agents, obs, mask, t_dec)
-        return Command(decision, self._execute(u, t_par), due, u, t_dec, t_par)
+        return Command(decision, self._execute(u, t_par, cap), due, u, t_dec, t_par)
 
     # ------------------------------------------------------------------ steps of act()
     def _forget(self, agents: list[str]) -> None:
@@ -110,11 +112,15 @@ class Driver:
             live = set(agents)
             self._held = {a: h for a, h in self._held.items() if a in live}
 
-    def _teacher(self, obs: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, np.ndarray]:
+    def _teacher(self, obs: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, ...]:
+        """ACC-LC's (decision (A,), params (A, 3, 2), the governor's accel_brake cap (A,))."""
         if n == 0:
             return _no_teacher(0)
-        dec, par = self.teacher.act(obs)
-        return np.asarray(dec, np.int64), np.asarray(par, np.float32)
+        plan = self.teacher.plan(obs)
+        cap = np.ones(n, np.float32)
+        if self.cfg.residual and self.cfg.speed_governor:
+            cap = to_ab(speed_cap(plan.features, self.teacher.c), self.teacher.c)
+        return plan.decision.astype(np.int64), plan.params.astype(np.float32), cap
 
     def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,
                 t_dec: np.ndarray, t_par: np.ndarray, mode: str,
@@ -153,12 +159,16 @@ class Driver:
             h[1] = d
         return decision, u.astype(np.float32)
 
-    def _execute(self, u: np.ndarray, t_par: np.ndarray) -> np.ndarray:
-        """(A, 3, 2) executed parameters of the held u."""
+    def _execute(self, u: np.ndarray, t_par: np.ndarray, cap: np.ndarray) -> np.ndarray:
+        """(A, 3, 2) executed parameters of the held u; the accel_brake correction lifts no
+        row above ``cap`` (A,) unless ACC-LC's own is higher."""
         if not self.cfg.residual:
             return u
-        return np.clip(t_par + self.delta * u, -1.0, 1.0).astype(np.float32)
+        out = np.clip(t_par + self.delta * u, -1.0, 1.0)
+        ceiling = np.maximum(t_par[:, :, 1], cap[:, None])
+        out[:, :, 1] = np.minimum(out[:, :, 1], ceiling)
+        return out.astype(np.float32)
 
 
-def _no_teacher(n: int) -> tuple[np.ndarray, np.ndarray]:
-    return np.full(n, FOLLOW, np.int64), np.zeros((n, 3, 2), np.float32)
+def _no_teacher(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    return np.full(n, FOLLOW, np.int64), np.zeros((n, 3, 2), np.float32), np.ones(n, np.float32)

@@ -58,3 +58,43 @@ def test_zero_residual_drives_as_acc_lc_and_decides_every_interval(interval: flo
         env.close()
     assert changes > 0  # the merge makes ACC-LC change lanes
     assert set(gaps) == {steps_per_decision(interval, 0.1) - 1}
+
+
+def test_the_governor_caps_only_the_correction_that_lifts_the_acceleration() -> None:
+    cfg = LearnerConfig(residual=True, speed_governor=True, accel_delta=0.25)
+    driver = Driver(None, cfg, 0.1)
+    t_par = np.zeros((3, 3, 2), np.float32)
+    t_par[:, :, 1] = [[0.2, 0.2, 0.2], [0.5, 0.5, 0.5], [0.2, 0.2, 0.2]]
+    u = np.zeros((3, 3, 2), np.float32)
+    u[:2, :, 1], u[2, :, 1] = 1.0, -1.0
+    out = driver._execute(u, t_par, cap=np.full(3, 0.3, np.float32))
+    np.testing.assert_allclose(out[0, :, 1], 0.3)  # 0.45 capped at the governor's 0.3
+    np.testing.assert_allclose(out[1, :, 1], 0.5)  # ACC-LC's own 0.5 is above the cap: kept
+    np.testing.assert_allclose(out[2, :, 1], -0.05)  # braking corrections are free
+
+
+def test_an_eager_residual_speeds_without_the_governor_and_not_with_it(tmp_path) -> None:
+    """u ≈ +1 on every accel row (+0.75 m/s² over ACC-LC) in free flow on straight-4lane."""
+    import dataclasses
+
+    from agents.checkpoint import save_checkpoint
+    from agents.learning.fleet_search import get_theta, set_theta
+    from mixed_traffic.config import EnvConfig
+    from mixed_traffic.experiments.runner import run_episode
+
+    sensors = EnvConfig().sensors
+    learner = RBPDQN(LCAConfig(z=sensors.history, m=sensors.waypoints),
+                     LearnerConfig(residual=True, decision_interval=0.5, teacher_bonus=0.02))  # fmt: skip
+    theta = get_theta(learner.actor)
+    theta[-3:] = 3.0
+    set_theta(learner.actor, theta)
+    config = EnvConfig(scenario="straight-4lane", density=60.0, penetration=0.5, seed=3,
+                       episode_length=90.0)  # fmt: skip
+    speeding = {}
+    for governor in (False, True):
+        learner.cfg = dataclasses.replace(learner.cfg, speed_governor=governor)
+        path = save_checkpoint(tmp_path / f"{governor}.pt", learner)
+        m = run_episode(config, "auto-raw", 30.0, checkpoint=path)["metrics"]
+        speeding[governor] = m["terminal_speed_limit"]
+        assert m["collisions"] == 0
+    assert speeding[False] > 0 and speeding[True] == 0

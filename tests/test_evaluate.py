@@ -21,7 +21,8 @@ def test_cli_json_record(tmp_path: Path) -> None:
     out = tmp_path / "records.jsonl"
     cmd = [sys.executable, "-m", "mixed_traffic.evaluate", "--policy", "idm",
            "--scenario", "straight", "--density", "60", "--penetration", "0",
-           "--episode-length", "60", "--warmup", "10", "--out", str(out), "--json"]  # fmt: skip
+           "--episode-length", "60", "--warmup", "10", "--out", str(out), "--json",
+           "--no-progress"]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, cwd=REPO, timeout=120)
     assert proc.returncode == 0, proc.stderr
     lines = proc.stdout.strip().splitlines()

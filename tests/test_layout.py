@@ -14,7 +14,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMANDS = ("sweep", "evaluate", "train", "compare", "bench", "report", "scenario",
-            "experiments.safety_matrix")  # fmt: skip
+            "experiments.safety_matrix", "experiments.fleet")  # fmt: skip
 
 
 def _python(*args: str) -> subprocess.CompletedProcess:

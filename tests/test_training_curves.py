@@ -33,3 +33,16 @@ def test_a_file_that_is_not_curves_is_named(tmp_path: Path, capsys) -> None:
     with pytest.raises(SystemExit):
         main([str(bad), str(tmp_path / "o.png")])
     assert "bad.csv" in capsys.readouterr().err
+
+
+def test_a_fleet_search_curve_gets_its_panels(tmp_path: Path) -> None:
+    from mixed_traffic.experiments.fleet import CURVE_FIELDS
+
+    n = 12
+    rows = {c: [0.01 * i for i in range(n)] for c in CURVE_FIELDS}
+    rows.update(iteration=list(range(1, n + 1)), gain_scenario=["ring-260m"] * n)
+    path = tmp_path / "curves.csv"
+    pd.DataFrame(rows).to_csv(path, index=False)
+    out = tmp_path / "fleet.png"
+    assert main([str(path), str(out)]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -73,6 +73,10 @@ class TrainConfig:
     decision_interval: float = 0.5
     """Time between the policy's decisions [s], rounded to whole simulation steps; the command
     is held in between (``agents.driver``; 0.1 = the paper's one decision per step)."""
+    speed_governor: bool = True
+    """Residual form: the accel correction may not lift the acceleration above what the speed
+    limit and the curves ahead allow (``LearnerConfig.speed_governor``); without it, eager
+    corrections ended AV trips for speeding in free flow and before junctions (docs/agent.md)."""
     multi_pass: bool = True
     """MP-DQN critic: each decision's Q sees only its own parameters, so the actor's update of
     one row is not pushed by the other decisions' Q (``LearnerConfig.multi_pass``; False = the
@@ -99,6 +103,11 @@ class TrainConfig:
     bootstrap_arrival: bool = True
     """Bootstrap at the end of the route from the last observation (False: arrival is a
     terminal state of value 0, which punishes progress)."""
+    fleet_iterations: int = 0
+    """After the RBP-DQN budget: total iterations of fleet-return search on the actor's accel
+    outputs in OUT/fleet (``mixed_traffic.experiments.fleet``; 10 episodes each, about 3.5 min
+    on 2 cores), whose policy becomes OUT/auto.pt (0 = none). A per-agent critic cannot see a
+    shared policy's gain, which the whole fleet shares (docs/agent.md)."""
     alpha: float = 0.6
     """Weight α of the normalised Q term in the actor loss after pretraining [-] (paper 0.6)."""
     lr: float = 1e-3
@@ -218,6 +227,8 @@ class TrainConfig:
             self._bad("demo_steps", "must be >= 0")
         if self.pretrain_updates < 0:
             self._bad("pretrain_updates", "must be >= 0")
+        if self.fleet_iterations < 0:
+            self._bad("fleet_iterations", "must be >= 0")
 
     def _check_optimiser(self) -> None:
         """The actor loss weights and the learning-rate schedule."""

@@ -87,6 +87,16 @@ def lane_accel(
     return _light_accel(f, c, acc, v0, lim_now)
 
 
+def speed_cap(f: Features, c: AccLcConfig, horizon: float = 1.0) -> np.ndarray:
+    """(A,) the largest acceleration [m/s²] that keeps the ego within the speed limit of its
+    lane and the curve and limit targets ahead: towards the speed limit where it is (or the
+    curve's speed there) within ``horizon`` [s], and ACC-LC's kinematic braking for lower
+    targets ahead."""
+    ln = np.full(len(f["v"]), _C)
+    _, v0, a_lim = _speed_limits(f, c, ln, f["d"])
+    return np.minimum((v0 / c.speed_factor - f["v"]) / horizon, a_lim)
+
+
 def _speed_limits(
     f: Features, c: AccLcConfig, ln: np.ndarray, offset: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

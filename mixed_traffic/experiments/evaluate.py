@@ -105,6 +105,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--gif", type=Path, default=None, metavar="FILE",
         help="record the (first) episode as an animated GIF (bird's-eye view)",
     )  # fmt: skip
+    parser.add_argument(
+        "--progress", action=argparse.BooleanOptionalAction, default=True,
+        help="show progress bars: over the seeds, and over the steps of a single episode "
+        "(default: on)",
+    )  # fmt: skip
     return parser
 
 
@@ -119,9 +124,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(str(e).strip("'\""))
     records: list[dict[str, Any]] = []
     failed = 0
-    for cfg in tqdm(configs, desc="episodes", disable=len(configs) == 1 or None):
+    bar = not args.progress or len(configs) == 1 or None  # None: only on a terminal
+    for cfg in tqdm(configs, desc="episodes", disable=bar):
         try:
-            extra = {"checkpoint": args.checkpoint, "gif": args.gif if cfg is configs[0] else None}
+            extra = {"checkpoint": args.checkpoint, "gif": args.gif if cfg is configs[0] else None,
+                     "progress": args.progress and len(configs) == 1 and sys.stderr.isatty()}  # fmt: skip
             record = run_episode(cfg, args.policy, args.warmup, **extra)
         except (SumoError, ValueError) as e:  # e.g. SUMO failed, or a bad checkpoint
             print(f"error: seed {cfg.seed}: {e}", file=sys.stderr)

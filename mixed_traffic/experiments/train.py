@@ -2,30 +2,37 @@
 
 The options are built from :class:`agents.learning.trainer.TrainConfig` (field docstrings carry the
 units). This module composes: it resolves and validates the scenarios (train split only) and
-the density range per scenario before any worker starts, then runs :class:`Trainer`.
+the density range per scenario before any worker starts, then runs :class:`Trainer` and, with
+``--fleet-iterations``, the fleet-return search stage on its result (``--resume`` continues
+whichever stage the run is in).
 
 Examples::
 
     python -m mixed_traffic.train --workers 2 --env-steps 2000000 --out runs/auto
     python -m mixed_traffic.train --workers 2 --minutes 60 --out runs/auto --resume
     python -m mixed_traffic.train --workers 10 --backend ray --address auto --env-steps 5e6
+    python -m mixed_traffic.train --env-steps 2e6 --fleet-iterations 40 --out runs/auto
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import shlex
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments import cli
 from mixed_traffic.experiments.cli import add_config_args
 
+FLEET_DIR = "fleet"
+"""Subfolder of OUT where the fleet-return search stage runs."""
 _SHORT = {"workers", "backend", "address", "scenarios", "densities", "penetrations", "weathers",
-          "env_steps", "minutes", "out", "seed", "demo_steps", "ablation", "bp_dqn"}  # fmt: skip
+          "env_steps", "minutes", "out", "seed", "demo_steps", "ablation", "bp_dqn", "fleet_iterations"}  # fmt: skip
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -96,17 +103,44 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     argv_list = list(sys.argv[1:] if argv is None else argv)
     command = shlex.join(["python", "-m", "mixed_traffic.train", *argv_list])
-    try:
-        trainer = Trainer(cfg, env_base=env_base, resume=args.resume, command=command)
-    except (FileExistsError, FileNotFoundError, ValueError) as e:
-        parser.error(str(e))
-    info = trainer.run()
-    print(
-        f"done: {info['env_steps']} env steps, {info['updates']} updates, "
-        f"{info['episodes']} episodes in {info['wall_time_s']:.0f} s; "
-        f"worker restarts {info['worker_restarts']}; wrote {cfg.out}/auto.pt"
-    )
+    fleet_started = args.resume and (Path(cfg.out) / FLEET_DIR / "state.json").exists()
+    if not fleet_started:  # else the RBP-DQN stage is done: go on with the fleet search
+        try:
+            trainer = Trainer(cfg, env_base=env_base, resume=args.resume, command=command)
+        except (FileExistsError, FileNotFoundError, ValueError) as e:
+            parser.error(str(e))
+        info = trainer.run()
+        print(f"done: {info['env_steps']} env steps, {info['updates']} updates, "
+              f"{info['episodes']} episodes in {info['wall_time_s']:.0f} s; "
+              f"worker restarts {info['worker_restarts']}; wrote {cfg.out}/auto.pt")  # fmt: skip
+    if cfg.fleet_iterations:
+        fleet_stage(cfg)
     return 0
+
+
+def fleet_stage(cfg: Any) -> None:
+    """Fleet-return search from OUT/auto.pt in OUT/fleet (resumed if there), for the run's
+    ``fleet_iterations`` in all, on episodes sampled like the RBP-DQN stage's; its policy then
+    replaces OUT/auto.pt."""
+    from agents.learning.trainer import atomic_write_json
+    from mixed_traffic.experiments.fleet import FleetConfig, FleetSearch
+    from mixed_traffic.provenance import atomic_write
+
+    out = Path(cfg.out)
+    fleet = FleetConfig(
+        init=out / "auto.pt", out=out / FLEET_DIR, minutes=0.0, iterations=cfg.fleet_iterations,
+        workers=cfg.workers, seed=cfg.seed, scenarios=cfg.scenarios, densities=cfg.densities,
+        penetrations=cfg.penetrations, weathers=cfg.weathers, episode_length=cfg.episode_length,
+        warmup=min(FleetConfig.warmup, cfg.episode_length / 4), progress=cfg.progress,
+        speed_governor=cfg.speed_governor,
+    )  # fmt: skip
+    search = FleetSearch(fleet)
+    policy = search.run().read_bytes()
+    atomic_write(out / "auto.pt", lambda f: f.write(policy))
+    info = json.loads((out / "auto.json").read_text())
+    info["fleet_search"] = {k: search.state[k] for k in ("iteration", "episodes", "minutes")}
+    atomic_write_json(out / "auto.json", info)
+    print(f"fleet search: {cfg.fleet_iterations} iterations; wrote {out}/auto.pt")
 
 
 if __name__ == "__main__":

@@ -1,0 +1,340 @@
+"""``python -m mixed_traffic.experiments.fleet``: fleet-return search on an AUTO checkpoint.
+
+    python -m mixed_traffic.experiments.fleet --init runs/auto/auto.pt --out runs/fleet --minutes 60
+
+Evolution strategies (:mod:`agents.learning.fleet_search`) on the actor's accel outputs, judged
+by what the whole traffic does: every candidate drives the AVs (``auto-raw``, no safety module)
+of a whole episode sampled from the train-split scenarios, densities, penetrations and weathers,
+through the one episode runner. Each iteration also runs the current policy against ACC-LC on
+one more sampled config (the ``gain`` column of the curves: its fleet score minus ACC-LC's).
+
+OUT holds ``base.pt`` (a copy of --init), ``episodes.jsonl`` (every episode's record with
+its iteration, role and score), ``state.json`` (θ, Adam, iteration; written
+atomically after every iteration), ``curves.csv`` and ``auto.pt`` (the current policy, a
+normal checkpoint). A second run with the same OUT resumes; kill -9 loses one iteration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import multiprocessing as mp
+import shutil
+import sys
+import time
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from mixed_traffic.config import WEATHERS, EnvConfig
+from mixed_traffic.experiments import cli
+from mixed_traffic.experiments.runner import check_checkpoint, run_episode
+from mixed_traffic.provenance import atomic_write, git_revision, write_record_atomic
+
+CURVE_FIELDS = ("iteration", "minutes", "episodes", "mean_d", "unsafe", "gain", "gain_scenario",
+                "theta_norm", "bias_left", "bias_follow", "bias_right")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class FleetConfig:
+    """A fleet-search run; the command line is built from these fields."""
+
+    init: Path | None = None
+    """Checkpoint to start from (needed for a new OUT; a resumed run uses OUT/base.pt)."""
+    out: Path = Path("runs/fleet")
+    """Output folder (state.json, curves.csv, auto.pt); an existing one is resumed."""
+    minutes: float = 60.0
+    """Wall-time budget of this invocation [min] (0 = none)."""
+    iterations: int = 0
+    """Budget: total iterations of the run including resumed ones (0 = none)."""
+    workers: int = 2
+    """Episode worker processes."""
+    seed: int = 0
+    """Root seed: noise vectors and episode configs of iteration i come from (seed, i)."""
+    scenarios: tuple[str, ...] = ()
+    """Train-split scenarios to sample ('' = all; a family is drawn first, then its variant)."""
+    densities: tuple[float, ...] = (60.0, 120.0, 180.0, 0.0)
+    """Densities sampled per episode [veh/km]; 0 = the scenario's default; infeasible skipped."""
+    penetrations: tuple[float, ...] = (0.05, 0.5, 1.0)
+    """AV shares sampled per episode [0-1] (0.05 on a 22-car ring is one AV)."""
+    weathers: tuple[str, ...] = WEATHERS
+    """Weather presets sampled per episode."""
+    episode_length: float = 120.0
+    """Simulated time per episode [s]."""
+    warmup: float = 30.0
+    """Time before the fleet's speed is measured [s]."""
+    speed_governor: bool = True
+    """Residual checkpoints: drive with the speed governor (``LearnerConfig.speed_governor``),
+    whatever the --init checkpoint says; False keeps the checkpoint's setting."""
+    search: Any = field(default_factory=lambda: _search_config())
+    """The evolution-strategies step (``agents.learning.fleet_search.SearchConfig``)."""
+    progress: bool = True
+    """Show a progress bar."""
+
+    def __post_init__(self) -> None:
+        if self.minutes < 0 or self.iterations < 0:
+            raise ValueError("minutes and iterations must be >= 0")
+        if not (self.minutes or self.iterations):
+            raise ValueError("give a budget: --minutes or --iterations")
+        if self.workers < 1:
+            raise ValueError(f"workers={self.workers} must be at least 1")
+        if not self.densities or not self.penetrations:
+            raise ValueError("densities and penetrations need at least one value each")
+        if any(not 0 < p <= 1 for p in self.penetrations):
+            raise ValueError(f"penetrations {list(self.penetrations)} must lie in (0, 1]")
+        if not self.weathers or any(w not in WEATHERS for w in self.weathers):
+            raise ValueError(f"weathers {list(self.weathers)}: choose from {WEATHERS}")
+        if self.warmup >= self.episode_length:
+            raise ValueError(f"warmup {self.warmup} s must be shorter than episode_length")
+        if self.init is not None:
+            check_checkpoint(self.init)
+
+
+def _search_config() -> Any:
+    from agents.learning.fleet_search import SearchConfig
+
+    return SearchConfig()
+
+
+# ---------------------------------------------------------------- episode configs
+def scenario_pool(names: tuple[str, ...]) -> dict[str, list[str]]:
+    """Family → its train-split variants (of ``names``, or all); ValueError on an eval one."""
+    from mixed_traffic.world.registry import train_scenarios, train_split_scenario
+
+    pool: dict[str, list[str]] = {}
+    for name in names or tuple(train_scenarios()):
+        pool.setdefault(train_split_scenario(name).family, []).append(name)
+    return pool
+
+
+def sample_config(
+    rng: np.random.Generator, cfg: FleetConfig, pool: dict[str, list[str]]
+) -> EnvConfig:
+    """One episode config: family, variant, feasible density, penetration, weather, seed."""
+    from agents.learning.config import feasible_densities
+    from mixed_traffic.world.registry import load_scenario
+
+    family = sorted(pool)[rng.integers(len(pool))]
+    name = pool[family][rng.integers(len(pool[family]))]
+    dens = feasible_densities(load_scenario(name), cfg.densities)
+    return EnvConfig(
+        scenario=name, density=dens[rng.integers(len(dens))],
+        penetration=float(cfg.penetrations[rng.integers(len(cfg.penetrations))]),
+        weather=cfg.weathers[rng.integers(len(cfg.weathers))], seed=int(rng.integers(2**31)),
+        episode_length=cfg.episode_length,
+    )  # fmt: skip
+
+
+def _record(config: EnvConfig, policy: str, warmup: float, checkpoint: str | None) -> dict:
+    """Worker: one episode's record."""
+    return run_episode(config, policy, warmup, checkpoint=checkpoint)
+
+
+# ---------------------------------------------------------------- the run
+class FleetSearch:
+    """Resumable ES run in ``cfg.out``."""
+
+    def __init__(self, cfg: FleetConfig) -> None:
+        from agents.checkpoint import load_checkpoint
+        from agents.learning.fleet_search import Adam, get_theta
+
+        self.cfg, self.out = cfg, cfg.out
+        self.out.mkdir(parents=True, exist_ok=True)
+        base = self.out / "base.pt"
+        state = self._read_state()
+        if state is None:
+            if cfg.init is None:
+                raise ValueError(f"{self.out} holds no run to resume; give --init CHECKPOINT")
+            shutil.copyfile(cfg.init, base)
+        self.learner, self.meta = load_checkpoint(base)
+        if cfg.speed_governor and self.learner.cfg.residual:
+            self.learner.cfg = replace(self.learner.cfg, speed_governor=True)
+        theta = get_theta(self.learner.actor)
+        self.state = state or {"iteration": 0, "episodes": 0, "minutes": 0.0,
+                               "theta": theta.tolist(), "adam": None}  # fmt: skip
+        self.theta = np.array(self.state["theta"])
+        self.adam = Adam(len(self.theta), cfg.search.lr, self.state["adam"])
+        self.pool = scenario_pool(cfg.scenarios)
+
+    def _read_state(self) -> dict | None:
+        path = self.out / "state.json"
+        if not path.exists():
+            return None
+        try:
+            return json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ValueError(f"{path}: corrupt state ({exc}); remove it to start afresh") from exc
+
+    def run(self) -> Path:
+        """Iterate until a budget is spent; returns OUT/auto.pt."""
+        cfg, start = self.cfg, time.perf_counter()
+        bar = tqdm(desc="fleet search", unit="it", disable=not cfg.progress,
+                   initial=self.state["iteration"], total=cfg.iterations or None)  # fmt: skip
+        ctx = mp.get_context("spawn")
+        executor = ProcessPoolExecutor(cfg.workers, mp_context=ctx)
+        try:
+            while not self._spent(start):
+                t = time.perf_counter()
+                row, executor = self._iterate(executor, ctx)
+                self.state["minutes"] += (time.perf_counter() - t) / 60
+                self._commit(row)
+                bar.update(1)
+                bar.set_postfix(gain=f"{row['gain']:+.3f}", d=f"{row['mean_d']:+.3f}")
+        finally:
+            executor.shutdown(cancel_futures=True)
+            bar.close()
+        return self.out / "auto.pt"
+
+    def _spent(self, start: float) -> bool:
+        cfg = self.cfg
+        if cfg.iterations and self.state["iteration"] >= cfg.iterations:
+            return True
+        return bool(cfg.minutes) and (time.perf_counter() - start) / 60 >= cfg.minutes
+
+    def _iterate(self, executor: ProcessPoolExecutor, ctx: Any) -> tuple[dict, ProcessPoolExecutor]:
+        """Run one iteration's episodes and move θ; (curve row, the live executor)."""
+        from agents.learning.fleet_search import episode_score, es_gradient
+
+        cfg, s, it = self.cfg, self.cfg.search, self.state["iteration"]
+        rng = np.random.default_rng([cfg.seed, it])
+        eps = rng.standard_normal((s.pairs, len(self.theta)))
+        configs = [sample_config(rng, cfg, self.pool) for _ in range(s.pairs + 1)]
+        jobs, roles = [], []
+        for i in range(s.pairs):
+            for sign, tag in ((1, "+"), (-1, "-")):
+                ckpt = self._candidate(f"p{i}{tag}", self.theta + sign * s.sigma * eps[i])
+                jobs.append((configs[i], "auto-raw", ckpt))
+                roles.append(f"p{i}{tag}")
+        jobs += [(configs[-1], "auto-raw", self._candidate("center", self.theta)),
+                 (configs[-1], "acc-lc", None)]  # fmt: skip
+        roles += ["center", "acc-lc"]
+        records, executor = _run_jobs(executor, ctx, cfg, jobs)
+        metrics = [r["metrics"] if r else None for r in records]
+        scores = np.array([episode_score(m, s.unsafe_penalty) if m else math.nan for m in metrics])
+        for record, role, score in zip(records, roles, scores):
+            if record:
+                record.update(fleet={"iteration": it + 1, "role": role, "score": score})
+                write_record_atomic(self.out / "episodes.jsonl", record)
+        with np.errstate(invalid="ignore"):
+            d = scores[0 : 2 * s.pairs : 2] - scores[1 : 2 * s.pairs : 2]
+        self.theta = self.adam.step(self.theta, es_gradient(eps, d, s.sigma, s.clip))
+        bias = self.theta[-3:]
+        row = {
+            "iteration": it + 1, "minutes": 0.0, "episodes": self.state["episodes"] + len(jobs),
+            "mean_d": float(np.nanmean(np.abs(d[np.isfinite(d)]))) if np.isfinite(d).any() else math.nan,
+            "unsafe": int(sum(_unsafe(m) for m in metrics if m)),
+            "gain": float(scores[-2] - scores[-1]), "gain_scenario": configs[-1].scenario,
+            "theta_norm": float(np.linalg.norm(self.theta)),
+            "bias_left": bias[0], "bias_follow": bias[1], "bias_right": bias[2],
+        }  # fmt: skip
+        return row, executor
+
+    def _candidate(self, name: str, theta: np.ndarray) -> str:
+        """A checkpoint of the actor with ``theta`` in OUT/candidates/ → its path."""
+        from agents.checkpoint import save_checkpoint
+        from agents.learning.fleet_search import set_theta
+
+        set_theta(self.learner.actor, theta)
+        return str(save_checkpoint(self.out / "candidates" / f"{name}.pt", self.learner, self.meta))
+
+    def _commit(self, row: dict) -> None:
+        """Checkpoint, then state, then the curve row (a kill in between redoes the iteration)."""
+        from agents.checkpoint import save_checkpoint
+        from agents.learning.fleet_search import set_theta
+
+        row["minutes"] = round(self.state["minutes"], 2)
+        self.state.update(iteration=row["iteration"], episodes=row["episodes"],
+                          theta=self.theta.tolist(), adam=self.adam.state())  # fmt: skip
+        set_theta(self.learner.actor, self.theta)
+        meta = {**self.meta, "fleet_search": {"iteration": row["iteration"],
+                "episodes": row["episodes"], "config": _jsonable(self.cfg),
+                "git_revision": git_revision()}}  # fmt: skip
+        save_checkpoint(self.out / "auto.pt", self.learner, meta)
+        text = json.dumps(self.state).encode()
+        atomic_write(self.out / "state.json", lambda f: f.write(text))
+        _append_curve(self.out / "curves.csv", row)
+
+
+def _run_jobs(executor: ProcessPoolExecutor, ctx: Any, cfg: FleetConfig,
+              jobs: list[tuple]) -> tuple[list[dict | None], ProcessPoolExecutor]:  # fmt: skip
+    """Each job's record (None where its episode failed); a broken pool is replaced."""
+    futures: list[Future] = [executor.submit(_record, c, p, cfg.warmup, k) for c, p, k in jobs]
+    out: list[dict | None] = []
+    broken = False
+    for fut in futures:
+        try:
+            out.append(fut.result())
+        except BrokenProcessPool:
+            out.append(None)
+            broken = True
+        except Exception as exc:  # a failed episode leaves its pair out of the gradient
+            print(f"fleet search: episode failed: {type(exc).__name__}: {exc}", file=sys.stderr)
+            out.append(None)
+    if broken:
+        executor.shutdown(cancel_futures=True)
+        executor = ProcessPoolExecutor(cfg.workers, mp_context=ctx)
+    return out, executor
+
+
+def _unsafe(metrics: dict) -> float:
+    from agents.learning.fleet_search import episode_score
+
+    speed = metrics.get("mean_speed")
+    if not speed or speed <= 0:
+        return 0.0
+    return round(math.log(speed) - episode_score(metrics, 1.0))
+
+
+def _jsonable(cfg: FleetConfig) -> dict:
+    data = asdict(replace(cfg, init=None))
+    return json.loads(json.dumps(data, default=str))
+
+
+def _append_curve(path: Path, row: dict) -> None:
+    """Rewrite ``path`` atomically with ``row`` appended (rows of later iterations dropped:
+    a resumed run redoes them)."""
+    rows = []
+    if path.exists():
+        with path.open() as f:
+            rows = [r for r in csv.DictReader(f) if int(r["iteration"]) < row["iteration"]]
+    rows.append(row)
+
+    def write(f: Any) -> None:
+        import io
+
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, CURVE_FIELDS)
+        w.writeheader()
+        w.writerows({k: r[k] for k in CURVE_FIELDS} for r in rows)
+        f.write(buf.getvalue().encode())
+
+    atomic_write(path, write)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="python -m mixed_traffic.experiments.fleet",
+        description="Fleet-return search (evolution strategies) on an AUTO checkpoint's accel "
+        "outputs, scored by the mean speed of all vehicles and safety events of whole episodes.",
+    )
+    cli.add_config_args(p, FleetConfig)
+    args = p.parse_args(argv)
+    try:
+        search = FleetSearch(cli.config_from_args(args, FleetConfig))
+    except ValueError as e:
+        p.error(str(e))
+    path = search.run()
+    print(f"fleet search: {search.state['iteration']} iterations, {search.state['episodes']} "
+          f"episodes; policy in {path}")  # fmt: skip
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
