@@ -76,7 +76,7 @@ def plot_fleet(df: pd.DataFrame, out: Path, title: str) -> Path:
     ax.set_ylabel("fleet score − ACC-LC's [ln(m/s)]")
     ax.legend()
     axes[1].plot(it, df["mean_d"])
-    axes[1].set_ylabel("mean |score(θ+σε) − score(θ−σε)| [ln(m/s)]")
+    axes[1].set_ylabel("mean |pair difference| [ln(m/s)]")
     for col in ("bias_left", "bias_follow", "bias_right"):
         axes[2].plot(it, df[col], label=col.removeprefix("bias_"))
     axes[2].set_ylabel("accel output bias [-]")
