@@ -133,6 +133,9 @@ def test_a_run_moves_theta_commits_and_resumes(tmp_path: Path) -> None:
     with (out / "curves.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert [int(r["iteration"]) for r in rows] == [1, 2]
+    thetas = [json.loads(line) for line in (out / "thetas.jsonl").read_text().splitlines()]
+    assert [t["iteration"] for t in thetas] == [1, 2]
+    np.testing.assert_allclose(thetas[0]["theta"], state["theta"])
     assert all(math.isfinite(float(r["gain"])) for r in rows)
 
 

@@ -9,7 +9,8 @@ through the one episode runner. Each iteration also runs the current policy agai
 one more sampled config (the ``gain`` column of the curves: its fleet score minus ACC-LC's).
 
 OUT holds ``base.pt`` (a copy of --init), ``episodes.jsonl`` (every episode's record with
-its iteration, role and score), ``state.json`` (θ, Adam, iteration; written
+its iteration, role and score), ``thetas.jsonl`` (θ after every iteration, so any iteration's
+policy can be rebuilt from ``base.pt``), ``state.json`` (θ, Adam, iteration; written
 atomically after every iteration), ``curves.csv`` and ``auto.pt`` (the current policy, a
 normal checkpoint). A second run with the same OUT resumes; kill -9 loses one iteration.
 """
@@ -257,6 +258,8 @@ class FleetSearch:
                 "episodes": row["episodes"], "config": _jsonable(self.cfg),
                 "git_revision": git_revision()}}  # fmt: skip
         save_checkpoint(self.out / "auto.pt", self.learner, meta)
+        write_record_atomic(self.out / "thetas.jsonl", {"iteration": row["iteration"],
+                                                        "theta": self.state["theta"]})  # fmt: skip
         text = json.dumps(self.state).encode()
         atomic_write(self.out / "state.json", lambda f: f.write(text))
         _append_curve(self.out / "curves.csv", row)
