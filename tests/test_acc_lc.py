@@ -308,3 +308,24 @@ def test_acc_lc_holds_a_constant_time_gap_and_the_conservative_one_does_not() ->
     cons = conservative()
     gaps = [(_equilibrium_gap(v, cons) - cons.s0) / v for v in (10.0, 25.0)]
     assert gaps[1] > 1.5 * gaps[0] and gaps[1] > 2.5
+
+
+def test_speed_cap_holds_the_limit_curves_and_a_red_light() -> None:
+    """The governor's cap (``speed_cap``, pure): below the limit on a straight lane it lets
+    the ego speed up, at the limit it does not, and a red light 20 m ahead at 10 m/s needs
+    braking."""
+    from agents.rules.acc_lc_longitudinal import speed_cap
+
+    a, m = 3, 10
+    f = {
+        "v": np.array([10.0, 13.9, 10.0]),
+        "d": np.zeros(a),
+        "wp_speed": np.full((a, 3, m), 13.9),
+        "wp_orient": np.zeros((a, 3, m)),
+        "light": np.array([[-1, -1, -1], [-1, -1, -1], [-1, 0, -1]]),
+        "light_dist": np.array([[np.inf] * 3, [np.inf] * 3, [np.inf, 20.0, np.inf]]),
+    }
+    cap = speed_cap(f, AccLcConfig())
+    assert cap[0] == pytest.approx(13.9 - 10.0)  # reaches the limit within 1 s
+    assert cap[1] == pytest.approx(0.0, abs=1e-9)
+    assert cap[2] < -1.0  # stop before the red light

@@ -89,12 +89,14 @@ def lane_accel(
 
 def speed_cap(f: Features, c: AccLcConfig, horizon: float = 1.0) -> np.ndarray:
     """(A,) the largest acceleration [m/s²] that keeps the ego within the speed limit of its
-    lane and the curve and limit targets ahead: towards the speed limit where it is (or the
-    curve's speed there) within ``horizon`` [s], and ACC-LC's kinematic braking for lower
-    targets ahead."""
+    lane, the curve and limit targets ahead and the traffic light: towards the speed limit
+    where it is (or the curve's speed there) within ``horizon`` [s], ACC-LC's kinematic
+    braking for lower targets ahead, and its stop at a red or yellow light and junction
+    approach speed."""
     ln = np.full(len(f["v"]), _C)
-    _, v0, a_lim = _speed_limits(f, c, ln, f["d"])
-    return np.minimum((v0 / c.speed_factor - f["v"]) / horizon, a_lim)
+    lim_now, v0, a_lim = _speed_limits(f, c, ln, f["d"])
+    cap = np.minimum((v0 / c.speed_factor - f["v"]) / horizon, a_lim)
+    return _light_accel(f, c, cap, v0, lim_now)
 
 
 def _speed_limits(
