@@ -20,6 +20,7 @@ from agents.learning.fleet_search import (
     es_gradient,
     get_theta,
     set_theta,
+    unsafe_events,
 )
 from agents.learning.rbpdqn import RBPDQN, LearnerConfig
 from agents.nets.lca import LCAConfig
@@ -88,6 +89,7 @@ def test_episode_score_is_log_speed_minus_unsafe_events() -> None:
     bad = {**ok, "collisions": 1, "terminal_collision": 1, "terminal_off_road": 2}
     assert episode_score(bad, 0.5) == pytest.approx(1.0 - 0.5 * 3)
     assert episode_score({"mean_speed": None}, 1.0) == -math.inf
+    assert unsafe_events(bad) == 3 and unsafe_events(ok) == 0
 
 
 @pytest.mark.parametrize(

@@ -82,16 +82,20 @@ def set_theta(actor: torch.nn.Module, theta: np.ndarray) -> None:
         layer.bias[rows] = torch.as_tensor(theta[n_w:], dtype=layer.bias.dtype)
 
 
+def unsafe_events(metrics: dict[str, Any]) -> int:
+    """Collisions plus AV terminal events of other kinds (a collision's terminal is the same
+    event)."""
+    others = sum(metrics.get(f"terminal_{r}") or 0 for r in TERMINAL_REASONS if r != "collision")
+    return int((metrics.get("collisions") or 0) + others)
+
+
 def episode_score(metrics: dict[str, Any], penalty: float) -> float:
-    """ln(mean speed of all vehicles [m/s]) − ``penalty`` per collision or AV terminal event;
-    −inf when the episode measured no speed."""
+    """ln(mean speed of all vehicles [m/s]) − ``penalty`` per :func:`unsafe_events`; −inf
+    when the episode measured no speed."""
     speed = metrics.get("mean_speed")
     if speed is None or not speed > 0:
         return -math.inf
-    unsafe = (metrics.get("collisions") or 0) + sum(
-        metrics.get(f"terminal_{r}") or 0 for r in TERMINAL_REASONS if r != "collision"
-    )
-    return math.log(speed) - penalty * unsafe
+    return math.log(speed) - penalty * unsafe_events(metrics)
 
 
 def normalised(d: np.ndarray, clip: float) -> np.ndarray:

@@ -12,7 +12,8 @@ OUT holds ``base.pt`` (a copy of --init), ``episodes.jsonl`` (every episode's re
 its iteration, role and score), ``thetas.jsonl`` (θ after every iteration, so any iteration's
 policy can be rebuilt from ``base.pt``), ``state.json`` (θ, Adam, iteration; written
 atomically after every iteration), ``curves.csv`` and ``auto.pt`` (the current policy, a
-normal checkpoint). A second run with the same OUT resumes; kill -9 loses one iteration.
+normal checkpoint). A second run with the same OUT resumes; kill -9 loses one iteration (whose
+episodes a redone iteration appends again: the last record per iteration and role counts).
 """
 
 from __future__ import annotations
@@ -201,7 +202,7 @@ class FleetSearch:
 
     def _iterate(self, executor: ProcessPoolExecutor, ctx: Any) -> tuple[dict, ProcessPoolExecutor]:
         """Run one iteration's episodes and move θ; (curve row, the live executor)."""
-        from agents.learning.fleet_search import episode_score, es_gradient
+        from agents.learning.fleet_search import episode_score, es_gradient, unsafe_events
 
         cfg, s, it = self.cfg, self.cfg.search, self.state["iteration"]
         rng = np.random.default_rng([cfg.seed, it])
@@ -230,7 +231,7 @@ class FleetSearch:
         row = {
             "iteration": it + 1, "minutes": 0.0, "episodes": self.state["episodes"] + len(jobs),
             "mean_d": float(np.nanmean(np.abs(d[np.isfinite(d)]))) if np.isfinite(d).any() else math.nan,
-            "unsafe": int(sum(_unsafe(m) for m in metrics if m)),
+            "unsafe": sum(unsafe_events(m) for m in metrics if m),
             "gain": float(scores[-2] - scores[-1]), "gain_scenario": configs[-1].scenario,
             "theta_norm": float(np.linalg.norm(self.theta)),
             "bias_left": bias[0], "bias_follow": bias[1], "bias_right": bias[2],
@@ -284,15 +285,6 @@ def _run_jobs(executor: ProcessPoolExecutor, ctx: Any, cfg: FleetConfig,
         executor.shutdown(cancel_futures=True)
         executor = ProcessPoolExecutor(cfg.workers, mp_context=ctx)
     return out, executor
-
-
-def _unsafe(metrics: dict) -> float:
-    from agents.learning.fleet_search import episode_score
-
-    speed = metrics.get("mean_speed")
-    if not speed or speed <= 0:
-        return 0.0
-    return round(math.log(speed) - episode_score(metrics, 1.0))
 
 
 def _jsonable(cfg: FleetConfig) -> dict:
