@@ -13,8 +13,9 @@ Two forms (``LearnerConfig.residual``):
 - residual: u is a bounded correction to ACC-LC (``agents.rules.acc_lc``), which is evaluated
   on every step's observation: params = clip(ACC-LC's params + (steer_delta, accel_delta)·u,
   -1, 1); with ``speed_governor`` the accel_brake correction lifts no row above what the speed
-  limits and curves ahead allow (ACC-LC's ``speed_cap``). ACC-LC is the low-level controller that tracks the held command: it keeps the lane
-  centre, keeps the gap and only shifts towards a changed lane while its gap checks accept it.
+  limits, curves and traffic lights ahead allow (ACC-LC's ``speed_cap``). ACC-LC is the
+  low-level controller that tracks the held command: it keeps the lane centre, keeps the gap
+  and only shifts towards a changed lane while its gap checks accept it.
   The decision is the critic's masked argmax of Q + ``teacher_bonus`` on ACC-LC's decision.
 
 Modes of :meth:`Driver.act`: ``greedy`` (evaluation), ``explore`` (Gaussian noise on u and

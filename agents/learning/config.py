@@ -75,8 +75,9 @@ class TrainConfig:
     is held in between (``agents.driver``; 0.1 = the paper's one decision per step)."""
     speed_governor: bool = True
     """Residual form: the accel correction may not lift the acceleration above what the speed
-    limit and the curves ahead allow (``LearnerConfig.speed_governor``); without it, eager
-    corrections ended AV trips for speeding in free flow and before junctions (docs/agent.md)."""
+    limit, the curves and the traffic lights ahead allow (``LearnerConfig.speed_governor``);
+    without it, eager corrections ended AV trips for speeding before junctions and lower
+    limits (docs/agent.md)."""
     multi_pass: bool = True
     """MP-DQN critic: each decision's Q sees only its own parameters, so the actor's update of
     one row is not pushed by the other decisions' Q (``LearnerConfig.multi_pass``; False = the
@@ -105,8 +106,8 @@ class TrainConfig:
     terminal state of value 0, which punishes progress)."""
     fleet_iterations: int = 0
     """After the RBP-DQN budget: total iterations of fleet-return search on the actor's accel
-    outputs in OUT/fleet (``mixed_traffic.experiments.fleet``; 10 episodes each, about 3.5 min
-    on 2 cores), whose policy becomes OUT/auto.pt (0 = none). A per-agent critic cannot see a
+    outputs in OUT/fleet (``mixed_traffic.experiments.fleet``; 10 episodes each, 1.3-1.8 min
+    with 90 s episodes on 2 cores), whose policy becomes OUT/auto.pt (0 = none). A per-agent critic cannot see a
     shared policy's gain, which the whole fleet shares (docs/agent.md)."""
     alpha: float = 0.6
     """Weight α of the normalised Q term in the actor loss after pretraining [-] (paper 0.6)."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -66,36 +67,37 @@ class Window:
         }  # fmt: skip
 
 
-def write_curves(path: Path, rows: list[dict]) -> None:
+def write_curves(path: Path, rows: list[dict], columns: Sequence[str] = CURVE_COLUMNS) -> None:
     """Append ``rows`` to the curves file ``path``, with the header when the file is new."""
     new = not path.exists()
     with path.open("a", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=CURVE_COLUMNS)
+        w = csv.DictWriter(f, fieldnames=columns)
         if new:
             w.writeheader()
         w.writerows(rows)
 
 
-def trim_curves(path: Path, env_steps: int) -> None:
-    """Keep the rows of the curves file ``path`` up to ``env_steps`` transitions (the last
+def trim_curves(path: Path, last: float, columns: Sequence[str] = CURVE_COLUMNS,
+                key: str = "env_steps") -> None:  # fmt: skip
+    """Keep the rows of the curves file ``path`` whose ``key`` is at most ``last`` (the last
     commit: a resumed run redoes the rest), dropping a row torn by a kill; atomic."""
     if not path.is_file():
         return
     with path.open(newline="") as f:
         rows = list(csv.DictReader(f))
-    keep = [r for r in rows if None not in r.values() and _steps(r) <= env_steps]
+    keep = [r for r in rows if None not in r.values() and _number(r, key) <= last]
     if len(keep) != len(rows):
         text = io.StringIO()
-        w = csv.DictWriter(text, fieldnames=CURVE_COLUMNS)
+        w = csv.DictWriter(text, fieldnames=columns)
         w.writeheader()
         w.writerows(keep)
         atomic_write(path, lambda f: f.write(text.getvalue().encode()))
 
 
-def _steps(row: dict[str, str]) -> float:
-    """A curves row's env_steps (inf when unreadable, so that trimming drops it)."""
+def _number(row: dict[str, str], key: str) -> float:
+    """A curves row's ``key`` (inf when unreadable, so that trimming drops it)."""
     try:
-        return float(row["env_steps"])
+        return float(row[key])
     except ValueError:
         return math.inf
 

@@ -95,9 +95,9 @@ class LearnerConfig:
     is held in between (``agents.driver``). 0.1 s = one decision per step, as in the paper."""
     speed_governor: bool = False
     """Residual form: the correction may raise the acceleration only up to what keeps the ego
-    within its speed limit and the curve and limit targets ahead
-    (``agents.rules.acc_lc_longitudinal.speed_cap``); never above ACC-LC's own acceleration
-    where that is higher (False = unbounded, as checkpoints before it)."""
+    within its speed limit, the curve and limit targets ahead and a red or yellow light's stop
+    (``agents.rules.acc_lc_longitudinal.speed_cap``), or to ACC-LC's own acceleration where
+    that is higher (False = unbounded, as checkpoints before it)."""
     multi_pass: bool = False
     """MP-DQN critic (``agents.nets.networks.Critic``): each decision's Q sees only its own
     parameters (False = the paper's P-DQN critic)."""

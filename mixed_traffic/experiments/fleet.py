@@ -19,7 +19,6 @@ episodes a redone iteration appends again: the last record per iteration and rol
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import multiprocessing as mp
@@ -42,6 +41,13 @@ from mixed_traffic.provenance import atomic_write, git_revision, write_record_at
 
 CURVE_FIELDS = ("iteration", "minutes", "episodes", "mean_d", "unsafe", "gain", "gain_scenario",
                 "theta_norm", "bias_left", "bias_follow", "bias_right")  # fmt: skip
+
+
+def _search_config() -> Any:
+    """The default ES step (imported late: ``agents.learning`` loads torch)."""
+    from agents.learning.fleet_search import SearchConfig
+
+    return SearchConfig()
 
 
 @dataclass(frozen=True)
@@ -75,7 +81,7 @@ class FleetConfig:
     speed_governor: bool = True
     """Residual checkpoints: drive with the speed governor (``LearnerConfig.speed_governor``),
     whatever the --init checkpoint says; False keeps the checkpoint's setting."""
-    search: Any = field(default_factory=lambda: _search_config())
+    search: Any = field(default_factory=_search_config)
     """The evolution-strategies step (``agents.learning.fleet_search.SearchConfig``)."""
     progress: bool = True
     """Show a progress bar."""
@@ -99,12 +105,6 @@ class FleetConfig:
             check_checkpoint(self.init)
 
 
-def _search_config() -> Any:
-    from agents.learning.fleet_search import SearchConfig
-
-    return SearchConfig()
-
-
 # ---------------------------------------------------------------- episode configs
 def scenario_pool(names: tuple[str, ...]) -> dict[str, list[str]]:
     """Family → its train-split variants (of ``names``, or all); ValueError on an eval one."""
@@ -116,16 +116,13 @@ def scenario_pool(names: tuple[str, ...]) -> dict[str, list[str]]:
     return pool
 
 
-def sample_config(
-    rng: np.random.Generator, cfg: FleetConfig, pool: dict[str, list[str]]
-) -> EnvConfig:
-    """One episode config: family, variant, feasible density, penetration, weather, seed."""
-    from agents.learning.config import feasible_densities
-    from mixed_traffic.world.registry import load_scenario
-
+def sample_config(rng: np.random.Generator, cfg: FleetConfig, pool: dict[str, list[str]],
+                  densities: dict[str, tuple[float | None, ...]]) -> EnvConfig:  # fmt: skip
+    """One episode config: family, variant, one of its feasible ``densities`` (by name),
+    penetration, weather, seed."""
     family = sorted(pool)[rng.integers(len(pool))]
     name = pool[family][rng.integers(len(pool[family]))]
-    dens = feasible_densities(load_scenario(name), cfg.densities)
+    dens = densities[name]
     return EnvConfig(
         scenario=name, density=dens[rng.integers(len(dens))],
         penetration=float(cfg.penetrations[rng.integers(len(cfg.penetrations))]),
@@ -145,7 +142,10 @@ class FleetSearch:
 
     def __init__(self, cfg: FleetConfig) -> None:
         from agents.checkpoint import load_checkpoint
+        from agents.learning.config import feasible_densities
+        from agents.learning.curves import trim_curves
         from agents.learning.fleet_search import Adam, get_theta
+        from mixed_traffic.world.registry import load_scenario
 
         self.cfg, self.out = cfg, cfg.out
         self.out.mkdir(parents=True, exist_ok=True)
@@ -164,6 +164,10 @@ class FleetSearch:
         self.theta = np.array(self.state["theta"])
         self.adam = Adam(len(self.theta), cfg.search.lr, self.state["adam"])
         self.pool = scenario_pool(cfg.scenarios)
+        self.densities = {n: feasible_densities(load_scenario(n), cfg.densities)
+                          for names in self.pool.values() for n in names}  # fmt: skip
+        # rows past the committed iteration (and a row torn by a kill) are redone
+        trim_curves(self.out / "curves.csv", self.state["iteration"], CURVE_FIELDS, "iteration")
 
     def _read_state(self) -> dict | None:
         path = self.out / "state.json"
@@ -207,7 +211,7 @@ class FleetSearch:
         cfg, s, it = self.cfg, self.cfg.search, self.state["iteration"]
         rng = np.random.default_rng([cfg.seed, it])
         eps = rng.standard_normal((s.pairs, len(self.theta)))
-        configs = [sample_config(rng, cfg, self.pool) for _ in range(s.pairs + 1)]
+        configs = [sample_config(rng, cfg, self.pool, self.densities) for _ in range(s.pairs + 1)]
         jobs, roles = [], []
         for i in range(s.pairs):
             for sign, tag in ((1, "+"), (-1, "-")):
@@ -227,10 +231,10 @@ class FleetSearch:
         with np.errstate(invalid="ignore"):
             d = scores[0 : 2 * s.pairs : 2] - scores[1 : 2 * s.pairs : 2]
         self.theta = self.adam.step(self.theta, es_gradient(eps, d, s.sigma, s.clip))
-        bias = self.theta[-3:]
+        bias, finite = self.theta[-3:], d[np.isfinite(d)]
         row = {
             "iteration": it + 1, "minutes": 0.0, "episodes": self.state["episodes"] + len(jobs),
-            "mean_d": float(np.nanmean(np.abs(d[np.isfinite(d)]))) if np.isfinite(d).any() else math.nan,
+            "mean_d": float(np.abs(finite).mean()) if len(finite) else math.nan,
             "unsafe": sum(unsafe_events(m) for m in metrics if m),
             "gain": float(scores[-2] - scores[-1]), "gain_scenario": configs[-1].scenario,
             "theta_norm": float(np.linalg.norm(self.theta)),
@@ -249,6 +253,7 @@ class FleetSearch:
     def _commit(self, row: dict) -> None:
         """Checkpoint, then state, then the curve row (a kill in between redoes the iteration)."""
         from agents.checkpoint import save_checkpoint
+        from agents.learning.curves import write_curves
         from agents.learning.fleet_search import set_theta
 
         row["minutes"] = round(self.state["minutes"], 2)
@@ -263,7 +268,7 @@ class FleetSearch:
                                                         "theta": self.state["theta"]})  # fmt: skip
         text = json.dumps(self.state).encode()
         atomic_write(self.out / "state.json", lambda f: f.write(text))
-        _append_curve(self.out / "curves.csv", row)
+        write_curves(self.out / "curves.csv", [row], CURVE_FIELDS)
 
 
 def _run_jobs(executor: ProcessPoolExecutor, ctx: Any, cfg: FleetConfig,
@@ -290,27 +295,6 @@ def _run_jobs(executor: ProcessPoolExecutor, ctx: Any, cfg: FleetConfig,
 def _jsonable(cfg: FleetConfig) -> dict:
     data = asdict(replace(cfg, init=None))
     return json.loads(json.dumps(data, default=str))
-
-
-def _append_curve(path: Path, row: dict) -> None:
-    """Rewrite ``path`` atomically with ``row`` appended (rows of later iterations dropped:
-    a resumed run redoes them)."""
-    rows = []
-    if path.exists():
-        with path.open() as f:
-            rows = [r for r in csv.DictReader(f) if int(r["iteration"]) < row["iteration"]]
-    rows.append(row)
-
-    def write(f: Any) -> None:
-        import io
-
-        buf = io.StringIO()
-        w = csv.DictWriter(buf, CURVE_FIELDS)
-        w.writeheader()
-        w.writerows({k: r[k] for k in CURVE_FIELDS} for r in rows)
-        f.write(buf.getvalue().encode())
-
-    atomic_write(path, write)
 
 
 def main(argv: list[str] | None = None) -> int:
