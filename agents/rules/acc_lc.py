@@ -69,7 +69,7 @@ from agents.rules.acc_lc_config import LANE_L as _L
 from agents.rules.acc_lc_config import LANE_R as _R
 from agents.rules.acc_lc_features import features, lane_curvature
 from agents.rules.acc_lc_lateral import forced_ok, lateral_bounds, safe, steer
-from agents.rules.acc_lc_longitudinal import hidden_cap, lane_accel, to_ab, wait_accel
+from agents.rules.acc_lc_longitudinal import LaneCall, hidden_cap, lane_accels, to_ab, wait_accel
 from agents.rules.obs_batch import stack_obs, to_actions
 
 __all__ = [
@@ -131,9 +131,10 @@ class AccLcPolicy:
         A = len(f["v"])
         mand = ~f["mask"][:, FOLLOW]
         ck = _change_checks(f, c, mand)
-        decision = _decide(f, c, mand, ck)
+        la = _lane_accels(f, c, mand)
+        decision = _decide(f, c, mand, ck, la)
         go_l, go_r = _go(f, c, mand, ck)
-        accels = _executed_accels(f, c, mand, ck, go_l, go_r)
+        accels = _executed_accels(f, c, mand, ck, go_l, go_r, la)
         # keep clear laterally of vehicles alongside (simultaneous changes into one lane)
         lo, hi = lateral_bounds(f, c)
         params = _params(f, c, _targets(c, mand, go_l, go_r), accels, lo, hi)
@@ -166,6 +167,28 @@ class _Checks(NamedTuple):
     going_r: np.ndarray
 
 
+class _LaneAccels(NamedTuple):
+    """(A,) candidate-lane accelerations: the incentive's (latest frame, ``now_*``) and the
+    executed rows' (every history frame; ``fc`` is the current lane with the creep gap)."""
+
+    now_c: np.ndarray
+    now_l: np.ndarray
+    now_r: np.ndarray
+    f: np.ndarray
+    l: np.ndarray  # noqa: E741
+    r: np.ndarray
+    fc: np.ndarray
+
+
+def _lane_accels(f: Features, c: AccLcConfig, mand: np.ndarray) -> _LaneAccels:
+    """All seven candidate-lane accelerations of one plan, in one :func:`lane_accels` call."""
+    creep = np.where(mand, c.end_s0, c.s0)
+    calls = [LaneCall(_C, False), LaneCall(_L, False), LaneCall(_R, False)]
+    calls += [LaneCall(_C, True, np.where(mand, c.end_wait, c.s0))]
+    calls += [LaneCall(lane, True, creep) for lane in (_L, _R, _C)]
+    return _LaneAccels(*lane_accels(f, c, calls, f["d"]))
+
+
 def _change_checks(f: Features, c: AccLcConfig, mand: np.ndarray) -> _Checks:
     """The gap checks and whether a change is under way (``mand``: follow is masked)."""
     d = f["d"]
@@ -183,14 +206,16 @@ def _change_checks(f: Features, c: AccLcConfig, mand: np.ndarray) -> _Checks:
     return _Checks(safe_l, safe_r, cont_l, cont_r, going_l, going_r)
 
 
-def _decide(f: Features, c: AccLcConfig, mand: np.ndarray, ck: _Checks) -> np.ndarray:
+def _decide(
+    f: Features, c: AccLcConfig, mand: np.ndarray, ck: _Checks, la: _LaneAccels
+) -> np.ndarray:
     """(A,) int64 decision: a wanted discretionary change, a change under way that stays
     safe, a mandatory change's side; never a masked decision."""
     d = f["d"]
     mask = f["mask"]
     A = len(d)
     centred = np.abs(d) < c.lc_start_offset
-    want_l, want_r = _wanted(f, c, ck, centred)
+    want_l, want_r = _wanted(f, c, ck, centred, la)
     decision = np.full(A, FOLLOW, dtype=np.int64)
     decision[want_r] = RIGHT
     decision[want_l] = LEFT
@@ -209,16 +234,14 @@ def _decide(f: Features, c: AccLcConfig, mand: np.ndarray, ck: _Checks) -> np.nd
 
 
 def _wanted(
-    f: Features, c: AccLcConfig, ck: _Checks, centred: np.ndarray
+    f: Features, c: AccLcConfig, ck: _Checks, centred: np.ndarray, la: _LaneAccels
 ) -> tuple[np.ndarray, np.ndarray]:
     """(A,) discretionary changes wanted to the left / right (the better side if both)."""
-    d = f["d"]
     # incentive (MOBIL-like, without politeness towards followers beyond the safety test),
     # from the latest frame only (remembered leaders cap the executed accelerations but
     # must not make the current lane look worse and trigger changes)
-    now_f = lane_accel(f, c, _C, d, memory=False)
-    inc_l = lane_accel(f, c, _L, d, memory=False) - now_f - c.lc_threshold
-    inc_r = lane_accel(f, c, _R, d, memory=False) - now_f - c.lc_threshold
+    inc_l = la.now_l - la.now_c - c.lc_threshold
+    inc_r = la.now_r - la.now_c - c.lc_threshold
     inc_r = inc_r + c.keep_right_bias
     want_l = ck.safe_l & centred & (inc_l > 0) & (f["v"] > 3.0)
     want_r = ck.safe_r & centred & (inc_r > 0) & (f["v"] > 3.0)
@@ -259,22 +282,18 @@ def _executed_accels(
     ck: _Checks,
     go_l: np.ndarray,
     go_r: np.ndarray,
+    la: _LaneAccels,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(A,) accelerations of the follow, left and right rows."""
-    d = f["d"]
-    creep = np.where(mand, c.end_s0, c.s0)
-    acc_f = lane_accel(f, c, _C, d, end_gap=np.where(mand, c.end_wait, c.s0))
-    acc_l = lane_accel(f, c, _L, d, end_gap=creep)
-    acc_r = lane_accel(f, c, _R, d, end_gap=creep)
+    acc_f, acc_l, acc_r = la.f, la.l, la.r
     # while changing, the current lane's leaders still count (min of both lanes)
     # mandatory change waiting for a gap: match the target lane (stay behind its front
     # vehicle) and let a rear vehicle that is about alongside pass
     wait_l = wait_accel(f, c, _L, acc_f)
     wait_r = wait_accel(f, c, _R, acc_f)
     # (a mandatory change under way may creep towards the end of its lane to swing out)
-    acc_fc = lane_accel(f, c, _C, d, end_gap=creep)
-    norm_l = np.where(go_l, np.minimum(acc_l, acc_fc), acc_f)
-    norm_r = np.where(go_r, np.minimum(acc_r, acc_fc), acc_f)
+    norm_l = np.where(go_l, np.minimum(acc_l, la.fc), acc_f)
+    norm_r = np.where(go_r, np.minimum(acc_r, la.fc), acc_f)
     acc_l = np.where(mand & ~(go_l & (ck.safe_l | ck.going_l & ck.cont_l)), wait_l, norm_l)
     acc_r = np.where(mand & ~(go_r & (ck.safe_r | ck.going_r & ck.cont_r)), wait_r, norm_r)
     cap = hidden_cap(f, c)

@@ -9,7 +9,8 @@ vectorised over the A agents.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -62,29 +63,60 @@ def _iidm(v: np.ndarray, v0: np.ndarray, z: np.ndarray, c: AccLcConfig) -> np.nd
     return np.where(below, acc_below, acc_above)
 
 
-def lane_accel(
-    f: Features,
-    c: AccLcConfig,
-    lane: int,
-    offset: np.ndarray,
-    memory: bool = True,
-    end_gap: np.ndarray | None = None,
-) -> np.ndarray:
-    """(A,) acceleration if driving in lane column ``lane`` (with the ego at lateral
-    ``offset`` relative to the current lane, for the overlap test of neighbours);
-    ``end_gap`` (A,) standstill gap to the virtual end-of-lane vehicle (default ``s0``);
-    ``memory=False`` uses the latest frame's leaders only."""
+class LaneCall(NamedTuple):
+    """One request of :func:`lane_accels`: the acceleration if driving in lane column
+    ``lane``."""
+
+    lane: int
+    memory: bool = True
+    """False: the latest frame's leaders only (else every history frame, extrapolated)."""
+    end_gap: np.ndarray | None = None
+    """(A,) standstill gap to the virtual end-of-lane vehicle (default ``s0``)."""
+
+
+def lane_accels(
+    f: Features, c: AccLcConfig, calls: Sequence[LaneCall], offset: np.ndarray
+) -> list[np.ndarray]:
+    """(A,) acceleration per call, with the ego at lateral ``offset`` relative to the current
+    lane (for the overlap test of neighbours): IDM towards the lane's desired speed, kinematic
+    braking for lower limits ahead, the leaders (front vehicle of this lane and overlapping
+    front vehicles of the others, every history frame) and the light. Every IDM term of
+    every call is one array: numpy's per-call overhead, not the arithmetic, dominated."""
     v = f["v"]
-    ln = np.where(f["exists"][:, lane], lane, _C)
-    lim_now, v0, a_lim = _speed_limits(f, c, ln, offset)
-    acc = _idm(v, v0, np.full_like(v, np.inf), np.zeros_like(v), c)
-    acc = np.minimum(acc, a_lim)
-    # leaders: front vehicle of this lane and overlapping front vehicles of the others
-    # (every history frame, extrapolated to now: shape (A, K))
-    kk = slice(None) if memory else slice(-1, None)
-    for j in (_L, _C, _R):
-        acc = np.minimum(acc, _leader_accel(f, c, lane, j, kk, offset, v0, end_gap))
-    return _light_accel(f, c, acc, v0, lim_now)
+    lanes = sorted({q.lane for q in calls})
+    limits = {ln: _speed_limits(f, c, np.where(f["exists"][:, ln], ln, _C), offset) for ln in lanes}
+    stop_room = _stop_room(f, c)
+    # IDM input columns (gap, closing speed, s0, v0): per lane its free road and light stop,
+    # per call its leaders (A, 3 lane columns x K frames)
+    leaders = [
+        _leader_inputs(f, c, q.lane, 1 if q.memory else -1, offset, q.end_gap) for q in calls
+    ]
+    widths = [2] * len(lanes) + [x[0].shape[1] for x in leaders]
+    ends = np.cumsum(widths)
+    cols = np.empty((4, len(v), ends[-1]))
+
+    def put(end: int, width: int, *values: float | np.ndarray) -> None:
+        for k, x in enumerate(values):
+            cols[k, :, end - width : end] = x
+
+    for i, ln in enumerate(lanes):
+        v0 = limits[ln][1][:, None]
+        put(2 * i + 1, 1, np.inf, 0.0, c.s0, v0)
+        put(2 * i + 2, 1, stop_room[:, None], v[:, None], c.s0, v0)
+    for q, (gap, dv, s0, _), e, w in zip(calls, leaders, ends[len(lanes) :], widths[len(lanes) :]):
+        put(e, w, gap, dv, s0, limits[q.lane][1][:, None])
+    acc = _idm(v[:, None], cols[3], cols[0], cols[1], c, cols[2])
+    base = {  # free road, kinematic braking for lower limits, light
+        ln: np.minimum(
+            np.minimum(acc[:, 2 * i], limits[ln][2]),
+            _light_bound(f, c, limits[ln][1], limits[ln][0], acc[:, 2 * i + 1], stop_room),
+        )
+        for i, ln in enumerate(lanes)
+    }
+    return [
+        np.minimum(base[q.lane], np.where(relevant, acc[:, e - w : e], np.inf).min(axis=1))
+        for q, (*_, relevant), e, w in zip(calls, leaders, ends[len(lanes) :], widths[len(lanes) :])
+    ]
 
 
 def speed_cap(f: Features, c: AccLcConfig, horizon: float = 1.0) -> np.ndarray:
@@ -149,97 +181,101 @@ def _curve_target(
     return np.minimum(c.speed_factor * spd, v_curve) * inside
 
 
-def _leader_accel(
+def _leader_inputs(
     f: Features,
     c: AccLcConfig,
     lane: int,
-    j: int,
-    kk: slice,
+    frames: int,
     offset: np.ndarray,
-    v0: np.ndarray,
     end_gap: np.ndarray | None,
-) -> np.ndarray:
-    """(A,) IDM acceleration behind the relevant front vehicles of lane column ``j`` (history
-    frames ``kk``) when driving in ``lane``; inf where none is relevant."""
-    v = f["v"]
-    dist = f["h_dist"][:, j, kk]
-    gap = dist - f["h_len"][:, j, kk]
-    relevant = _relevant(f, c, lane, j, kk, offset, dist, gap)
-    vk = v[:, None]
-    s0 = c.s0
-    if end_gap is not None and j == _C:
-        s0 = np.where(f["h_len"][:, j, kk] < 0.1, end_gap[:, None], c.s0)
-    rel = -f["h_rel"][:, j, kk]
-    a_j = _idm(vk, v0[:, None], np.where(relevant, gap, np.inf), rel, c, s0)
-    return np.where(relevant, a_j, np.inf).min(axis=1)
-
-
-def _relevant(
-    f: Features,
-    c: AccLcConfig,
-    lane: int,
-    j: int,
-    kk: slice,
-    offset: np.ndarray,
-    dist: np.ndarray,
-    gap: np.ndarray,
-) -> np.ndarray:
-    """(A, K) the front vehicles of lane column ``j`` are leaders when driving in ``lane``:
-    those of the lane itself, of the others on lateral overlap, and neighbours to yield to."""
-    # lateral position of the other vehicle relative to the current lane centre
-    shift = (j - _C) * -c.lane_width_min  # left column = +width
-    lat_o = f["h_lat"][:, j, kk] + shift
-    lat_ego = offset[:, None]
-    half = 0.5 * (f["wid"][:, None] + f["h_wid"][:, j, kk]) + 0.4
-    if j == lane:
-        relevant = np.isfinite(dist)
-    else:
-        relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """IDM inputs (A, 3 K) behind the front vehicles of every lane column when driving in
+    ``lane`` (``frames`` 1: every history frame, -1: the latest only): bumper gap (inf where
+    not a leader), closing speed, standstill gap, and which are leaders: those of the lane
+    itself, of the others on lateral overlap, and neighbours to yield to."""
+    kk = slice(None) if frames > 0 else slice(-1, None)
+    dist = f["h_dist"][:, :, kk]  # (A, 3, K)
+    gap = dist - f["h_len"][:, :, kk]
+    # lateral position of the other vehicles relative to the current lane centre
+    shift = (np.arange(3) - _C) * -c.lane_width_min  # left column = +width
+    lat = np.abs(f["h_lat"][:, :, kk] + shift[:, None] - offset[:, None, None])
+    half = 0.5 * (f["wid"][:, None, None] + f["h_wid"][:, :, kk]) + 0.4
+    # moving to another lane: the current lane's leader matters while we overlap it
+    half[:, _C] += 0.6 if lane != _C else 0.0
+    overlap = lat < half
+    overlap[:, lane] = True
     # own lane of the lane column: the chosen lane; others only on overlap
-    relevant &= (f["exists"][:, j] | (j == _C))[:, None]
-    if j != lane and lane != _C and j == _C:
-        # moving to another lane: the current lane's leader matters while we overlap it
-        relevant = np.isfinite(dist) & (np.abs(lat_o - lat_ego) < half + 0.6)
-    if lane == _C and j != _C:
-        relevant |= _yield_to(f, c, j, kk, dist, gap)
-    return relevant
+    present = f["exists"].copy()
+    present[:, _C] = True
+    relevant = np.isfinite(dist) & overlap & present[:, :, None]
+    if lane == _C:
+        relevant[:, [_L, _R]] |= _yield_to(f, c, kk, dist, gap)[:, [_L, _R]]
+    s0 = np.full(dist.shape, c.s0)
+    if end_gap is not None:
+        s0[:, _C] = np.where(f["h_len"][:, _C, kk] < 0.1, end_gap[:, None], c.s0)
+    A = len(dist)
+    return (
+        np.where(relevant, gap, np.inf).reshape(A, -1),
+        -f["h_rel"][:, :, kk].reshape(A, -1),
+        s0.reshape(A, -1),
+        relevant.reshape(A, -1),
+    )
 
 
 def _yield_to(
-    f: Features, c: AccLcConfig, j: int, kk: slice, dist: np.ndarray, gap: np.ndarray
+    f: Features, c: AccLcConfig, kk: slice, dist: np.ndarray, gap: np.ndarray
 ) -> np.ndarray:
-    """(A, K) cooperation: yield to a neighbour ahead (lane column ``j``) signalling a change
-    into our lane, unless we are already closer than the rear gap its forced merge needs (then
-    waiting deadlocks both; passing lets it merge behind us)."""
-    towards = f["h_lat"][:, j, kk] * (j - _C) > c.signal_min
-    close = np.maximum(-f["h_rel"][:, j, kk], 0.0)
+    """(A, 3, K) cooperation: yield to a neighbour ahead signalling a change into our lane
+    (meaningful in the side columns), unless we are already closer than the rear gap its
+    forced merge needs (then waiting deadlocks both; passing lets it merge behind us)."""
+    side = (np.arange(3) - _C)[:, None]
+    towards = f["h_lat"][:, :, kk] * side > c.signal_min
+    close = np.maximum(-f["h_rel"][:, :, kk], 0.0)
     can = close**2 / (2 * np.maximum(gap - 1.0, 0.1)) <= c.yield_decel
     return np.isfinite(dist) & towards & (gap > c.hv_s0) & can
+
+
+def _stop_room(f: Features, c: AccLcConfig) -> np.ndarray:
+    """(A,) room [m] to stop before the current lane's light (its stop line less the margin)."""
+    return np.maximum(f["light_dist"][:, _C] - c.stop_margin, 0.05)
 
 
 def _light_accel(
     f: Features, c: AccLcConfig, acc: np.ndarray, v0: np.ndarray, lim_now: np.ndarray
 ) -> np.ndarray:
-    """``acc`` (A,) bounded by the traffic light of the current lane (a change does not escape
-    the light) and by the junction approach speed at a signalised stop line."""
+    """``acc`` (A,) bounded by :func:`_light_bound`."""
+    room = _stop_room(f, c)
+    a_stop = _idm(f["v"], v0, room, f["v"], c)
+    return np.minimum(acc, _light_bound(f, c, v0, lim_now, a_stop, room))
+
+
+def _light_bound(
+    f: Features,
+    c: AccLcConfig,
+    v0: np.ndarray,
+    lim_now: np.ndarray,
+    a_stop: np.ndarray,
+    stop_room: np.ndarray,
+) -> np.ndarray:
+    """(A,) acceleration bound (inf = none) of the traffic light of the current lane (a change
+    does not escape the light) and of the junction approach speed at a signalised stop line;
+    ``a_stop`` is IDM's acceleration behind a stopped vehicle at ``stop_room``."""
     v = f["v"]
     ld = f["light_dist"][:, _C]
     st = f["light"][:, _C]
-    stop_room = np.maximum(ld - c.stop_margin, 0.05)
     need_stop = v**2 / (2 * stop_room)
     stop = ((st == 0) & (need_stop < c.max_decel * 1.1)) | (
         (st == 1) & (need_stop < c.yellow_stop_decel)
     )
-    a_stop = _idm(v, v0, stop_room, v, c)
     a_stop = np.minimum(a_stop, np.where(need_stop > 1.0, -need_stop * 1.1, a_stop))
-    acc = np.where(stop, np.minimum(acc, a_stop), acc)
+    bound = np.where(stop, a_stop, np.inf)
     # junction approach speed at a signalised stop line (turns behind it are slow)
     lightish = (st >= 0) & np.isfinite(ld)
     # (the waypoints see only 10 m ahead along the primary successor, not the route's turn;
     # the tightest turns of the urban nets are limited to ~3.6 m/s)
     vj = np.minimum(c.junction_speed, v0)
     a_j = np.where(v > vj, (vj**2 - v**2) / (2 * np.maximum(ld - 1.0, 0.5)), np.inf)
-    return np.where(lightish & (lim_now < 20.0), np.minimum(acc, a_j), acc)
+    return np.where(lightish & (lim_now < 20.0), np.minimum(bound, a_j), bound)
 
 
 def hidden_cap(f: Features, c: AccLcConfig) -> np.ndarray:
