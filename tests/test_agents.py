@@ -437,3 +437,21 @@ def test_fused_varying_batch_sizes() -> None:
         with torch.no_grad():
             torch.testing.assert_close(q, critic(obs, actor(obs)), atol=1e-5, rtol=1e-4)
     assert len(fused._abuf) <= 4 and len(fused.nodes_gru._buf) <= 4
+
+
+def test_bench_env_json_prints_one_object_per_policy_and_penetration(capsys) -> None:
+    """``bench --section env --json``: one JSON line per (env policy, penetration) with the
+    keys issue 25 names, a positive ratio measured against the physical limit."""
+    import json
+
+    from mixed_traffic.experiments.bench import main
+
+    argv = ["--section", "env", "--json", "--env-policy", "keep", "--penetrations", "0.2", "1.0",
+            "--env-steps", "10", "--block", "5", "--env-density", "40"]  # fmt: skip
+    assert main(argv) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    recs = [json.loads(x) for x in lines]
+    assert [(r["env_policy"], r["penetration"]) for r in recs] == [("keep", 0.2), ("keep", 1.0)]
+    for r in recs:
+        assert {"ratio", "agent_steps_per_s", "ms_per_step"} <= set(r)
+        assert r["ratio"] > 0 and r["ms_per_step"] > 0 and r["agent_steps_per_s"] > 0

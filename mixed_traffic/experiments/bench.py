@@ -23,6 +23,8 @@ Section ``env`` is in ``bench_env``, ``soak`` (memory over a 600 s episode) in `
 from __future__ import annotations
 
 import argparse
+import contextlib
+import json
 import statistics
 import sys
 import time
@@ -255,6 +257,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="learner section: time the learner with torch.compile (compiles first, ~1 min)",
     )  # fmt: skip
     p.add_argument(
+        "--json", action="store_true",
+        help="env section only: one JSON object per (env policy, penetration) on stdout, the "
+        "tables on stderr",
+    )  # fmt: skip
+    p.add_argument(
         "--backend", choices=("libsumo", "traci"), default="libsumo",
         help="SUMO binding (default: libsumo)",
     )  # fmt: skip
@@ -266,8 +273,16 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.steps < 2 * args.block or args.block < 1:
         parser.error(f"--steps={args.steps} must be at least 2 x --block={args.block}")
-    for name in args.section:
-        SECTIONS[name](args)
+    if args.json and args.section != ["env"]:
+        parser.error("--json needs --section env (the learner section has --learner-json)")
+    if not args.json:
+        for name in args.section:
+            SECTIONS[name](args)
+        return 0
+    with contextlib.redirect_stdout(sys.stderr):
+        results = section_env(args)
+    for r in results:
+        print(json.dumps(r.record()), flush=True)
     return 0
 
 

@@ -10,7 +10,7 @@ them remain): the env is reset (untimed) every ``--env-episode`` seconds of simu
 a second policy ``keep`` (follow, zero steering and accel_brake) keeps the full traffic, the
 load the target refers to. Reported per penetration: medians over block pairs of
 ms/step, steps/s, agent-steps/s (agents = AVs in the network), the limit's ms/step and the ratio
-env/limit (target ≤ 2). A separate profiling pass prints where an env step's time goes
+env/limit (target ≤ 1.3). A separate profiling pass prints where an env step's time goes
 (exclusive time per stage).
 """
 
@@ -24,7 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 PENETRATIONS = (0.2, 0.5, 1.0)
-TARGET_ENV_RATIO = 2.0
+TARGET_ENV_RATIO = 1.3
+"""Issue 25's target for env step / physical limit."""
 
 
 @dataclass
@@ -50,6 +51,15 @@ class EnvResult:
     @property
     def steps_per_s(self) -> float:
         return 1e3 / self.env_ms
+
+    def record(self) -> dict[str, float | str]:
+        """The ``--json`` object (issue 25's keys first)."""
+        return {
+            "env_policy": self.policy, "penetration": self.penetration, "ratio": self.ratio,
+            "agent_steps_per_s": self.agent_steps_per_s, "ms_per_step": self.env_ms,
+            "limit_ms_per_step": self.limit_ms, "agents": self.agents, "vehicles": self.vehicles,
+            "blocks": self.blocks, "target_ratio": TARGET_ENV_RATIO,
+        }  # fmt: skip
 
 
 def bench_actions(env, obs: dict, space, rng: np.random.Generator, policy: str = "random") -> dict:
@@ -262,7 +272,7 @@ def section_env(args: argparse.Namespace) -> list[EnvResult]:
             p, args.env_density, args.env_steps, args.block, episode=args.env_episode,
             policy=policy,
         )  # fmt: skip
-        ok = "ok" if r.ratio <= TARGET_ENV_RATIO else f"MISSED (> {TARGET_ENV_RATIO:.0f}x)"
+        ok = "ok" if r.ratio <= TARGET_ENV_RATIO else f"MISSED (> {TARGET_ENV_RATIO}x)"
         print(
             f"{r.policy:>6} {r.penetration:>5.2f} {r.agents:>6.1f} {r.vehicles:>6.1f} {r.env_ms:>8.3f} "
             f"{r.steps_per_s:>8.0f} {r.agent_steps_per_s:>11.0f} {r.limit_ms:>9.3f} "
