@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from agents.policies import stack_obs, to_actions
 from agents.rules.acc_lc import FOLLOW, AccLcPolicy
-from agents.rules.safety import SafetyModule
+from agents.rules.safety import SafetyConfig, SafetyModule, rss_accel
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.action import to_accel_brake, to_physical
 from mixed_traffic.schema import TERMINAL_REASONS
@@ -85,10 +86,10 @@ def test_prediction_follows_the_steering() -> None:
 
 
 def test_learned_acceleration_is_clamped_above_acc_lc_braking() -> None:
-    """Where ACC-LC brakes (15 m/s above the default 13.9 m/s limit), a learned acceleration
-    more than ``accel_tolerance`` above ACC-LC's is clamped to that bound; one within it, or
-    braking harder than ACC-LC, stands."""
-    module = SafetyModule()
+    """``clamp``: where ACC-LC brakes (15 m/s above the default 13.9 m/s limit), a learned
+    acceleration more than ``accel_tolerance`` above ACC-LC's is clamped to that bound; one
+    within it, or braking harder than ACC-LC, stands."""
+    module = SafetyModule(SafetyConfig(longitudinal="clamp"))
     obs = _empty_road(3)
     obs["ego"][:, :, 0] = 15.0 / 40.0
     plan = module.rule.plan(obs)
@@ -103,3 +104,43 @@ def test_learned_acceleration_is_clamped_above_acc_lc_braking() -> None:
     assert flags["longitudinal"].tolist() == [True, False, False]
     assert not flags["lateral"].any()
     np.testing.assert_allclose(got, [rule[0] + tol, want[1], want[2]], atol=1e-5)
+
+
+def test_rss_bound_stops_the_ego_the_min_gap_behind_the_leader() -> None:
+    """Pure: holding ``rss_accel`` for the response time and then braking at the ego's
+    deceleration ends exactly ``rss_min_gap`` behind where the leader stops at its hardest
+    braking; 0.1 m/s² more ends closer; -inf where even braking now is too late."""
+    c = SafetyConfig()
+    rng = np.random.default_rng(0)
+    v, v_lead = rng.uniform(0, 35, 200), rng.uniform(0, 35, 200)
+    gap = rng.uniform(5, 80, 200)
+
+    def margin(a: np.ndarray) -> np.ndarray:
+        x = np.maximum(v + a * c.rss_response, 0.0)
+        ego = (v + x) / 2 * c.rss_response + x**2 / (2 * c.rss_ego_decel)
+        return gap + v_lead**2 / (2 * c.rss_lead_decel) - ego
+
+    a = rss_accel(v, gap, v_lead, c)
+    ok = np.isfinite(a) & (v + a * c.rss_response > 0)
+    assert ok.sum() > 100
+    np.testing.assert_allclose(margin(a)[ok], c.rss_min_gap, atol=1e-6)
+    assert (margin(a + 0.1)[ok] < c.rss_min_gap).all()
+    assert rss_accel(np.array([30.0]), np.array([5.0]), np.array([0.0]), c)[0] == -np.inf
+
+
+def test_rss_mode_caps_speeding_at_acc_lc_speed_cap() -> None:
+    """``rss`` on an empty road at 15 m/s (limit 13.9 m/s): no leader bounds the acceleration,
+    the speed cap does; accelerating is capped, braking stands; bad config values are named."""
+    module = SafetyModule()
+    assert module.config.longitudinal == "rss"
+    obs = _empty_road(2)
+    obs["ego"][:, :, 0] = 15.0 / 40.0
+    plan = module.rule.plan(obs)
+    params = plan.params.copy()
+    params[np.arange(2), plan.decision, 1] = to_accel_brake(np.array([2.0, -2.0]), module.vehicle)
+    decision, params, flags = module.filter(obs, plan.decision, params)
+    _, got = to_physical(decision, params, module.vehicle)
+    assert flags["longitudinal"].tolist() == [True, False]
+    assert got[0] < 0.0 and got[1] == pytest.approx(-2.0, abs=1e-5)
+    with pytest.raises(ValueError, match="longitudinal"):
+        SafetyConfig(longitudinal="loose")
