@@ -88,9 +88,7 @@ def lane_accels(
     stop_room = _stop_room(f, c)
     # IDM input columns (gap, closing speed, s0, v0): per lane its free road and light stop,
     # per call its leaders (A, 3 lane columns x K frames)
-    leaders = [
-        _leader_inputs(f, c, q.lane, 1 if q.memory else -1, offset, q.end_gap) for q in calls
-    ]
+    leaders = [leader_inputs(f, c, q.lane, 1 if q.memory else -1, offset, q.end_gap) for q in calls]
     widths = [2] * len(lanes) + [x[0].shape[1] for x in leaders]
     ends = np.cumsum(widths)
     cols = np.empty((4, len(v), ends[-1]))
@@ -181,7 +179,7 @@ def _curve_target(
     return np.minimum(c.speed_factor * spd, v_curve) * inside
 
 
-def _leader_inputs(
+def leader_inputs(
     f: Features,
     c: AccLcConfig,
     lane: int,
