@@ -57,7 +57,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # truncated zip, garbage bytes, unsafe pickle, ...
         raise ValueError(
-            f"checkpoint {path}: corrupt or unreadable ({type(exc).__name__}: {exc})"
+            f"checkpoint {path}: corrupt or unreadable ({type(exc).__name__}: {_reason(exc)})"
         ) from exc
     if not isinstance(data, dict) or any(k not in data for k in _REQUIRED):
         keys = sorted(data) if isinstance(data, dict) else type(data).__name__
@@ -66,7 +66,24 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
         )
     if data["format"] != FORMAT:
         raise ValueError(f"checkpoint {path}: format {data['format']!r}, expected {FORMAT!r}")
+    bad = [k for k in ("learner", "meta") if not isinstance(data[k], dict)]
+    if bad:
+        raise ValueError(f"checkpoint {path}: {bad[0]!r} is a {type(data[bad[0]]).__name__}, "
+                         "expected a dict")  # fmt: skip
     return data
+
+
+def _reason(exc: Exception) -> str:
+    """One line of what ``torch.load`` or ``load_state_dict`` found wrong: the weights-only
+    refusal spans several lines of advice around the reason (e.g. "Unsupported operand 110"),
+    a shape mismatch one line per tensor."""
+    text = str(exc)
+    if "WeightsUnpickler error:" in text:
+        text = text.split("WeightsUnpickler error:", 1)[1].strip().split("\n\n")[0]
+        text = text.split(". ")[0]
+    lines = [" ".join(line.split()) for line in text.splitlines() if line.strip()]
+    more = f" (+{len(lines) - 2} more)" if len(lines) > 2 else ""  # e.g. size mismatches
+    return " ".join(lines[:2]) + more if lines else "empty or truncated file"
 
 
 def load_checkpoint(
@@ -118,7 +135,9 @@ def load_checkpoint(
     try:
         out.load_state_dict(data["learner"])
     except (KeyError, RuntimeError, ValueError) as exc:
-        raise ValueError(f"checkpoint {path}: state does not fit the model ({exc})") from exc
+        raise ValueError(
+            f"checkpoint {path}: state does not fit the model ({_reason(exc)})"
+        ) from exc
     return out, meta
 
 

@@ -22,15 +22,25 @@ LANE_TERMS = ("offset", "waypoint")
 JAM_DENSITY_PER_LANE = 1000.0 / 7.0
 
 
-def _check_range(obj: Any, name: str, lo: float, hi: float, *, lo_open: bool = False) -> None:
+def _check_range(
+    obj: Any, name: str, lo: float, hi: float, *, lo_open: bool = False, integer: bool = False
+) -> None:
     value = getattr(obj, name)
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    kinds = int if integer else (int, float)
+    ok = isinstance(value, kinds) and not isinstance(value, bool) and math.isfinite(value)
     ok = ok and (value > lo if lo_open else value >= lo) and value <= hi
     if not ok:
         left = "(" if lo_open else "["
+        what = "integers " if integer else ""
         raise ValueError(
-            f"{type(obj).__name__}.{name}={value!r} is out of range; allowed {left}{lo}, {hi}]"
+            f"{type(obj).__name__}.{name}={value!r} is out of range; allowed {what}{left}{lo}, {hi}]"
         )
+
+
+def _check_bool(obj: Any, name: str) -> None:
+    value = getattr(obj, name)
+    if not isinstance(value, bool):
+        raise ValueError(f"{type(obj).__name__}.{name}={value!r} must be True or False")
 
 
 def _check_choice(obj: Any, name: str, choices: tuple[str, ...]) -> None:
@@ -79,8 +89,9 @@ class SensorConfig:
     def __post_init__(self) -> None:
         _check_range(self, "lidar_range", 0.0, 500.0, lo_open=True)
         _check_range(self, "camera_range", 0.0, 500.0, lo_open=True)
-        _check_range(self, "history", 1, 50)
-        _check_range(self, "waypoints", 1, 200)
+        _check_range(self, "history", 1, 50, integer=True)
+        _check_range(self, "waypoints", 1, 200, integer=True)
+        _check_bool(self, "noise")
 
 
 @dataclass(frozen=True)
@@ -199,7 +210,7 @@ class HumanConfig:
         _check_range(self, "speed_factor_dev", 0.0, 0.5)
         _check_range(self, "headway_dev", 0.0, 0.5)
         _check_range(self, "accel_dev", 0.0, 0.5)
-        _check_range(self, "driver_types", 1, 100)
+        _check_range(self, "driver_types", 1, 100, integer=True)
         for name in ("sigma_error", "sigma_gap", "sigma_leader"):
             _check_range(self, name, 0.0, 2.0)
         _check_range(self, "reaction_time", 0.0, 3.0)
@@ -263,6 +274,10 @@ class EnvConfig:
             raise ValueError(f"EnvConfig.seed={self.seed!r} must be an integer >= 0")
         _check_range(self, "episode_length", 0.0, 86400.0, lo_open=True)
         _check_range(self, "step_length", 0.01, 1.0)
+        if self.episode_length < self.step_length:
+            raise ValueError(f"EnvConfig.episode_length={self.episode_length!r} is shorter than one "
+                             f"step (step_length={self.step_length!r})")  # fmt: skip
+        _check_bool(self, "fixed_fleet")
         _check_range(self, "lateral_resolution", 0.1, 3.2)
         _check_range(self, "speed_tolerance", 0.0, 1.0)
         _check_range(self, "reset_wait", 0.0, 86400.0)

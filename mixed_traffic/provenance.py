@@ -152,21 +152,31 @@ def exclusive_folder(folder: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-def check_writable(path: str | Path) -> None:
-    """Raise ``ValueError`` naming ``path`` unless records can be written there (its folder is
-    created); call it before any work starts, so that no result is lost at the end."""
+def check_writable(path: str | Path, what: str = "records") -> None:
+    """Raise ``ValueError`` naming ``path`` unless ``what`` (records, a report, a GIF) can be
+    written there (its folder is created); call it before any work starts, so that no result is
+    lost at the end."""
     path = Path(path)
     if path.is_dir():
-        raise ValueError(f"{path} is a folder, not a records file")
+        raise ValueError(f"{path} is a folder, not a {what} file")
     blocking = next((p for p in path.parents if p.exists() and not p.is_dir()), None)
     if blocking is not None:
-        raise ValueError(f"cannot write records to {path}: {blocking} is a file, not a folder")
+        raise ValueError(f"cannot write {what} to {path}: {blocking} is a file, not a folder")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path.parent, prefix=f".{path.name}.", suffix=".probe"):
             pass
     except OSError as e:
-        raise ValueError(f"cannot write records to {path}: {e.strerror or e}") from None
+        raise ValueError(f"cannot write {what} to {path}: {e.strerror or e}") from None
+
+
+def check_folder(path: str | Path) -> None:
+    """Raise ``ValueError`` naming ``path`` if a file stands where it or one of its parents
+    must be a folder (an output folder; nothing is created)."""
+    path = Path(path)
+    blocking = next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise ValueError(f"cannot use {path} as a folder: {blocking} is a file, not a folder")
 
 
 def write_record_atomic(path: str | Path, record: dict[str, Any]) -> None:

@@ -198,6 +198,8 @@ class TrainConfig:
             self._bad("backend", f"choose from {BACKENDS}")
         if self.address and self.backend != "ray":
             self._bad("address", "only meaningful with backend='ray'")
+        if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
+            self._bad("seed", "must be an integer >= 0")
         if self.ablation not in ABLATIONS:
             self._bad("ablation", f"choose from {ABLATIONS}")
         if self.ablation == "novec":
@@ -275,12 +277,16 @@ class TrainConfig:
 
     def _check_learner_loop(self) -> None:
         """Buffer sizes, the update ratio and the checkpoint period."""
-        for name in ("local_buffer", "replay_capacity", "batch_size", "sync_every", "log_every"):
+        for name in ("local_buffer", "replay_capacity", "batch_size", "sync_every", "log_every",
+                     "learner_threads", "max_lag"):  # fmt: skip
             if getattr(self, name) < 1:
                 self._bad(name, "must be >= 1")
-        if self.update_ratio < 0 or self.learning_starts < 0 or self.max_lag < 1:
-            self._bad("update_ratio", "update_ratio/learning_starts must be >= 0, max_lag >= 1")
-        if self.checkpoint_every <= 0:
+        for name in ("learning_starts", "max_worker_restarts"):
+            if getattr(self, name) < 0:
+                self._bad(name, "must be >= 0")
+        if not (math.isfinite(self.update_ratio) and self.update_ratio >= 0):
+            self._bad("update_ratio", "must be a finite number >= 0")
+        if not self.checkpoint_every > 0:
             self._bad("checkpoint_every", "must be > 0")
 
     def to_dict(self) -> dict[str, Any]:

@@ -185,6 +185,7 @@ class MixedTrafficEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | None = None, options: dict | None = None):
+        _check_reset_args(seed, options)
         if seed is None:
             seed = int(self._episode_rng.integers(2**31 - 1))
         if self._phase == "closed":  # reopened: a new scratch folder for the route file
@@ -498,7 +499,7 @@ class MixedTrafficEnv(ParallelEnv):
     def episode_metrics(self) -> dict[str, float | None]:
         """Every DESIGN §9 metric of the episode so far (keys of ``schema.METRICS``)."""
         out: dict[str, Any] = dict.fromkeys(METRICS)
-        out.update(self._flow.summary())
+        out.update(self._recorder("episode_metrics").summary())
         out.update(self._av.summary())
         di = self._flow.delay_index(sorted(self._av.rear_vehicles))
         di = di[np.isfinite(di)] if len(di) else di
@@ -508,12 +509,18 @@ class MixedTrafficEnv(ParallelEnv):
     def flow_diagnostics(self) -> dict[str, float | int | None]:
         """Flow figures of the episode beyond the metric catalogue (delay indices, free-flow
         time, vehicles seen, steps)."""
-        return self._flow.diagnostics()
+        return self._recorder("flow_diagnostics").diagnostics()
 
     def trajectories(self) -> dict[str, np.ndarray]:
         """With ``trace=True``: every vehicle's time ``t`` [s], position ``s`` [m] along the
         measurement segment and speed ``v`` [m/s] every ``TRACE_INTERVAL`` after warm-up."""
-        return self._flow.field.traces()
+        return self._recorder("trajectories").field.traces()
+
+    def _recorder(self, what: str) -> FlowRecorder:
+        """The episode's flow recorder; ``RuntimeError`` naming ``what`` before the first reset."""
+        if self._flow is None:
+            raise RuntimeError(f"{what}() before reset(): call reset() to start an episode first")
+        return self._flow
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._snap is None:
@@ -544,6 +551,16 @@ class MixedTrafficEnv(ParallelEnv):
         so copies neither overwrite each other's route file nor delete it on close."""
         self.__dict__.update(state)
         self._tmp = scratch_dir()
+
+
+def _check_reset_args(seed: Any, options: Any) -> None:
+    """Name a seed that is not an integer >= 0 (or None) and options that are not a dict."""
+    if seed is not None and (
+        not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0
+    ):
+        raise ValueError(f"reset(seed={seed!r}): seed must be an integer >= 0 or None")
+    if options is not None and not isinstance(options, Mapping):
+        raise ValueError(f"reset(options={options!r}): options must be a dict or None")
 
 
 def check_warmup(warmup: float, episode_length: float) -> None:

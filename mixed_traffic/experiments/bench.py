@@ -25,6 +25,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import statistics
 import sys
 import time
@@ -268,11 +269,34 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: Options that must be finite and > 0, and counts that must be >= 1.
+_POSITIVE = ("densities", "env_density", "env_episode", "soak_length", "soak_density",
+             "learner_block_seconds")  # fmt: skip
+_COUNTS = ("env_steps", "learner_batch", "learner_threads", "learner_blocks")
+
+
+def check_args(args: argparse.Namespace) -> str | None:
+    """The first out-of-range option as a one-line message naming it (None: all fine)."""
+    for name in _POSITIVE + _COUNTS:
+        values = getattr(args, name)
+        for v in values if isinstance(values, list) else [values]:
+            if name in _COUNTS and v < 1:
+                return f"--{name.replace('_', '-')}={v} must be >= 1"
+            if name in _POSITIVE and not (math.isfinite(v) and v > 0):
+                return f"--{name.replace('_', '-')}={v} must be a finite number > 0"
+    if any(not 0 < p <= 1 for p in args.penetrations):
+        return f"--penetrations={args.penetrations}: each must be in (0, 1]"
+    return None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if args.steps < 2 * args.block or args.block < 1:
         parser.error(f"--steps={args.steps} must be at least 2 x --block={args.block}")
+    bad = check_args(args)
+    if bad:  # before the first section, not when the section that uses it comes
+        parser.error(bad)
     if args.json and args.section != ["env"]:
         parser.error("--json needs --section env (the learner section has --learner-json)")
     if not args.json:

@@ -33,7 +33,7 @@ from tqdm import tqdm
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
 from mixed_traffic.experiments.runner import check_checkpoint
 from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
-from mixed_traffic.provenance import FolderBusyError, current_code_key, read_records
+from mixed_traffic.provenance import FolderBusyError, check_folder, current_code_key, read_records
 from mixed_traffic.world.registry import train_split_scenario
 
 TRAIN_CELLS = ("merge-ramp", "bottleneck-3to2", "urban-grid3x3", "highway-curves", "straight-3lane")
@@ -218,6 +218,10 @@ def main(argv: list[str] | None = None) -> int:
         checkpoints = expand(args.checkpoints)
     except ValueError as e:
         p.error(str(e))
+    try:
+        check_folder(cfg.out)
+    except ValueError as e:
+        p.error(f"--out: {e}")
     try:
         scores = run(cfg, checkpoints)
     except FolderBusyError as e:

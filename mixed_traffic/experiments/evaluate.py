@@ -23,7 +23,13 @@ from tqdm import tqdm
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
-from mixed_traffic.experiments.runner import DEFAULT_WARMUP, cell_of, run_episode, validate
+from mixed_traffic.experiments.runner import (
+    DEFAULT_WARMUP,
+    cell_of,
+    check_checkpoint,
+    run_episode,
+    validate,
+)
 from mixed_traffic.provenance import check_writable, record_meta, write_record_atomic
 from mixed_traffic.schema import METRICS, POLICIES
 from mixed_traffic.world.backend import SumoError
@@ -119,7 +125,14 @@ def main(argv: list[str] | None = None) -> int:
     try:
         configs = [config_from_args(args, EnvConfig, seed=s) for s in args.seeds]
         configs = [validate(c, args.warmup, args.policy) for c in configs]
+        if args.checkpoint is not None:  # before any episode, not as a failed record after it
+            if not args.policy.startswith("auto"):
+                raise ValueError(f"--checkpoint is used by --policy auto or auto-raw only, "
+                                 f"not {args.policy!r}")  # fmt: skip
+            check_checkpoint(args.checkpoint)
         check_writable(args.out)
+        if args.gif is not None:
+            check_writable(args.gif, what="GIF")
     except (ValueError, KeyError) as e:
         parser.error(str(e).strip("'\""))
     records: list[dict[str, Any]] = []

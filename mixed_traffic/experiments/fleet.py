@@ -37,7 +37,7 @@ from tqdm import tqdm
 from mixed_traffic.config import WEATHERS, EnvConfig
 from mixed_traffic.experiments import cli
 from mixed_traffic.experiments.runner import check_checkpoint, run_episode
-from mixed_traffic.provenance import atomic_write, git_revision, write_record_atomic
+from mixed_traffic.provenance import atomic_write, check_folder, git_revision, write_record_atomic
 
 CURVE_FIELDS = ("iteration", "minutes", "episodes", "mean_d", "unsafe", "gain", "gain_scenario",
                 "theta_norm", "bias_left", "bias_follow", "bias_right")  # fmt: skip
@@ -87,20 +87,29 @@ class FleetConfig:
     """Show a progress bar."""
 
     def __post_init__(self) -> None:
-        if self.minutes < 0 or self.iterations < 0:
-            raise ValueError("minutes and iterations must be >= 0")
+        if not (math.isfinite(self.minutes) and self.minutes >= 0) or self.iterations < 0:
+            raise ValueError(f"minutes={self.minutes} and iterations={self.iterations} must be "
+                             "finite and >= 0")  # fmt: skip
+        if not isinstance(self.seed, int) or self.seed < 0:
+            raise ValueError(f"seed={self.seed!r} must be an integer >= 0")
         if not (self.minutes or self.iterations):
             raise ValueError("give a budget: --minutes or --iterations")
         if self.workers < 1:
             raise ValueError(f"workers={self.workers} must be at least 1")
         if not self.densities or not self.penetrations:
             raise ValueError("densities and penetrations need at least one value each")
+        if any(not d >= 0 for d in self.densities):  # also refuses nan
+            raise ValueError(f"densities {list(self.densities)} must be >= 0 veh/km "
+                             "(0 = the scenario's default)")  # fmt: skip
         if any(not 0 < p <= 1 for p in self.penetrations):
             raise ValueError(f"penetrations {list(self.penetrations)} must lie in (0, 1]")
         if not self.weathers or any(w not in WEATHERS for w in self.weathers):
             raise ValueError(f"weathers {list(self.weathers)}: choose from {WEATHERS}")
-        if self.warmup >= self.episode_length:
-            raise ValueError(f"warmup {self.warmup} s must be shorter than episode_length")
+        if not 0 < self.episode_length <= 86400:  # also refuses nan
+            raise ValueError(f"episode_length={self.episode_length} must be in (0, 86400] s")
+        if not 0 <= self.warmup < self.episode_length:
+            raise ValueError(f"warmup {self.warmup} s must be in [0, episode_length "
+                             f"{self.episode_length}) s")  # fmt: skip
         if self.init is not None:
             check_checkpoint(self.init)
 
@@ -148,6 +157,14 @@ class FleetSearch:
         from mixed_traffic.world.registry import load_scenario
 
         self.cfg, self.out = cfg, cfg.out
+        # every check before OUT is touched: a refused run leaves no base.pt to resume from
+        self.pool = scenario_pool(cfg.scenarios)
+        self.densities = {n: feasible_densities(load_scenario(n), cfg.densities)
+                          for names in self.pool.values() for n in names}  # fmt: skip
+        try:
+            check_folder(self.out)
+        except ValueError as e:
+            raise ValueError(f"--out: {e}") from None
         self.out.mkdir(parents=True, exist_ok=True)
         base = self.out / "base.pt"
         state = self._read_state()
@@ -163,9 +180,6 @@ class FleetSearch:
                                "theta": theta.tolist(), "adam": None}  # fmt: skip
         self.theta = np.array(self.state["theta"])
         self.adam = Adam(len(self.theta), cfg.search.lr, self.state["adam"])
-        self.pool = scenario_pool(cfg.scenarios)
-        self.densities = {n: feasible_densities(load_scenario(n), cfg.densities)
-                          for names in self.pool.values() for n in names}  # fmt: skip
         # rows past the committed iteration (and a row torn by a kill) are redone
         trim_curves(self.out / "curves.csv", self.state["iteration"], CURVE_FIELDS, "iteration")
 

@@ -115,6 +115,8 @@ class SweepConfig:
             bad("backend", "choose from process, ray")
         if self.address and self.backend != "ray":
             bad("address", "--address needs --backend ray")
+        if not 0 < self.episode_length <= 86400:  # also refuses nan
+            bad("episode_length", "must be in (0, 86400] s")
         if not 0 <= self.warmup < self.episode_length:
             bad("warmup", f"must be in [0, episode length {self.episode_length})")
         try:
@@ -411,6 +413,8 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
     try:
         sweep = config_from_args(p.parse_args(argv), SweepConfig)
         check_writable(sweep.results / "records.jsonl")
+        if sweep.report_pdf is not None:  # not only after every cell has run
+            check_writable(sweep.report_pdf, what="report")
     except ValueError as e:
         p.error(str(e))
     return sweep

@@ -67,12 +67,17 @@ def build_parser() -> argparse.ArgumentParser:
 def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Any:
     """TrainConfig from the options; validates scenarios and densities (parser.error on bad)."""
     from agents.learning.config import TrainConfig, feasible_densities
+    from mixed_traffic.provenance import check_folder
     from mixed_traffic.world.registry import list_scenarios, train_scenarios, train_split_scenario
 
     try:
         cfg = cli.config_from_args(args, TrainConfig)
     except ValueError as e:
         parser.error(str(e))
+    try:
+        check_folder(cfg.out)
+    except ValueError as e:
+        parser.error(f"--out: {e}")
     scen = tuple(s for s in cfg.scenarios if s) or tuple(train_scenarios())
     for s in scen:
         if s not in list_scenarios():

@@ -26,6 +26,8 @@ DEFAULT_FLOW_END = 86400.0
 def load_user_scenario(path: Path) -> Scenario:
     """Load ``path`` (a ``.net.xml`` or ``.sumocfg``); raises ``ValueError`` naming the file."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"scenario file {path} is a folder, not a file")
     if not path.is_file():
         raise ValueError(f"scenario file {path} does not exist")
     if path.name.endswith(".sumocfg"):
