@@ -54,6 +54,9 @@ def test_reckless_driver_crashes_alone_and_not_behind_the_module() -> None:
     assert module.interventions["lateral"] > 0
     assert module.interventions["longitudinal"] > 0
     assert 0.0 < module.share <= 100.0
+    parts = module.shares
+    assert parts["sm_lateral"] > 0 and parts["sm_longitudinal"] > 0
+    assert parts["sm_lateral"] + parts["sm_longitudinal"] == pytest.approx(module.share)
 
 
 def test_acc_lc_actions_pass_unchanged() -> None:

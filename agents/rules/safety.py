@@ -182,6 +182,12 @@ class SafetyModule:
         return np.minimum(static, np.maximum(rule_cap, a_rss))
 
     @property
+    def shares(self) -> dict[str, float | None]:
+        """``sm_lateral`` / ``sm_longitudinal``: share of agent-steps each check changed [%]."""
+        n = self.decisions
+        return {f"sm_{k}": 100.0 * v / n if n else None for k, v in self.interventions.items()}
+
+    @property
     def share(self) -> float | None:
         """Share of agent-steps the module changed so far [%] (None before any)."""
         if not self.decisions:

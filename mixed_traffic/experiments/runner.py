@@ -103,6 +103,7 @@ def run_episode(
     metrics["avg_it"] = 1000.0 * infer_s / decisions if decisions else None
     if getattr(agent, "safety", None) is not None:
         metrics["sm_share"] = agent.safety.share
+        diagnostics.update(agent.safety.shares)
     record = {
         "cell": cell_of(config, policy),
         "status": "ok",
