@@ -13,7 +13,9 @@ Two forms (``LearnerConfig.residual``):
 - residual: u is a bounded correction to ACC-LC (``agents.rules.acc_lc``), which is evaluated
   on every step's observation: params = clip(ACC-LC's params + (steer_delta, accel_delta)·u,
   -1, 1); with ``speed_governor`` the accel_brake correction lifts no row above what the speed
-  limits, curves and traffic lights ahead allow (ACC-LC's ``speed_cap``). ACC-LC is the
+  limits, curves and traffic lights ahead allow (ACC-LC's ``speed_cap``), and with
+  ``rss_governor`` none above the RSS-safe acceleration behind that row's leaders
+  (``agents.rules.rss``). ACC-LC is the
   low-level controller that tracks the held command: it keeps the lane centre, keeps the gap
   and only shifts towards a changed lane while its gap checks accept it.
   The decision is the critic's masked argmax of Q + ``teacher_bonus`` on ACC-LC's decision.
@@ -34,6 +36,7 @@ from agents.learning.rbpdqn import LearnerConfig, Policy
 from agents.nets.networks import FOLLOW
 from agents.rules.acc_lc import AccLcPolicy
 from agents.rules.acc_lc_longitudinal import speed_cap, to_ab
+from agents.rules.rss import RssConfig, rss_caps
 from mixed_traffic.env.api import EGO_SCALE
 
 MODES = ("greedy", "explore", "teacher")
@@ -83,6 +86,7 @@ class Driver:
         self.k = steps_per_decision(cfg.decision_interval, step_length)
         self.teacher = teacher if teacher is not None else AccLcPolicy()
         self.delta = np.array([cfg.steer_delta, cfg.accel_delta], np.float32)
+        self.rss = RssConfig()
         # per agent: [steps left, held decision, held u (3, 2)]
         self._held: dict[str, list] = {}
 
@@ -114,13 +118,16 @@ class Driver:
             self._held = {a: h for a, h in self._held.items() if a in live}
 
     def _teacher(self, obs: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, ...]:
-        """ACC-LC's (decision (A,), params (A, 3, 2), the governor's accel_brake cap (A,))."""
+        """ACC-LC's (decision (A,), params (A, 3, 2), the governors' accel_brake cap (A, 3))."""
         if n == 0:
             return _no_teacher(0)
         plan = self.teacher.plan(obs)
-        cap = np.ones(n, np.float32)
+        f, c = plan.features, self.teacher.c
+        cap = np.ones((n, 3))
         if self.cfg.residual and self.cfg.speed_governor:
-            cap = to_ab(speed_cap(plan.features, self.teacher.c), self.teacher.c)
+            cap = np.minimum(cap, to_ab(speed_cap(f, c), c)[:, None])
+        if self.cfg.residual and self.cfg.rss_governor:
+            cap = np.minimum(cap, to_ab(rss_caps(f, c, self.rss), c))
         return plan.decision.astype(np.int64), plan.params.astype(np.float32), cap
 
     def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,
@@ -162,14 +169,14 @@ class Driver:
 
     def _execute(self, u: np.ndarray, t_par: np.ndarray, cap: np.ndarray) -> np.ndarray:
         """(A, 3, 2) executed parameters of the held u; the accel_brake correction lifts no
-        row above ``cap`` (A,) unless ACC-LC's own is higher."""
+        row above ``cap`` (A, 3) unless ACC-LC's own is higher."""
         if not self.cfg.residual:
             return u
         out = np.clip(t_par + self.delta * u, -1.0, 1.0)
-        ceiling = np.maximum(t_par[:, :, 1], cap[:, None])
+        ceiling = np.maximum(t_par[:, :, 1], cap)
         out[:, :, 1] = np.minimum(out[:, :, 1], ceiling)
         return out.astype(np.float32)
 
 
 def _no_teacher(n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    return np.full(n, FOLLOW, np.int64), np.zeros((n, 3, 2), np.float32), np.ones(n, np.float32)
+    return np.full(n, FOLLOW, np.int64), np.zeros((n, 3, 2), np.float32), np.ones((n, 3))

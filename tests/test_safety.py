@@ -7,7 +7,8 @@ import pytest
 
 from agents.policies import stack_obs, to_actions
 from agents.rules.acc_lc import FOLLOW, AccLcPolicy
-from agents.rules.safety import SafetyConfig, SafetyModule, rss_accel
+from agents.rules.rss import RssConfig, rss_accel
+from agents.rules.safety import SafetyConfig, SafetyModule
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.action import to_accel_brake, to_physical
 from mixed_traffic.schema import TERMINAL_REASONS
@@ -113,21 +114,21 @@ def test_rss_bound_stops_the_ego_the_min_gap_behind_the_leader() -> None:
     """Pure: holding ``rss_accel`` for the response time and then braking at the ego's
     deceleration ends exactly ``rss_min_gap`` behind where the leader stops at its hardest
     braking; 0.1 m/s² more ends closer; -inf where even braking now is too late."""
-    c = SafetyConfig()
+    c = RssConfig()
     rng = np.random.default_rng(0)
     v, v_lead = rng.uniform(0, 35, 200), rng.uniform(0, 35, 200)
     gap = rng.uniform(5, 80, 200)
 
     def margin(a: np.ndarray) -> np.ndarray:
-        x = np.maximum(v + a * c.rss_response, 0.0)
-        ego = (v + x) / 2 * c.rss_response + x**2 / (2 * c.rss_ego_decel)
-        return gap + v_lead**2 / (2 * c.rss_lead_decel) - ego
+        x = np.maximum(v + a * c.response, 0.0)
+        ego = (v + x) / 2 * c.response + x**2 / (2 * c.ego_decel)
+        return gap + v_lead**2 / (2 * c.lead_decel) - ego
 
     a = rss_accel(v, gap, v_lead, c)
-    ok = np.isfinite(a) & (v + a * c.rss_response > 0)
+    ok = np.isfinite(a) & (v + a * c.response > 0)
     assert ok.sum() > 100
-    np.testing.assert_allclose(margin(a)[ok], c.rss_min_gap, atol=1e-6)
-    assert (margin(a + 0.1)[ok] < c.rss_min_gap).all()
+    np.testing.assert_allclose(margin(a)[ok], c.min_gap, atol=1e-6)
+    assert (margin(a + 0.1)[ok] < c.min_gap).all()
     assert rss_accel(np.array([30.0]), np.array([5.0]), np.array([0.0]), c)[0] == -np.inf
 
 
@@ -147,3 +148,5 @@ def test_rss_mode_caps_speeding_at_acc_lc_speed_cap() -> None:
     assert got[0] < 0.0 and got[1] == pytest.approx(-2.0, abs=1e-5)
     with pytest.raises(ValueError, match="longitudinal"):
         SafetyConfig(longitudinal="loose")
+    with pytest.raises(ValueError, match=r"RssConfig\.lead_decel"):
+        RssConfig(lead_decel=0.0)

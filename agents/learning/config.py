@@ -78,6 +78,10 @@ class TrainConfig:
     limit, the curves and the traffic lights ahead allow (``LearnerConfig.speed_governor``);
     without it, eager corrections ended AV trips for speeding before junctions and lower
     limits (docs/agent.md)."""
+    rss_governor: bool = True
+    """Residual form: the accel correction may not lift a row's acceleration above the
+    RSS-safe one behind that lane's leaders (``LearnerConfig.rss_governor``), so the safety
+    module need not cap it (docs/agent.md)."""
     multi_pass: bool = True
     """MP-DQN critic: each decision's Q sees only its own parameters, so the actor's update of
     one row is not pushed by the other decisions' Q (``LearnerConfig.multi_pass``; False = the

@@ -98,6 +98,10 @@ class LearnerConfig:
     within its speed limit, the curve and limit targets ahead and a red or yellow light's stop
     (``agents.rules.acc_lc_longitudinal.speed_cap``), or to ACC-LC's own acceleration where
     that is higher (False = unbounded, as checkpoints before it)."""
+    rss_governor: bool = False
+    """Residual form: the correction may raise a row's acceleration only up to the RSS-safe
+    one behind that lane's leaders (``agents.rules.rss``), or to ACC-LC's own where that is
+    higher (False = unbounded, as checkpoints before it)."""
     multi_pass: bool = False
     """MP-DQN critic (``agents.nets.networks.Critic``): each decision's Q sees only its own
     parameters (False = the paper's P-DQN critic)."""

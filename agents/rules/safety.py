@@ -15,14 +15,12 @@ ACC-LC (``agents.rules.acc_lc``) as the rule-based method. Per agent and step:
   change (the lane ends within ``observation.MANDATORY_DISTANCE`` and follow is masked) is
   always driven in safe mode: the learned policy missed such exits (route deviations).
 * **longitudinal** (``SafetyConfig.longitudinal``, default ``rss``): the learned acceleration
-  stands while it is RSS-safe (Shalev-Shwartz et al. 2017) behind every leader of the chosen
-  decision's lane (held for the response time, then braking at ``rss_ego_decel``, the ego
-  still stops behind where the leader would stop braking at ``rss_lead_decel``; the virtual
-  vehicle at a lane's end is a stopped leader) and within ACC-LC's speed cap (limits and
-  curves ahead, red and yellow lights, the junction approach); above that it is capped, never
-  below ACC-LC's own plus ``accel_tolerance``. The older ``clamp`` held it to ACC-LC's plus
-  ``accel_tolerance`` whenever ACC-LC braked, i.e. to ACC-LC's 1.4 s comfort gap: it changed
-  73-89 % of a learned policy's actions.
+  stands while it is RSS-safe (``agents.rules.rss``) behind every leader of the chosen
+  decision's lane (the virtual vehicle at a lane's end is a stopped leader) and within ACC-LC's
+  speed cap (limits and curves ahead, red and yellow lights, the junction approach). Above
+  that it is capped, never below ACC-LC's own plus ``accel_tolerance``. The older ``clamp``
+  held it to ACC-LC's plus ``accel_tolerance`` whenever ACC-LC braked, i.e. to ACC-LC's 1.4 s
+  comfort gap: it changed 73-89 % of a learned policy's actions.
 
 ``AutoPolicy`` (``policies.py``) uses it unless built with ``safety=False`` (policy name
 ``auto-raw``). ``interventions`` counts the agent-steps it changed, which ``evaluate`` reports
@@ -32,12 +30,13 @@ as the ``sm_share`` metric.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from agents.rules.acc_lc import FOLLOW, LEFT, RIGHT, AccLcPlan, AccLcPolicy, lane_curvature
-from agents.rules.acc_lc_longitudinal import leader_inputs, speed_cap
+from agents.rules.acc_lc_longitudinal import speed_cap
+from agents.rules.rss import RssConfig, rss_caps
 from mixed_traffic.config import VehicleConfig
 from mixed_traffic.env.api import bicycle_frenet_step, to_accel_brake, to_physical
 
@@ -61,28 +60,16 @@ class SafetyConfig:
     the spread of ACC-LC's acceleration from sensor noise in steady following)."""
     longitudinal: str = "rss"
     """``rss``: the learned acceleration stands while it keeps an RSS-safe distance to every
-    leader and stays within ACC-LC's speed cap (limits, curves, lights); ``clamp``: it may
-    exceed ACC-LC's by at most ``accel_tolerance`` whenever ACC-LC brakes."""
-    rss_response: float = 0.5
-    """Time the ego holds the learned acceleration before it brakes [s] (the decision
-    interval)."""
-    rss_ego_decel: float = 5.0
-    """Deceleration the ego is sure to reach after the response time [m/s²] (below the AV's
-    6 m/s²)."""
-    rss_lead_decel: float = 6.0
-    """Hardest braking assumed of a leader [m/s²] (human drivers brake at 2 m/s²
-    comfortably; SUMO's 9 m/s² emergency braking is a collision's last resort)."""
-    rss_min_gap: float = 2.0
-    """Bumper gap kept after both have stopped [m]."""
+    leader (``rss``) and stays within ACC-LC's speed cap (limits, curves, lights); ``clamp``:
+    it may exceed ACC-LC's by at most ``accel_tolerance`` whenever ACC-LC brakes."""
+    rss: RssConfig = field(default_factory=RssConfig)
+    """The RSS rule's assumptions (``agents.rules.rss``)."""
 
     def __post_init__(self) -> None:
         if self.longitudinal not in ("rss", "clamp"):
             raise ValueError(
                 f"SafetyConfig.longitudinal={self.longitudinal!r}; allowed 'rss' or 'clamp'"
             )
-        for name in ("rss_response", "rss_ego_decel", "rss_lead_decel"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"SafetyConfig.{name}={getattr(self, name)} must be > 0")
 
 
 class SafetyModule:
@@ -173,11 +160,7 @@ class SafetyModule:
         if c.longitudinal == "clamp":
             return np.where(accel_rule < 0, rule_cap, np.inf)
         f = plan.features
-        a_rss = np.full(len(decision), np.inf)
-        for lane in (LEFT, FOLLOW, RIGHT):  # decision index = its lane column
-            gap, closing, _, leader = leader_inputs(f, self.rule.c, lane, 1, f["d"], None)
-            a = rss_accel(f["v"][:, None], gap, f["v"][:, None] - closing, c)
-            a_rss = np.where(decision == lane, np.where(leader, a, np.inf).min(axis=1), a_rss)
+        a_rss = rss_caps(f, self.rule.c, c.rss)[np.arange(len(decision)), decision]
         static = speed_cap(f, self.rule.c) + c.accel_tolerance
         return np.minimum(static, np.maximum(rule_cap, a_rss))
 
@@ -193,19 +176,3 @@ class SafetyModule:
         if not self.decisions:
             return None
         return 100.0 * sum(self.interventions.values()) / self.decisions
-
-
-def rss_accel(v: np.ndarray, gap: np.ndarray, v_lead: np.ndarray, c: SafetyConfig) -> np.ndarray:
-    """Highest acceleration [m/s²] that is RSS-safe behind a leader (Shalev-Shwartz et al.
-    2017, longitudinal rule), any shape: held for ``rss_response`` and followed by braking at
-    ``rss_ego_decel``, the ego stops ``rss_min_gap`` behind where the leader stops braking at
-    ``rss_lead_decel`` from ``v_lead``. ``v`` ego speed, ``gap`` bumper gap [m]; -inf where
-    even braking now is not enough."""
-    rho, b = c.rss_response, c.rss_ego_decel
-    # room: gap + leader's stopping distance - min gap >= (v + x) rho / 2 + x^2 / (2 b), with
-    # x = v + a rho the speed after the response; the largest such x, then a
-    room = gap - c.rss_min_gap + np.maximum(v_lead, 0.0) ** 2 / (2 * c.rss_lead_decel)
-    disc = rho**2 / 4 + 2 * (room - v * rho / 2) / b
-    with np.errstate(invalid="ignore"):
-        x = b * (-rho / 2 + np.sqrt(disc))
-    return np.where(disc >= 0, (np.maximum(x, 0.0) - v) / rho, -np.inf)

@@ -81,6 +81,9 @@ class FleetConfig:
     speed_governor: bool = True
     """Residual checkpoints: drive with the speed governor (``LearnerConfig.speed_governor``),
     whatever the --init checkpoint says; False keeps the checkpoint's setting."""
+    rss_governor: bool = True
+    """Residual checkpoints: drive with the RSS governor (``LearnerConfig.rss_governor``),
+    whatever the --init checkpoint says; False keeps the checkpoint's setting."""
     search: Any = field(default_factory=_search_config)
     """The evolution-strategies step (``agents.learning.fleet_search.SearchConfig``)."""
     progress: bool = True
@@ -173,8 +176,9 @@ class FleetSearch:
                 raise ValueError(f"{self.out} holds no run to resume; give --init CHECKPOINT")
             shutil.copyfile(cfg.init, base)
         self.learner, self.meta = load_checkpoint(base)
-        if cfg.speed_governor and self.learner.cfg.residual:
-            self.learner.cfg = replace(self.learner.cfg, speed_governor=True)
+        if self.learner.cfg.residual:
+            on = {k: True for k in ("speed_governor", "rss_governor") if getattr(cfg, k)}
+            self.learner.cfg = replace(self.learner.cfg, **on)
         theta = get_theta(self.learner.actor)
         self.state = state or {"iteration": 0, "episodes": 0, "minutes": 0.0,
                                "theta": theta.tolist(), "adam": None}  # fmt: skip

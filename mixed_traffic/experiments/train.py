@@ -138,7 +138,7 @@ def fleet_stage(cfg: Any) -> None:
         workers=cfg.workers, seed=cfg.seed, scenarios=cfg.scenarios, densities=cfg.densities,
         penetrations=cfg.penetrations, weathers=cfg.weathers, episode_length=cfg.episode_length,
         warmup=min(FleetConfig.warmup, cfg.episode_length / 4), progress=cfg.progress,
-        speed_governor=cfg.speed_governor,
+        speed_governor=cfg.speed_governor, rss_governor=cfg.rss_governor,
     )  # fmt: skip
     search = FleetSearch(fleet)
     policy = search.run().read_bytes()
