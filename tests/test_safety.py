@@ -150,3 +150,32 @@ def test_rss_mode_caps_speeding_at_acc_lc_speed_cap() -> None:
         SafetyConfig(longitudinal="loose")
     with pytest.raises(ValueError, match=r"RssConfig\.lead_decel"):
         RssConfig(lead_decel=0.0)
+
+
+def test_rss_caps_per_lane_and_the_driver_governor() -> None:
+    """Pure: a leader 25 m ahead in the left lane (bumper gap 20 m, both at 20 m/s) bounds
+    that lane column at ``rss_accel``; the current and right lanes are unbounded (a current
+    lane's leader would bound a change too, while the ego still overlaps it). The driver's
+    RSS governor lifts no row above its column's cap unless ACC-LC's own is higher."""
+    from agents.driver import Driver
+    from agents.learning.rbpdqn import LearnerConfig
+    from agents.rules.acc_lc_config import AccLcConfig
+    from agents.rules.rss import rss_caps
+
+    k = 5
+    f = {"v": np.array([20.0]), "d": np.zeros(1), "wid": np.array([1.8]),
+         "exists": np.ones((1, 3), bool),
+         "h_dist": np.full((1, 3, k), np.inf), "h_len": np.full((1, 3, k), 5.0),
+         "h_rel": np.zeros((1, 3, k)), "h_lat": np.zeros((1, 3, k)),
+         "h_wid": np.full((1, 3, k), 1.8)}  # fmt: skip
+    f["h_dist"][:, 0] = 25.0
+    c = RssConfig()
+    caps = rss_caps(f, AccLcConfig(), c)
+    want = rss_accel(np.array(20.0), np.array(20.0), np.array(20.0), c)
+    assert caps[0, 0] == pytest.approx(float(want)) and np.isinf(caps[0, 1:]).all()
+    driver = Driver(None, LearnerConfig(residual=True, rss_governor=True), 0.1)
+    t_par = np.zeros((1, 3, 2), np.float32)
+    t_par[0, :, 1] = [0.1, 0.1, 0.3]
+    u = np.ones((1, 3, 2), np.float32)
+    out = driver._execute(u, t_par, cap=np.array([[0.2, 0.05, 1.0]]))
+    np.testing.assert_allclose(out[0, :, 1], [0.2, 0.1, 0.55])
