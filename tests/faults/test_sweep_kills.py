@@ -1,14 +1,17 @@
-"""Issue 25 fault suite: kill -9 of a sweep's worker process mid-cell. The sweep records that
-cell as failed, finishes the others, exits 1, and a re-run retries only that cell."""
+"""Issue 25 fault suite: kill -9 of a sweep's worker process (or Ray worker) mid-cell. The sweep
+records that cell as failed, finishes the others, exits 1, and a re-run retries only that cell."""
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+import pytest
 
 from mixed_traffic.provenance import read_records
 
@@ -54,6 +57,39 @@ def test_a_killed_sweep_worker_is_a_failed_cell_that_the_next_run_retries(tmp_pa
     assert sorted(r["status"] for r in records) == ["failed", "ok"]
     (failed,) = [r for r in records if r["status"] == "failed"]
     assert "worker process died with exit code -9" in failed["error"]
+    again = subprocess.run(args, capture_output=True, text=True, timeout=300)
+    assert again.returncode == 0, again.stderr[-1000:]
+    records = read_records(out / "records.jsonl")
+    assert len(records) == 3 and sum(r["status"] == "ok" for r in records) == 2
+
+
+def _ray_task_pids(name: bytes) -> list[int]:
+    """Processes whose title (Ray sets it to ``ray::<task>`` while a task runs) names ``name``."""
+    return [int(p.name) for p in Path("/proc").glob("[0-9]*") if name in _cmdline(int(p.name))]
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed")
+def test_a_killed_ray_worker_is_a_failed_cell_that_the_next_run_retries(tmp_path: Path) -> None:
+    """The same with ``--backend ray``: kill -9 of the Ray worker running a cell."""
+    out = tmp_path / "res"
+    args = [sys.executable, "-m", "mixed_traffic.sweep", "--penetration", "--values", "0.5",
+            "--policies", "random", "--seeds", "0", "1", "--episode-length", "15", "--warmup", "2",
+            "--workers", "1", "--backend", "ray", "--no-report", "--no-traffic", "--no-reference",
+            "--out", str(out)]  # fmt: skip
+    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline, workers = time.time() + 120, []
+    while time.time() < deadline and not workers and proc.poll() is None:
+        workers = _ray_task_pids(b"ray::episode_record")
+        time.sleep(0.1)
+    assert workers, "no Ray worker ran a cell"
+    time.sleep(0.5)  # mid-cell (a cell takes several seconds)
+    os.kill(workers[0], signal.SIGKILL)
+    _, err = proc.communicate(timeout=300)
+    assert proc.returncode == 1 and "1 of 2 cells failed" in err, err[-1000:]
+    records = read_records(out / "records.jsonl")
+    assert sorted(r["status"] for r in records) == ["failed", "ok"]
+    (failed,) = [r for r in records if r["status"] == "failed"]
+    assert "Ray task failed" in failed["error"]
     again = subprocess.run(args, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr[-1000:]
     records = read_records(out / "records.jsonl")
