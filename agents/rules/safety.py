@@ -162,7 +162,7 @@ class SafetyModule:
         f = plan.features
         a_rss = rss_caps(f, self.rule.c, c.rss)[np.arange(len(decision)), decision]
         static = speed_cap(f, self.rule.c) + c.accel_tolerance
-        return np.minimum(static, np.maximum(rule_cap, a_rss))
+        return np.maximum(rule_cap, np.minimum(static, a_rss))
 
     @property
     def shares(self) -> dict[str, float | None]:
