@@ -34,7 +34,7 @@ import numpy as np
 
 from agents.learning.rbpdqn import LearnerConfig, Policy
 from agents.nets.networks import FOLLOW
-from agents.rules.acc_lc import AccLcPolicy
+from agents.rules.acc_lc import AccLcPlan, AccLcPolicy
 from agents.rules.acc_lc_longitudinal import speed_cap, to_ab
 from agents.rules.rss import RssConfig, rss_caps
 from mixed_traffic.env.api import EGO_SCALE
@@ -87,6 +87,8 @@ class Driver:
         self.teacher = teacher if teacher is not None else AccLcPolicy()
         self.delta = np.array([cfg.steer_delta, cfg.accel_delta], np.float32)
         self.rss = RssConfig()
+        self.plan: AccLcPlan | None = None
+        """ACC-LC's plan of the last :meth:`act` (None where ACC-LC was not evaluated)."""
         # per agent: [steps left, held decision, held u (3, 2)]
         self._held: dict[str, list] = {}
 
@@ -103,6 +105,7 @@ class Driver:
         self._forget(agents)
         mask = np.asarray(obs["action_mask"]) > 0.5
         with_teacher = self.cfg.residual or labels or mode == "teacher"
+        self.plan = None
         t_dec, t_par, cap = self._teacher(obs, n) if with_teacher else _no_teacher(n)
         due = np.array([self._held.get(a, (0,))[0] <= 0 for a in agents], bool)
         if due.any():
@@ -121,7 +124,7 @@ class Driver:
         """ACC-LC's (decision (A,), params (A, 3, 2), the governors' accel_brake cap (A, 3))."""
         if n == 0:
             return _no_teacher(0)
-        plan = self.teacher.plan(obs)
+        self.plan = plan = self.teacher.plan(obs)
         f, c = plan.features, self.teacher.c
         cap = np.ones((n, 3))
         if self.cfg.residual and self.cfg.speed_governor:

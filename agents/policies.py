@@ -88,7 +88,7 @@ class AutoPolicy:
         cmd = self.driver.act(obs, names)
         decision, params = cmd.decision, cmd.params
         if self.safety is not None:
-            decision, params, _ = self.safety.filter(obs, decision, params)
+            decision, params, _ = self.safety.filter(obs, decision, params, self.driver.plan)
         return decision, params
 
 

@@ -113,11 +113,16 @@ class SafetyModule:
         return np.maximum(lo, plan.lo - slack), np.minimum(hi, plan.hi + slack)
 
     def filter(
-        self, obs: Mapping[str, np.ndarray], decision: np.ndarray, params: np.ndarray
+        self,
+        obs: Mapping[str, np.ndarray],
+        decision: np.ndarray,
+        params: np.ndarray,
+        plan: AccLcPlan | None = None,
     ) -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
         """Learned ``decision`` (A,) and ``params`` (A, 3, 2) -> the safe ones and the
-        per-agent flags ``{"lateral", "longitudinal"}`` (A,) bool of what was changed."""
-        plan = self.rule.plan(obs)
+        per-agent flags ``{"lateral", "longitudinal"}`` (A,) bool of what was changed.
+        ``plan``: ACC-LC's plan of these ``obs`` if the caller has it (else made here)."""
+        plan = plan if plan is not None else self.rule.plan(obs)
         decision = np.asarray(decision, np.int64).copy()
         params = np.asarray(params, np.float32).copy()
         ar = np.arange(len(decision))
