@@ -98,7 +98,9 @@ class SweepConfig:
         unknown = [p for p in self.policies if p not in POLICIES]
         if unknown or not self.policies:
             bad("policies", f"unknown policies {unknown}; choose from {list(POLICIES)}")
-        if self.checkpoint is not None and any(p.startswith("auto") for p in self.policies):
+        if self.checkpoint is not None and not any(p.startswith("auto") for p in self.policies):
+            bad("checkpoint", "no auto or auto-raw policy in --policies would use it")
+        if self.checkpoint is not None:
             from mixed_traffic.experiments.runner import check_checkpoint
 
             try:
@@ -246,7 +248,7 @@ def fd_sweep(sweep: SweepConfig) -> SweepConfig:
         sweep, axis="density", values=values, policies=("idm",), at_penetration=0.0,
         seeds=sweep.seeds[:1], reference=False, episode_length=length,
         warmup=min(sweep.warmup, 30.0, length / 2), out=sweep.results / FD_DIR, report=False,
-        traffic=False,
+        traffic=False, checkpoint=None,
     )  # fmt: skip
 
 

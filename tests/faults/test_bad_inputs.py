@@ -78,6 +78,7 @@ SWEEP = [
     cli("sweep", "--values -0.1", "EnvConfig.penetration=-0.1", "penetration-below-0"),
     cli("sweep", "--policies magic", "unknown policies ['magic']", "unknown-policy"),
     cli("sweep", "--checkpoint {d}/garbage.pt", "garbage.pt: corrupt or unreadable", "bad-checkpoint"),
+    cli("sweep", "--policies acc-lc --checkpoint {ckpt}", "no auto or auto-raw policy", "unused-checkpoint"),
     cli("sweep", "--workers 0", "--workers=0: must be >= 1", "zero-workers"),
     cli("sweep", "--weather --values snow", "EnvConfig.weather='snow' is not one of", "unknown-weather"),
     cli("sweep", "--episode-length nan", "--episode-length=nan: must be in", "nan-episode", keep=True),
