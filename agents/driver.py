@@ -35,8 +35,8 @@ import numpy as np
 from agents.learning.rbpdqn import LearnerConfig, Policy
 from agents.nets.networks import FOLLOW
 from agents.rules.acc_lc import AccLcPlan, AccLcPolicy
-from agents.rules.acc_lc_longitudinal import speed_cap, to_ab
-from agents.rules.rss import RssConfig, rss_caps
+from agents.rules.acc_lc_longitudinal import to_ab
+from agents.rules.rss import RssConfig
 from mixed_traffic.env.api import EGO_SCALE
 
 MODES = ("greedy", "explore", "teacher")
@@ -125,12 +125,12 @@ class Driver:
         if n == 0:
             return _no_teacher(0)
         self.plan = plan = self.teacher.plan(obs)
-        f, c = plan.features, self.teacher.c
+        c = self.teacher.c
         cap = np.ones((n, 3))
         if self.cfg.residual and self.cfg.speed_governor:
-            cap = np.minimum(cap, to_ab(speed_cap(f, c), c)[:, None])
+            cap = np.minimum(cap, to_ab(plan.speed_cap(), c)[:, None])
         if self.cfg.residual and self.cfg.rss_governor:
-            cap = np.minimum(cap, to_ab(rss_caps(f, c, self.rss), c))
+            cap = np.minimum(cap, to_ab(plan.rss_caps(self.rss), c))
         return plan.decision.astype(np.int64), plan.params.astype(np.float32), cap
 
     def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,

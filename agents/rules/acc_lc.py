@@ -58,7 +58,7 @@ current course is SUMO's heading, blended below 8 m/s into the measured lateral 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
@@ -69,8 +69,16 @@ from agents.rules.acc_lc_config import LANE_L as _L
 from agents.rules.acc_lc_config import LANE_R as _R
 from agents.rules.acc_lc_features import features, lane_curvature
 from agents.rules.acc_lc_lateral import forced_ok, lateral_bounds, safe, steer
-from agents.rules.acc_lc_longitudinal import LaneCall, hidden_cap, lane_accels, to_ab, wait_accel
+from agents.rules.acc_lc_longitudinal import (
+    LaneCall,
+    hidden_cap,
+    lane_accels,
+    speed_cap,
+    to_ab,
+    wait_accel,
+)
 from agents.rules.obs_batch import stack_obs, to_actions
+from agents.rules.rss import RssConfig, rss_caps
 
 __all__ = [
     "FOLLOW",
@@ -100,6 +108,23 @@ class AccLcPlan:
     """(A,) lowest lateral target [m, current-lane frame] clear of vehicles alongside."""
     hi: np.ndarray
     """(A,) highest lateral target [m]."""
+    config: AccLcConfig
+    """The configuration the plan was made with."""
+    _memo: dict = field(default_factory=dict, repr=False)
+
+    def speed_cap(self) -> np.ndarray:
+        """(A,) ACC-LC's speed cap [m/s²] (:func:`~agents.rules.acc_lc_longitudinal.speed_cap`),
+        computed once per plan: the driver's governor and the safety module both read it."""
+        if "speed_cap" not in self._memo:
+            self._memo["speed_cap"] = speed_cap(self.features, self.config)
+        return self._memo["speed_cap"]
+
+    def rss_caps(self, rss: RssConfig) -> np.ndarray:
+        """(A, 3) RSS-safe accelerations [m/s²] per lane column (:func:`agents.rules.rss.rss_caps`),
+        computed once per plan and ``rss``."""
+        if rss not in self._memo:
+            self._memo[rss] = rss_caps(self.features, self.config, rss)
+        return self._memo[rss]
 
 
 class AccLcPolicy:
@@ -139,7 +164,7 @@ class AccLcPolicy:
         lo, hi = lateral_bounds(f, c)
         params = _params(f, c, _targets(c, mand, go_l, go_r), accels, lo, hi)
         lateral_ok = np.stack([go_l, np.ones(A, bool), go_r], axis=1)
-        return AccLcPlan(decision, params, f, lateral_ok, lo, hi)
+        return AccLcPlan(decision, params, f, lateral_ok, lo, hi, c)
 
     def actions(self, obs: Mapping[str, Mapping[str, np.ndarray]]) -> dict[str, dict]:
         """``{agent: obs}`` -> ``{agent: {"decision": int, "params": (3, 2)}}``."""

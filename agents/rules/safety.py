@@ -35,8 +35,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from agents.rules.acc_lc import FOLLOW, LEFT, RIGHT, AccLcPlan, AccLcPolicy, lane_curvature
-from agents.rules.acc_lc_longitudinal import speed_cap
-from agents.rules.rss import RssConfig, rss_caps
+from agents.rules.rss import RssConfig
 from mixed_traffic.config import VehicleConfig
 from mixed_traffic.env.api import bicycle_frenet_step, to_accel_brake, to_physical
 
@@ -164,9 +163,8 @@ class SafetyModule:
         rule_cap = accel_rule + c.accel_tolerance
         if c.longitudinal == "clamp":
             return np.where(accel_rule < 0, rule_cap, np.inf)
-        f = plan.features
-        a_rss = rss_caps(f, self.rule.c, c.rss)[np.arange(len(decision)), decision]
-        static = speed_cap(f, self.rule.c) + c.accel_tolerance
+        a_rss = plan.rss_caps(c.rss)[np.arange(len(decision)), decision]
+        static = plan.speed_cap() + c.accel_tolerance
         return np.maximum(rule_cap, np.minimum(static, a_rss))
 
     @property
