@@ -36,31 +36,38 @@ def _cmdline(pid: int) -> bytes:
         return b""
 
 
-def test_a_killed_sweep_worker_is_a_failed_cell_that_the_next_run_retries(tmp_path: Path) -> None:
-    out = tmp_path / "res"
+def _kill_one_cell_and_rerun(out: Path, extra: list[str], workers_of, patience: float,
+                             pause: float, error: str) -> None:  # fmt: skip
+    """Run a two-cell sweep (``extra`` arguments), kill -9 the first process ``workers_of(proc)``
+    finds ``pause`` s after it appears (within ``patience`` s), then check: exit 1 with a
+    summary, one failed record naming ``error``, and a re-run that retries only that cell."""
     args = [sys.executable, "-m", "mixed_traffic.sweep", "--penetration", "--values", "0.5",
-            "--policies", "random", "--seeds", "0", "1", "--episode-length", "30", "--warmup", "2",
-            "--workers", "1", "--no-report", "--no-traffic", "--no-reference", "--out", str(out)]  # fmt: skip
+            "--policies", "random", "--seeds", "0", "1", "--warmup", "2", "--workers", "1",
+            "--no-report", "--no-traffic", "--no-reference", "--out", str(out), *extra]  # fmt: skip
     proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    deadline, workers = time.time() + 60, []
-    while time.time() < deadline and not workers:
-        # the spawn start method also starts a resource tracker: the worker runs the cell
-        workers = [c for c in _children(proc.pid)
-                   if b"spawn_main" in _cmdline(c) and b"resource_tracker" not in _cmdline(c)]  # fmt: skip
+    deadline, workers = time.time() + patience, []
+    while time.time() < deadline and not workers and proc.poll() is None:
+        workers = workers_of(proc)
         time.sleep(0.1)
-    assert workers, "the sweep started no worker process"
-    time.sleep(1.0)  # mid-cell
+    assert workers, "no worker process ran a cell"
+    time.sleep(pause)  # mid-cell
     os.kill(workers[0], signal.SIGKILL)
     _, err = proc.communicate(timeout=300)
-    assert proc.returncode == 1 and "1 of 2 cells failed" in err
+    assert proc.returncode == 1 and "1 of 2 cells failed" in err, err[-1000:]
     records = read_records(out / "records.jsonl")
     assert sorted(r["status"] for r in records) == ["failed", "ok"]
     (failed,) = [r for r in records if r["status"] == "failed"]
-    assert "worker process died with exit code -9" in failed["error"]
+    assert error in failed["error"]
     again = subprocess.run(args, capture_output=True, text=True, timeout=300)
     assert again.returncode == 0, again.stderr[-1000:]
     records = read_records(out / "records.jsonl")
     assert len(records) == 3 and sum(r["status"] == "ok" for r in records) == 2
+
+
+def _spawned_workers(proc: subprocess.Popen) -> list[int]:
+    """The sweep's worker processes (the spawn start method also starts a resource tracker)."""
+    return [c for c in _children(proc.pid)
+            if b"spawn_main" in _cmdline(c) and b"resource_tracker" not in _cmdline(c)]  # fmt: skip
 
 
 def _ray_task_pids(name: bytes) -> list[int]:
@@ -68,29 +75,16 @@ def _ray_task_pids(name: bytes) -> list[int]:
     return [int(p.name) for p in Path("/proc").glob("[0-9]*") if name in _cmdline(int(p.name))]
 
 
+def test_a_killed_sweep_worker_is_a_failed_cell_that_the_next_run_retries(tmp_path: Path) -> None:
+    _kill_one_cell_and_rerun(tmp_path / "res", ["--episode-length", "30"], _spawned_workers,
+                             patience=60, pause=1.0,
+                             error="worker process died with exit code -9")  # fmt: skip
+
+
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason="ray is not installed")
 def test_a_killed_ray_worker_is_a_failed_cell_that_the_next_run_retries(tmp_path: Path) -> None:
-    """The same with ``--backend ray``: kill -9 of the Ray worker running a cell."""
-    out = tmp_path / "res"
-    args = [sys.executable, "-m", "mixed_traffic.sweep", "--penetration", "--values", "0.5",
-            "--policies", "random", "--seeds", "0", "1", "--episode-length", "15", "--warmup", "2",
-            "--workers", "1", "--backend", "ray", "--no-report", "--no-traffic", "--no-reference",
-            "--out", str(out)]  # fmt: skip
-    proc = subprocess.Popen(args, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    deadline, workers = time.time() + 120, []
-    while time.time() < deadline and not workers and proc.poll() is None:
-        workers = _ray_task_pids(b"ray::episode_record")
-        time.sleep(0.1)
-    assert workers, "no Ray worker ran a cell"
-    time.sleep(0.5)  # mid-cell (a cell takes several seconds)
-    os.kill(workers[0], signal.SIGKILL)
-    _, err = proc.communicate(timeout=300)
-    assert proc.returncode == 1 and "1 of 2 cells failed" in err, err[-1000:]
-    records = read_records(out / "records.jsonl")
-    assert sorted(r["status"] for r in records) == ["failed", "ok"]
-    (failed,) = [r for r in records if r["status"] == "failed"]
-    assert "Ray task failed" in failed["error"]
-    again = subprocess.run(args, capture_output=True, text=True, timeout=300)
-    assert again.returncode == 0, again.stderr[-1000:]
-    records = read_records(out / "records.jsonl")
-    assert len(records) == 3 and sum(r["status"] == "ok" for r in records) == 2
+    """The same with ``--backend ray``: kill -9 of the Ray worker running a cell (a cell takes
+    several seconds)."""
+    _kill_one_cell_and_rerun(tmp_path / "res", ["--episode-length", "15", "--backend", "ray"],
+                             lambda _: _ray_task_pids(b"ray::episode_record"), patience=120,
+                             pause=0.5, error="Ray task failed")  # fmt: skip
