@@ -17,6 +17,7 @@ import torch
 
 from agents.driver import Driver
 from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy
+from agents.learning.variants import make_learner
 from agents.nets.lca import LCAConfig
 from mixed_traffic.provenance import atomic_write
 
@@ -131,7 +132,7 @@ def load_checkpoint(
             f"(checkpoint z={lca.z}, m={lca.m}, d={lca.d}; requested z={want.z}, m={want.m}, "
             f"d={want.d})" + "".join(f"; {x}" for x in shapes + flags)
         )
-    out = learner if learner is not None else RBPDQN(lca, lcfg)
+    out = learner if learner is not None else make_learner(lca, lcfg)
     try:
         out.load_state_dict(data["learner"])
     except (KeyError, RuntimeError, ValueError) as exc:

@@ -85,7 +85,8 @@ class Driver:
         self.policy, self.cfg = policy, cfg
         self.k = steps_per_decision(cfg.decision_interval, step_length)
         self.teacher = teacher if teacher is not None else AccLcPolicy()
-        self.delta = np.array([cfg.steer_delta, cfg.accel_delta], np.float32)
+        steer = cfg.steer_delta if cfg.steer_control else 0.0  # HEAD: ACC-LC steers
+        self.delta = np.array([steer, cfg.accel_delta], np.float32)
         self.rss = RssConfig()
         self.plan: AccLcPlan | None = None
         """ACC-LC's plan of the last :meth:`act` (None where ACC-LC was not evaluated)."""

@@ -16,8 +16,11 @@ from typing import Protocol
 import numpy as np
 
 from agents.rules.obs_batch import OBS_KEYS, stack_obs, to_actions
+from mixed_traffic.schema import STUDY_POLICIES
 
 SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "auto.pt"
+STUDY_CHECKPOINTS = SHIPPED_CHECKPOINT.parent / "study"
+"""Checkpoints of the study policies (``mixed_traffic.schema.STUDY_POLICIES``), <name>.pt."""
 
 __all__ = [
     "OBS_KEYS",
@@ -58,6 +61,14 @@ class RandomPolicy:
         return scores.argmax(axis=1), self.rng.uniform(-1, 1, (a, 3, 2)).astype(np.float32)
 
 
+def checkpoint_path(name: str, checkpoint: str | Path | None = None) -> Path:
+    """The weights learned policy ``name`` runs: ``checkpoint`` if given, else the shipped
+    AUTO (auto, auto-raw) or the study's ``STUDY_CHECKPOINTS/<name>.pt``."""
+    if checkpoint is not None:
+        return Path(checkpoint)
+    return SHIPPED_CHECKPOINT if name in ("auto", "auto-raw") else STUDY_CHECKPOINTS / f"{name}.pt"
+
+
 class AutoPolicy:
     """The AUTO agent (LCA + RBP-DQN actor/critic) from a checkpoint, greedy, deciding every
     decision interval of its checkpoint (``agents.driver``), behind the safety module
@@ -70,14 +81,16 @@ class AutoPolicy:
         m: int | None = None,
         safety: bool = True,
         dt: float = 0.1,
+        name: str | None = None,
     ) -> None:
-        """``dt``: the env's simulation step [s]."""
+        """``dt``: the env's simulation step [s]; ``name``: the policy's (default auto, or
+        auto-raw without the safety module)."""
         from agents.checkpoint import load_driver
         from agents.rules.safety import SafetyModule
 
         path = Path(checkpoint) if checkpoint is not None else SHIPPED_CHECKPOINT
         self.checkpoint = path.resolve()
-        self.name = "auto" if safety else "auto-raw"
+        self.name = name or ("auto" if safety else "auto-raw")
         self.driver = load_driver(path, dt, z=z, m=m)
         self.safety = SafetyModule() if safety else None
 
@@ -105,10 +118,13 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
         return AccLcPolicy(conservative() if name == "acc-lc-conservative" else None)
     if name in ("auto", "auto-raw"):
         return AutoPolicy(checkpoint, z=z, m=m, safety=name == "auto", dt=dt)
+    if name in STUDY_POLICIES:  # trained by mixed_traffic.study, behind the safety module
+        return AutoPolicy(checkpoint_path(name, checkpoint), z=z, m=m, dt=dt, name=name)
     if name in ("follower-stopper", "pi-saturation"):
         from agents.rules.stern import FollowerStopper, PISaturation, SternConfig
 
         cls = FollowerStopper if name == "follower-stopper" else PISaturation
         return cls(SternConfig(dt=dt))
     raise ValueError(f"unknown policy {name!r}; choose from auto, auto-raw, acc-lc, "
-                     "acc-lc-conservative, random, follower-stopper, pi-saturation")  # fmt: skip
+                     "acc-lc-conservative, random, follower-stopper, pi-saturation, "
+                     f"{', '.join(STUDY_POLICIES)}")  # fmt: skip

@@ -80,9 +80,18 @@ CELL_KEYS = ("policy", "scenario", "density", "penetration", "weather", "seed")
 #: and the trajectories (``.npz``) of its representative cells.
 FD_DIR = "fd"
 TRACE_DIR = "trajectories"
+BASELINES = ("transfuser", "drl-mf", "head", "bp-dqn", "p-ddpg", "q-pamdp")
+"""The paper's baselines and RL-model comparisons (§V-A) besides ACC-LC: trained policies."""
+ABLATIONS = ("auto-noimp", "auto-novec", "auto-nostar", "auto-nolane", "auto-nohis", "auto-nomul")
+"""The paper's AUTO variants (§V-A): trained policies."""
+STUDY_POLICIES = ("rbp-dqn", *BASELINES, *ABLATIONS)
+"""Policies of ``python -m mixed_traffic.study``, each its own checkpoint in
+agents/checkpoints/study/; rbp-dqn is AUTO's training pipeline at the study's budget."""
+LEARNED = ("auto", "auto-raw", *STUDY_POLICIES)
+"""Policies that load a checkpoint."""
 POLICIES = (
     "auto", "auto-raw", "acc-lc", "acc-lc-conservative", "idm", "random", "follower-stopper",
-    "pi-saturation",
+    "pi-saturation", *STUDY_POLICIES,
 )  # fmt: skip
 
 

@@ -36,7 +36,7 @@ from torch.nn.utils import parameters_to_vector, vector_to_parameters
 from agents.collection.intervals import Intervals, Rows
 from agents.driver import Driver
 from agents.learning.config import feasible_densities
-from agents.learning.rbpdqn import LearnerConfig, Policy
+from agents.learning.rbpdqn import LearnerConfig, Policy, build_nets
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
 from agents.policies import OBS_KEYS, make_policy, stack_obs, to_actions
@@ -190,8 +190,8 @@ class RolloutWorker:
                            for n in set(spec.scenarios)}  # fmt: skip
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)  # overwritten by the first set_weights
-            self.actor = Actor(spec.lca).eval()
-            self.critic = Critic(spec.lca, multi_pass=spec.learner.multi_pass).eval()
+            self.actor, self.critic = build_nets(spec.lca, spec.learner)
+            self.actor.eval(), self.critic.eval()
         self.policy = Policy(self.actor, self.critic, spec.noise_std, spec.epsilon, threads=1,
                              **({"steer_noise_factor": 1.0} if spec.learner.residual else {}))  # fmt: skip
         self.has_weights = False

@@ -20,6 +20,10 @@ BACKENDS = ("process", "ray")
 RESIDUAL_BC_ACCEL = 0.05
 """Default weight of ‖u_accel‖² in the residual form's behaviour-cloning term [-]."""
 ABLATIONS = ("none", "nohis", "nolane", "nostar", "noimp", "nomul", "novec")
+BASELINES = ("none", "transfuser", "drl-mf", "head", "p-ddpg", "q-pamdp")
+"""Paper §V-A methods other than RBP-DQN and BP-DQN (``--bp-dqn``); docs/studies.md."""
+PAPER_FORM = ("transfuser", "drl-mf")
+"""Baselines that output the parameters themselves: neither sees the map ACC-LC needs."""
 
 
 @dataclass(frozen=True)
@@ -141,6 +145,11 @@ class TrainConfig:
     the paper's fusion of the three lane vectors only."""
     bp_dqn: bool = False
     """Train the BP-DQN baseline (no behaviour-cloning regulariser) instead of RBP-DQN."""
+    baseline: str = "none"
+    """Paper §V-A method instead of RBP-DQN: transfuser (imitation of the demonstrator over
+    raster and point tokens; needs --no-residual) | drl-mf (BP-DQN over a map-less raster and
+    point cloud, no impact term; needs --no-residual) | head (BP-DQN, decisions and accel only,
+    ACC-LC's lane keeping steers) | p-ddpg | q-pamdp (``agents.learning.variants``)."""
     local_buffer: int = 256
     """B_l: transitions a worker buffers before flushing them to the learner [transitions]."""
     replay_capacity: int = 200_000
@@ -206,8 +215,13 @@ class TrainConfig:
             self._bad("seed", "must be an integer >= 0")
         if self.ablation not in ABLATIONS:
             self._bad("ablation", f"choose from {ABLATIONS}")
-        if self.ablation == "novec":
-            self._bad("ablation", "NoVEC (rasterised BEV + CNN encoder) is not implemented")
+        if self.baseline not in BASELINES:
+            self._bad("baseline", f"choose from {BASELINES}")
+        if self.baseline != "none" and (self.ablation != "none" or self.bp_dqn):
+            self._bad("baseline", "a baseline is its own method: no --ablation or --bp-dqn")
+        if (self.baseline in PAPER_FORM) == self.residual and self.baseline != "none":
+            form = "--no-residual" if self.residual else "--residual"
+            self._bad("residual", f"baseline {self.baseline} needs {form}")
         if self.ablation == "nomul" and self.workers != 1:
             self._bad("ablation", "NoMUL is the single-worker variant: pass --workers 1")
 
@@ -317,15 +331,20 @@ def feasible_densities(
 
 
 def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:
-    """Encoder config from the env's history/waypoints and the ablation."""
+    """Encoder config from the env's sensors, the ablation and the baseline."""
     flags = {"nohis": {"history": False}, "nolane": {"lane_wise": False},
-             "nostar": {"star": False}}.get(cfg.ablation, {})  # fmt: skip
-    return LCAConfig(z=env_base.sensors.history, m=env_base.sensors.waypoints,
-                     ego_fusion=cfg.ego_fusion, **flags)  # fmt: skip
+             "nostar": {"star": False}, "novec": {"encoder": "bev"}}.get(cfg.ablation, {})  # fmt: skip
+    flags |= {"transfuser": {"encoder": "transfuser"}, "drl-mf": {"encoder": "mf"}}.get(
+        cfg.baseline, {}
+    )
+    s = env_base.sensors
+    return LCAConfig(z=s.history, m=s.waypoints, ego_fusion=cfg.ego_fusion,
+                     lidar_range=s.lidar_range, camera_range=s.camera_range, **flags)  # fmt: skip
 
 
 def env_base_config(cfg: TrainConfig, env_base: EnvConfig | None = None) -> EnvConfig:
-    """Fixed env fields for every episode: episode length and w_impact (0 for NoIMP)."""
+    """Fixed env fields for every episode: episode length and w_impact (0 for NoIMP and
+    DRL-MF, which ignores its impact on the traffic behind)."""
     base = replace(env_base or EnvConfig(), episode_length=cfg.episode_length)
-    w4 = 0.0 if cfg.ablation == "noimp" else cfg.impact_weight
+    w4 = 0.0 if cfg.ablation == "noimp" or cfg.baseline == "drl-mf" else cfg.impact_weight
     return replace(base, reward=replace(base.reward, w_impact=w4))

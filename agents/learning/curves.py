@@ -51,7 +51,8 @@ class Window:
     def row(self) -> dict[str, float]:
         """The window's columns of a curves row (NaN where nothing was counted)."""
 
-        def mean(x: list[float]) -> float:
+        def mean(x: list[float]) -> float:  # Q-PAMDP's idle network logs NaN losses
+            x = [v for v in x if not math.isnan(v)]
             return float(np.mean(x)) if x else math.nan
 
         trips = self.trips if self.trips > 0 else math.nan

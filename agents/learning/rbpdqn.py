@@ -105,9 +105,25 @@ class LearnerConfig:
     multi_pass: bool = False
     """MP-DQN critic (``agents.nets.networks.Critic``): each decision's Q sees only its own
     parameters (False = the paper's P-DQN critic)."""
+    algorithm: str = "rbp-dqn"
+    """Learning rule (``agents.learning.variants``): rbp-dqn (this class; BP-DQN with
+    ``regularize=False``) | p-ddpg | q-pamdp | imitation."""
+    steer_control: bool = True
+    """Residual form: the policy corrects the steering (False = HEAD: discrete lane decisions
+    and accel only, ACC-LC's lane keeping steers)."""
+    phase_updates: int = 500
+    """Q-PAMDP: updates per phase of its alternation (critic only, then actor only)."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
+
+
+def build_nets(lca: LCAConfig, cfg: LearnerConfig) -> tuple[Actor, Critic]:
+    """The (actor, critic) pair of ``cfg.algorithm``: P-DDPG's actor also scores the decisions
+    and its critic values the whole action; the others are the paper's networks."""
+    joint = cfg.algorithm == "p-ddpg"
+    return Actor(lca, scores=joint), Critic(lca, multi_pass=cfg.multi_pass and not joint,
+                                            joint=joint)  # fmt: skip
 
 
 def _soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
@@ -136,8 +152,7 @@ class RBPDQN:
         # caller's global torch RNG.
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
-            self.actor = Actor(lca)
-            self.critic = Critic(lca, multi_pass=self.cfg.multi_pass)
+            self.actor, self.critic = build_nets(lca, self.cfg)
         if self.cfg.residual:  # u = 0 and Q = 0: the teacher bonus picks ACC-LC's decisions
             self.actor.zero_output()
             self.critic.zero_output()
@@ -319,11 +334,10 @@ class Policy:
         self.noise_std = noise_std
         self.steer_noise_factor = steer_noise_factor
         self.epsilon = epsilon
-        c = actor.lca.cfg
+        c = getattr(actor.lca, "cfg", None)
+        default = c is not None and c.history and c.lane_wise and c.star and c.encoder == "lca"
         self._fused = (
-            FusedActorCritic(actor, critic)
-            if fused and c.history and c.lane_wise and c.star
-            else None
+            FusedActorCritic(actor, critic) if fused and default and not actor.scores else None
         )
 
     def sync(self) -> None:
@@ -341,9 +355,11 @@ class Policy:
             params, q = self._fused(obs, noise=noise)
             return q, params
         params = self.actor(obs)
+        if self.actor.scores:  # P-DDPG: the actor's scores rank the decisions
+            scores, params = params[..., 2], params[..., :2].contiguous()
         if noise is not None:
             params = (params + noise).clamp_(-1.0, 1.0)
-        return self.critic(obs, params), params
+        return (scores if self.actor.scores else self.critic(obs, params)), params
 
     def act(
         self,

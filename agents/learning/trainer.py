@@ -51,8 +51,9 @@ from agents.learning.collectors import make_collector
 from agents.learning.commit import commit, committed, remove_leftovers
 from agents.learning.config import TrainConfig, env_base_config, lca_config
 from agents.learning.curves import Window, progress, tensorboard, trim_curves, write_curves
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig
+from agents.learning.rbpdqn import LearnerConfig
 from agents.learning.replay import ReplayBuffer
+from agents.learning.variants import make_learner
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.provenance import atomic_write
 
@@ -66,7 +67,11 @@ def atomic_write_json(path: Path, data: dict) -> None:
 
 def _learner_config(cfg: TrainConfig) -> LearnerConfig:
     """The RBP-DQN learner's settings from the run's."""
-    return LearnerConfig(batch_size=cfg.batch_size, regularize=not cfg.bp_dqn, alpha=cfg.alpha,
+    rl_only = cfg.bp_dqn or cfg.baseline in ("drl-mf", "head", "p-ddpg", "q-pamdp")
+    algorithm = {"transfuser": "imitation", "p-ddpg": "p-ddpg", "q-pamdp": "q-pamdp"}
+    return LearnerConfig(batch_size=cfg.batch_size, regularize=not rl_only, alpha=cfg.alpha,
+                         algorithm=algorithm.get(cfg.baseline, "rbp-dqn"),
+                         steer_control=cfg.baseline != "head",
                          lr=cfg.lr, bc_accel_weight=cfg.accel_bc_weight,
                          bc_accel_expectile=cfg.bc_accel_expectile, gamma=cfg.gamma,
                          residual=cfg.residual, steer_delta=cfg.steer_delta,
@@ -124,7 +129,7 @@ class Trainer:
         self.env_base = env_base_config(cfg, env_base)
         self.lca = lca_config(cfg, self.env_base)
         torch.set_num_threads(cfg.learner_threads)
-        self.learner = RBPDQN(
+        self.learner = make_learner(
             self.lca, _learner_config(cfg), seed=cfg.seed, compile=cfg.learner_compile
         )
         self.replay = ReplayBuffer(cfg.replay_capacity, self.lca)
@@ -185,7 +190,7 @@ class Trainer:
 
     def _check_resumable(self, old: TrainConfig) -> None:
         """ValueError when a setting the saved state depends on differs from the run's."""
-        for name in ("ablation", "ego_fusion", "bp_dqn", "replay_capacity", "workers"):
+        for name in ("ablation", "baseline", "ego_fusion", "bp_dqn", "replay_capacity", "workers"):
             if getattr(old, name) != getattr(self.cfg, name):
                 raise ValueError(
                     f"--resume: {name}={getattr(self.cfg, name)!r} differs from the run in "

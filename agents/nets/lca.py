@@ -37,6 +37,7 @@ N_NODE_TYPES = 3
 EGO_DIM = 5
 VEH_DIM = 12
 LIGHT_DIM = 4
+ENCODERS = ("lca", "bev", "mf", "transfuser")
 _NEG = -1e9
 """Finite 'minus infinity' for masked attention logits: a fully masked row stays finite."""
 
@@ -62,16 +63,28 @@ class LCAConfig:
     paper's eq. (W8 over the lane vectors only) leaves the agent's own speed, heading and offset
     in E_s only through the attention weights. False → the paper's form (and every checkpoint
     written before this field, see :meth:`from_dict`)."""
+    encoder: str = "lca"
+    """State encoder (``agents.nets.networks.make_encoder``): lca (this module) | bev (NoVEC:
+    raster + CNN) | mf (DRL-MF: map-less raster + point cloud) | transfuser (raster and point
+    tokens through a transformer)."""
+    lidar_range: float = 90.0
+    """LiDAR range the observation's distances are scaled by [m] (rasters draw in metres)."""
+    camera_range: float = 60.0
+    """Camera range the observation's light distances are scaled by [m]."""
+
+    def __post_init__(self) -> None:
+        if self.encoder not in ENCODERS:
+            raise ValueError(f"LCAConfig.encoder={self.encoder!r}: choose from {ENCODERS}")
 
     @property
     def lane_dim(self) -> int:
         return 4 * self.m
 
-    def to_dict(self) -> dict[str, int | bool]:
+    def to_dict(self) -> dict[str, int | bool | float | str]:
         return asdict(self)
 
     @classmethod
-    def from_dict(cls, data: dict[str, int | bool]) -> LCAConfig:
+    def from_dict(cls, data: dict[str, int | bool | float | str]) -> LCAConfig:
         """Inverse of :meth:`to_dict`; configs stored before ``ego_fusion`` existed are the
         paper's form."""
         return cls(**{"ego_fusion": False, **data})

@@ -9,7 +9,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from agents.nets.fusion import MultiFeatureEncoder, TransFuserEncoder
 from agents.nets.lca import LCA, N_LANES, LCAConfig, fast_tanh
+from agents.nets.raster import BevEncoder
 
 N_DECISIONS = 3
 """Parameterized-action decisions (left change, follow, right change)."""
@@ -23,6 +25,14 @@ following the current lane is always physically possible; the env stops the car 
 assert N_DECISIONS == N_LANES  # one decision per target lane (left, current, right)
 
 
+def make_encoder(cfg: LCAConfig) -> nn.Module:
+    """The state encoder ``cfg.encoder`` names: obs dict (B, ...) → E_s (B, D)."""
+    if cfg.encoder == "lca":
+        return LCA(cfg)
+    cls = {"bev": BevEncoder, "mf": MultiFeatureEncoder, "transfuser": TransFuserEncoder}
+    return cls[cfg.encoder](cfg.z, cfg.d, cfg.lidar_range, cfg.camera_range)
+
+
 class _ZeroOutput:
     head: nn.Sequential
 
@@ -34,17 +44,22 @@ class _ZeroOutput:
 
 
 class Actor(_ZeroOutput, nn.Module):
-    """LCA → MLP → tanh. obs dict (B, ...) → params (B, 3, 2) in [-1, 1]."""
+    """Encoder → MLP → tanh. obs dict (B, ...) → params (B, 3, 2) in [-1, 1]; with ``scores``
+    (P-DDPG) (B, 3, 3): each decision's parameters and then its score."""
 
-    def __init__(self, cfg: LCAConfig) -> None:
+    def __init__(self, cfg: LCAConfig, scores: bool = False) -> None:
         super().__init__()
         d = cfg.d
-        self.lca = LCA(cfg)
-        self.head = nn.Sequential(nn.Linear(d, d), nn.ReLU(), nn.Linear(d, ACTION_DIM))  # W9
+        self.lca = make_encoder(cfg)
+        self.scores = scores
+        self.width = N_PARAMS + scores
+        self.head = nn.Sequential(
+            nn.Linear(d, d), nn.ReLU(), nn.Linear(d, N_DECISIONS * self.width)
+        )  # W9
 
     def forward(self, obs: dict[str, Tensor]) -> Tensor:
         out = fast_tanh(self.head(self.lca(obs)))
-        return out.view(-1, N_DECISIONS, N_PARAMS)
+        return out.view(-1, N_DECISIONS, self.width)
 
 
 class Critic(_ZeroOutput, nn.Module):
@@ -57,18 +72,24 @@ class Critic(_ZeroOutput, nn.Module):
     (P-DQN's "false gradient").
     """
 
-    def __init__(self, cfg: LCAConfig, multi_pass: bool = False) -> None:
+    def __init__(self, cfg: LCAConfig, multi_pass: bool = False, joint: bool = False) -> None:
+        """``joint`` (P-DDPG): one Q (B, 1) of the whole action (B, 3, 3), parameters and
+        decision scores together."""
         super().__init__()
         d = cfg.d
-        self.lca = LCA(cfg)
-        self.act_embed = nn.Linear(ACTION_DIM, d)  # W10
-        self.head = nn.Sequential(nn.Linear(2 * d, d), nn.ReLU(), nn.Linear(d, N_DECISIONS))  # W11
+        self.lca = make_encoder(cfg)
+        width = ACTION_DIM + N_DECISIONS * joint
+        self.act_embed = nn.Linear(width, d)  # W10
+        self.head = nn.Sequential(
+            nn.Linear(2 * d, d), nn.ReLU(), nn.Linear(d, 1 if joint else N_DECISIONS)
+        )  # W11
         self.multi_pass = multi_pass
+        self.width = width
 
     def forward(self, obs: dict[str, Tensor], params: Tensor) -> Tensor:
         e_s = self.lca(obs)
         if not self.multi_pass:
-            e_a = torch.relu(self.act_embed(params.reshape(-1, ACTION_DIM)))
+            e_a = torch.relu(self.act_embed(params.reshape(-1, self.width)))
             return self.head(torch.cat((e_s, e_a), dim=-1))
         # pass p embeds W10's columns of row p only: (B, 3, D)
         w = self.act_embed.weight.view(-1, N_DECISIONS, N_PARAMS)

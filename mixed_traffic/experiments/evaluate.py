@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from agents.policies import checkpoint_path
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
 from mixed_traffic.experiments.runner import (
@@ -31,7 +32,7 @@ from mixed_traffic.experiments.runner import (
     validate,
 )
 from mixed_traffic.provenance import check_writable, record_meta, write_record_atomic
-from mixed_traffic.schema import METRICS, POLICIES
+from mixed_traffic.schema import LEARNED, METRICS, POLICIES
 from mixed_traffic.world.backend import SumoError
 
 DEFAULT_OUT = Path("results/evaluate/records.jsonl")
@@ -125,11 +126,11 @@ def main(argv: list[str] | None = None) -> int:
     try:
         configs = [config_from_args(args, EnvConfig, seed=s) for s in args.seeds]
         configs = [validate(c, args.warmup, args.policy) for c in configs]
-        if args.checkpoint is not None:  # before any episode, not as a failed record after it
-            if not args.policy.startswith("auto"):
-                raise ValueError(f"--checkpoint is used by --policy auto or auto-raw only, "
-                                 f"not {args.policy!r}")  # fmt: skip
-            check_checkpoint(args.checkpoint)
+        if args.checkpoint is not None and args.policy not in LEARNED:
+            raise ValueError(f"--checkpoint is used by learned policies ({', '.join(LEARNED)}) "
+                             f"only, not {args.policy!r}")  # fmt: skip
+        if args.policy in LEARNED:  # before any episode, not as a failed record after it
+            check_checkpoint(checkpoint_path(args.policy, args.checkpoint))
         check_writable(args.out)
         if args.gif is not None:
             check_writable(args.gif, what="GIF")

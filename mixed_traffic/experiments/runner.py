@@ -22,7 +22,7 @@ from tqdm import tqdm
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.parallel import MixedTrafficEnv, check_warmup
 from mixed_traffic.provenance import json_safe, record_meta
-from mixed_traffic.schema import CELL_KEYS, METRICS, POLICIES
+from mixed_traffic.schema import CELL_KEYS, LEARNED, METRICS, POLICIES
 from mixed_traffic.world.registry import load_scenario
 
 DEFAULT_WARMUP = 30.0
@@ -114,7 +114,7 @@ def run_episode(
         "metrics": json_safe(metrics),
         "diagnostics": json_safe(diagnostics),
     }
-    if policy.startswith("auto"):
+    if policy in LEARNED:
         record["checkpoint"] = str(getattr(agent, "checkpoint", ""))
     return record
 

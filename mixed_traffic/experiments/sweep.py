@@ -33,7 +33,7 @@ from mixed_traffic.provenance import (
     rewrite_records,
     write_record_atomic,
 )
-from mixed_traffic.schema import CELL_KEYS, FD_DIR, POLICIES, TRACE_DIR
+from mixed_traffic.schema import CELL_KEYS, FD_DIR, LEARNED, POLICIES, TRACE_DIR
 from mixed_traffic.world.registry import load_scenario
 
 PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -98,7 +98,7 @@ class SweepConfig:
         unknown = [p for p in self.policies if p not in POLICIES]
         if unknown or not self.policies:
             bad("policies", f"unknown policies {unknown}; choose from {list(POLICIES)}")
-        if self.checkpoint is not None and not any(p.startswith("auto") for p in self.policies):
+        if self.checkpoint is not None and not {"auto", "auto-raw"} & set(self.policies):
             bad("checkpoint", "no auto or auto-raw policy in --policies would use it")
         if self.checkpoint is not None:
             from mixed_traffic.experiments.runner import check_checkpoint
@@ -154,12 +154,15 @@ class SweepConfig:
         default = (self.out if self.out else Path("reports")) / f"{self.axis}.pdf"
         return (self.pdf or default) if self.report else None
 
-    @property
-    def checkpoint_key(self) -> str:
-        """The AUTO weights of the sweep's auto cells (an absolute path), part of their key."""
-        from agents.policies import SHIPPED_CHECKPOINT
+    def checkpoint_key(self, policy: str) -> str:
+        """The weights ``policy``'s cells run (an absolute path; '' for a rule), part of their
+        key: other weights are another cell."""
+        if policy not in LEARNED:
+            return ""
+        from agents.policies import checkpoint_path
 
-        return str(Path(self.checkpoint).resolve() if self.checkpoint else SHIPPED_CHECKPOINT)
+        given = self.checkpoint if policy in ("auto", "auto-raw") else None
+        return str(checkpoint_path(policy, given).resolve())
 
 
 @dataclass(frozen=True)
@@ -380,7 +383,7 @@ def _cell_key(record: dict) -> tuple:
 
 def _planned_key(cell: Cell, sweep: SweepConfig) -> tuple:
     """``_cell_key`` of the record ``cell`` will write."""
-    return (*cell.key(), sweep.checkpoint_key if cell.policy.startswith("auto") else "")
+    return (*cell.key(), sweep.checkpoint_key(cell.policy))
 
 
 def failed_cells(sweep: SweepConfig) -> list[Cell]:

@@ -32,7 +32,7 @@ from mixed_traffic.experiments.cli import add_config_args
 FLEET_DIR = "fleet"
 """Subfolder of OUT where the fleet-return search stage runs."""
 _SHORT = {"workers", "backend", "address", "scenarios", "densities", "penetrations", "weathers",
-          "env_steps", "minutes", "out", "seed", "demo_steps", "ablation", "bp_dqn",
+          "env_steps", "minutes", "out", "seed", "demo_steps", "ablation", "baseline", "bp_dqn",
           "fleet_iterations"}  # fmt: skip
 
 
