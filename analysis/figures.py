@@ -140,26 +140,48 @@ def plot_density(
     One panel per metric, one line per policy. ``None`` without two densities under one
     condition.
     """
-    cond = sweep_condition(df, "density")
+    return _plot_axis(df, out_dir, "density", metrics, "traffic density (veh/km)", 1.0,
+                      "Macroscopic metrics vs density", f"{name}macro_vs_density.png")  # fmt: skip
+
+
+def plot_detection_range(
+    df: pd.DataFrame,
+    out_dir: str | os.PathLike[str],
+    metrics: Sequence[str] = ("avg_r", "avg_dt_a", "pt_rt"),
+    name: str = "",
+) -> Path | None:
+    """AvgR (paper tables "Impact of Detection Range"), AvgDT-A and PT-RT against the
+    detection range [% of the nominal ranges]; ``None`` without two ranges."""
+    return _plot_axis(df, out_dir, "detection_range", metrics,
+                      "detection range (% of nominal)", 100.0,
+                      "Metrics vs detection range", f"{name}metrics_vs_detection_range.png")  # fmt: skip
+
+
+def _plot_axis(df: pd.DataFrame, out_dir: str | os.PathLike[str], axis: str,
+               metrics: Sequence[str], xlabel: str, x_scale: float, title: str,
+               file: str) -> Path | None:  # fmt: skip
+    """One panel per metric against the numeric sweep ``axis`` (shown times ``x_scale``), one
+    line per policy; ``None`` without two values of ``axis`` under one condition."""
+    cond = sweep_condition(df, axis)
     if cond is None:
         return None
     sub = ok_rows(filter_condition(df, cond))
-    stats = summarise(sub, ["policy", "density"], list(metrics))
+    stats = summarise(sub, ["policy", axis], list(metrics))
     metrics = [m for m in metrics if stats[f"{m}_n"].sum() > 0]
     if not metrics:
         return None
     fig, axes = new_figure(3.6 * len(metrics), 3.6, ncols=len(metrics))
-    span = float(stats["density"].max() - stats["density"].min()) or 1.0
+    span = float(stats[axis].max() - stats[axis].min()) * x_scale or 1.0
     for letter, ax, m in zip("abcdefgh", axes, metrics):
-        _errorbar_lines(ax, stats, "density", m, jitter=span * 0.012)
-        ax.set_xticks(sorted(stats["density"].unique()))
-        ax.set_xlabel("traffic density (veh/km)")
+        _errorbar_lines(ax, stats, axis, m, x_scale=x_scale, jitter=span * 0.012)
+        ax.set_xticks(sorted((stats[axis] * x_scale).round(6).unique()))
+        ax.set_xlabel(xlabel)
         ax.set_ylabel(label(m))
         ax.set_title(f"({letter}) {METRICS[m].label}", fontsize=10)
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, title="policy", loc="outside right center")
-    fig.suptitle(f"Macroscopic metrics vs density — {describe_condition(cond)}", fontsize=10)
-    return save_figure(fig, Path(out_dir) / f"{name}macro_vs_density.png")
+    fig.suptitle(f"{title} — {describe_condition(cond)}", fontsize=10)
+    return save_figure(fig, Path(out_dir) / file)
 
 
 def _bars(ax: Axes, stats: pd.DataFrame, metric: str, hue: str | None = None) -> None:
@@ -252,11 +274,13 @@ def plot_weather(
 def all_figures(
     df: pd.DataFrame, out_dir: str | os.PathLike[str], name: str = ""
 ) -> dict[str, Path]:
-    """Every figure the data supports: {'penetration', 'density', 'micro', 'weather'} -> PNG path."""
+    """Every figure the data supports: {'penetration', 'density', 'micro', 'weather',
+    'detection_range'} -> PNG path."""
     made = {
         "penetration": plot_penetration(df, out_dir, name=name),
         "density": plot_density(df, out_dir, name=name),
         "micro": plot_micro(df, out_dir, name=name),
         "weather": plot_weather(df, out_dir, name=name),
+        "detection_range": plot_detection_range(df, out_dir, name=name),
     }
     return {k: v for k, v in made.items() if v is not None}

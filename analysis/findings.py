@@ -77,7 +77,8 @@ def by_seed(rows: pd.DataFrame, metric: str) -> pd.Series:
     return s[np.isfinite(s.to_numpy())]
 
 
-_AXIS_FORMAT = {"penetration": fmt_penetration, "density": fmt_density, "weather": str}
+_AXIS_FORMAT = {"penetration": fmt_penetration, "density": fmt_density, "weather": str,
+                "detection_range": fmt_penetration}  # fmt: skip
 
 
 def _axis_values(rows: pd.DataFrame, vary: str, metric: str) -> list[tuple[Any, pd.Series]]:
@@ -234,6 +235,7 @@ def findings(df: pd.DataFrame) -> list[str]:
     out: list[str] = []
     out += trend(df, "penetration", "dt_tf")
     out += trend(df, "density", "avg_dt_a")
+    out += trend(df, "detection_range", "avg_r")
     out += weather_summary(df)
     out += policy_comparisons(df)
     out += safety_summary(df)

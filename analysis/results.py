@@ -143,6 +143,8 @@ def _normalise(df: pd.DataFrame) -> pd.DataFrame:
     ):
         df[col] = pd.to_numeric(df[col], errors="coerce").astype(float)
     df["seed"] = pd.to_numeric(df["seed"], errors="coerce").astype("Int64")
+    # records before the detection-range axis ran at the nominal ranges
+    df["detection_range"] = pd.to_numeric(df["detection_range"], errors="coerce").fillna(1.0)
     df["status"] = df["status"].fillna("invalid").astype(str)
     for col in ("policy", "scenario", "weather"):
         df[col] = df[col].astype(object)

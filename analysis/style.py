@@ -105,4 +105,6 @@ def describe_condition(cond: dict[str, Any]) -> str:
         parts.append(f"{fmt_penetration(cond['penetration'])} AVs")
     if "weather" in cond:
         parts.append(f"{cond['weather']} weather")
+    if cond.get("detection_range", 1.0) != 1.0:
+        parts.append(f"detection range {fmt_penetration(cond['detection_range'])} of nominal")
     return ", ".join(parts)

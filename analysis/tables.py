@@ -154,8 +154,10 @@ def safety_table(df: pd.DataFrame, by: Sequence[str] = ("policy",)) -> pd.DataFr
     return out
 
 
-_COND_FORMAT = {"density": lambda v: fmt_num(v, 0), "penetration": fmt_penetration}
-_COND_HEADER = {"density": "density (veh/km)", "penetration": "AV share", "weather": "weather"}
+_COND_FORMAT = {"density": lambda v: fmt_num(v, 0), "penetration": fmt_penetration,
+                "detection_range": fmt_penetration}  # fmt: skip
+_COND_HEADER = {"density": "density (veh/km)", "penetration": "AV share", "weather": "weather",
+                "detection_range": "detection range"}  # fmt: skip
 
 
 def format_table(table: pd.DataFrame, drop_constant: bool = True) -> pd.DataFrame:

@@ -85,10 +85,15 @@ class SensorConfig:
     """m: lane waypoints per lane in each observation [count], spaced 1 m."""
     noise: bool = True
     """Apply the weather preset's sensor noise and misdetection (False = exact ground truth)."""
+    range_factor: float = 1.0
+    """Detection ranges as a multiple of ``lidar_range`` and ``camera_range`` [-] (the
+    detection-range study, paper §V-J). Distances stay scaled by the nominal ranges a policy
+    was trained with, so above 1 they read beyond ±1 (the boxes widen to the factor)."""
 
     def __post_init__(self) -> None:
         _check_range(self, "lidar_range", 0.0, 500.0, lo_open=True)
         _check_range(self, "camera_range", 0.0, 500.0, lo_open=True)
+        _check_range(self, "range_factor", 0.0, 2.0, lo_open=True)
         _check_range(self, "history", 1, 50, integer=True)
         _check_range(self, "waypoints", 1, 200, integer=True)
         _check_bool(self, "noise")

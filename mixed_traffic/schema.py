@@ -4,7 +4,7 @@ Pure data (no SUMO, no torch) so ``analysis`` can label tables and figures from 
 
 A result record (one per episode, one JSON object per line in ``records.jsonl``)::
 
-    {"cell": {"policy", "scenario", "density", "penetration", "weather", "seed"},
+    {"cell": {"policy", "scenario", "density", "penetration", "weather", "detection_range", "seed"},
      "status": "ok" | "failed", "error": str | None,
      "config": EnvConfig.to_dict(), "seed": int, "sumo_version": str, "git_revision": str,
      "code": str (provenance.code_key), "created": ISO-8601 time, "wall_time": s,
@@ -75,7 +75,7 @@ SAFETY = (
     "route_completion",
 )
 TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
-CELL_KEYS = ("policy", "scenario", "density", "penetration", "weather", "seed")
+CELL_KEYS = ("policy", "scenario", "density", "penetration", "weather", "detection_range", "seed")
 #: Subfolders of a sweep's results folder: the extra all-human cells of the fundamental diagram,
 #: and the trajectories (``.npz``) of its representative cells.
 FD_DIR = "fd"

@@ -45,20 +45,27 @@ def test_space_shapes() -> None:
     assert sp["node_mask"].shape == (3, 3) and sp["action_mask"].shape == (3,)
 
 
-@pytest.mark.parametrize("weather", ["fog", "rain"])
-def test_every_observation_is_in_the_space(tmp_path, weather) -> None:
-    sim = start_sim(tmp_path, density=180.0, penetration=0.5, weather=weather)
+@pytest.mark.parametrize("weather, reach", [("fog", 1.0), ("rain", 1.0), ("normal", 1.5)])
+def test_every_observation_is_in_the_space(tmp_path, weather, reach) -> None:
+    """Also with a detection range beyond the nominal one: distances then read up to ``reach``
+    and the space holds them."""
+    density = 180.0 if reach == 1.0 else 20.0
+    sim = start_sim(tmp_path, density=density, penetration=0.5, weather=weather,
+                    sensors=SensorConfig(range_factor=reach))  # fmt: skip
     try:
         cfg = sim.config
         space = observation_space(cfg)
+        assert space["vehicles"].high[0, 0, 0] == reach and space["vehicles"].high[0, 0, 1] == 1
         builder = ObservationBuilder(cfg, sim.hdmap)
         perception = Perception(cfg.sensors, sim.hdmap, cfg.weather)
         rng, cache = np.random.default_rng(0), {}
         for _ in range(15):
             _, ids, _, obs = observe(sim, cfg, builder, perception, rng, cache)
-            assert set(obs) == set(ids) and len(ids) > 20
+            assert set(obs) == set(ids) and len(ids) > 12
             for a in ids:
                 assert space.contains(obs[a]), a
+        far = max(np.abs(obs[a]["vehicles"][..., [0, 6]]).max() for a in ids)
+        assert (far > 1.0) == (reach > 1.0), far
     finally:
         sim.backend.close()
 

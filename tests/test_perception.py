@@ -410,3 +410,27 @@ def test_vehicle_across_the_junction_is_the_current_lane_leader(tmp_path, standi
         assert seen >= 3
     finally:
         backend.close()
+
+
+@pytest.mark.parametrize("noise", [False, True])
+def test_detection_range_factor_cuts_and_extends_the_sensed_range(tmp_path, noise) -> None:
+    """range_factor scales the ranges the sensed frame keeps; the truth keeps at least the
+    nominal ones, and the observation still scales distances by the nominal range."""
+    sim = start_sim(tmp_path, density=15.0, penetration=1.0)  # ~67 m apart per lane
+    try:
+        snap = sim.step(30)
+        rows = np.flatnonzero(snap.is_av)
+        nxt = np.full(len(rows), -1)
+        seen = {}
+        for f in (0.3, 1.0, 1.5):
+            p = Perception(SensorConfig(noise=noise, range_factor=f), sim.hdmap, "normal")
+            t, s = p.sense(snap, rows, nxt, [], np.random.default_rng(0))
+            found = s.neighbours.vehicle >= 0
+            far = np.abs(t.neighbours.distance[found])
+            assert np.all(far <= 90.0 * f + 1e-9), f
+            assert (t.neighbours.vehicle >= 0).sum() >= found.sum()
+            seen[f] = (found.sum(), far.max(initial=0.0))
+        assert seen[0.3][0] < seen[1.0][0] < seen[1.5][0], seen
+        assert seen[1.5][1] > 90.0  # beyond the nominal LiDAR range
+    finally:
+        sim.backend.close()

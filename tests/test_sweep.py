@@ -209,3 +209,24 @@ def test_ray_backend_runs_cells_as_tasks(tmp_path: Path) -> None:
         ("idm", "ok"),
         ("random", "ok"),
     ]
+
+
+def test_detection_range_sweep_runs_each_range_and_reports_it(tmp_path: Path) -> None:
+    """--detection-range cells carry the range, their env's sensors use it, and the report
+    plots AvgR against it."""
+    sweep = parse_args(["--detection-range", "--no-report"])
+    assert sweep.axis_values() == (0.6, 0.8, 1.0, 1.2)
+    from mixed_traffic.experiments.sweep import cell_config
+
+    ranges = {cell_config(c, sweep).sensors.range_factor for c in cells(sweep)}
+    assert ranges == {0.6, 0.8, 1.0, 1.2}
+    out, pdf = tmp_path / "res", tmp_path / "dr.pdf"
+    argv = ["--detection-range", "--values", "0.3", "1.0", "--policies", "acc-lc", "--seeds",
+            "0", "--episode-length", "30", "--warmup", "5", "--at-density", "30", "--no-traffic",
+            "--out", str(out), "--pdf", str(pdf)]  # fmt: skip
+    assert main(argv) == 0
+    records = read_records(out / "records.jsonl")
+    assert sorted(r["cell"]["detection_range"] for r in records) == [0.3, 1.0]
+    assert {r["config"]["sensors"]["range_factor"] for r in records} == {0.3, 1.0}
+    assert (tmp_path / "dr-metrics_vs_detection_range.png").is_file()
+    assert "detection range" in _pdf_text(pdf)

@@ -121,7 +121,8 @@ def run_episode(
 
 def cell_of(config: EnvConfig, policy: str) -> dict[str, Any]:
     """The record's ``cell``: the policy and the config's cell keys."""
-    return {"policy": policy, **{k: getattr(config, k) for k in CELL_KEYS if k != "policy"}}
+    cell = {k: getattr(config, k) for k in CELL_KEYS if k not in ("policy", "detection_range")}
+    return {"policy": policy, **cell, "detection_range": config.sensors.range_factor}
 
 
 def _make_policy(name: str, config: EnvConfig, checkpoint: str | Path | None) -> Any:

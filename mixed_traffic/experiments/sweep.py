@@ -1,4 +1,5 @@
-"""Scalability sweeps over AV penetration, traffic density or weather (paper §V-G).
+"""Scalability sweeps over AV penetration, traffic density, weather (paper §V-G) or the
+detection range (§V-J).
 
 ``python -m mixed_traffic.sweep --penetration`` runs every (policy, value, seed) cell in parallel
 worker processes, appends each episode's record to ``RESULTS/records.jsonl`` as soon as it
@@ -39,7 +40,12 @@ from mixed_traffic.world.registry import load_scenario
 PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
 DENSITIES = (60.0, 120.0, 180.0)
 WEATHERS = ("normal", "rain", "fog", "night")
-AXES = ("penetration", "density", "weather")
+DETECTION_RANGES = (0.6, 0.8, 1.0, 1.2)
+"""Default detection ranges [share of the nominal 90 m LiDAR / 60 m camera] (the paper's
+LiDAR table spans 50-110 m)."""
+AXES = ("penetration", "density", "weather", "detection_range")
+DEFAULT_VALUES = {"penetration": PENETRATIONS, "density": DENSITIES, "weather": WEATHERS,
+                  "detection_range": DETECTION_RANGES}  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -47,7 +53,7 @@ class SweepConfig:
     """One sweep: which axis, which cells, where results go. The CLI is built from it."""
 
     axis: str = "penetration"
-    """penetration | density | weather."""
+    """penetration | density | weather | detection_range."""
     scenario: str = "straight"
     """Scenario name or .net.xml/.sumocfg path (see ``python -m mixed_traffic.scenario --list``)."""
     at_density: float | None = None
@@ -56,8 +62,8 @@ class SweepConfig:
     at_penetration: float = 0.2
     """AV penetration for the density and weather sweeps [0-1]."""
     values: tuple[float | str, ...] = ()
-    """Values of the swept axis (default: penetration 0.2 .. 1.0, density 60 120 180 veh/km, or
-    every weather)."""
+    """Values of the swept axis (default: penetration 0.2 .. 1.0, density 60 120 180 veh/km,
+    every weather, or detection range 0.6 .. 1.2 of nominal)."""
     reference: bool = True
     """Add the all-human 0 % reference cells to a penetration sweep."""
     policies: tuple[str, ...] = ("auto", "acc-lc")
@@ -130,16 +136,14 @@ class SweepConfig:
         scenario.configure(base)
         try:
             for v in self.axis_values():  # each value must make a valid config
-                scenario.configure(replace(base, **{self.axis: v}))
+                scenario.configure(with_axis(base, self.axis, v))
         except ValueError as e:
             bad("values", str(e))
 
     def axis_values(self) -> tuple:
         """The swept values: numbers for penetration and density, names for weather."""
         if not self.values:
-            return {"penetration": PENETRATIONS, "density": DENSITIES, "weather": WEATHERS}[
-                self.axis
-            ]
+            return DEFAULT_VALUES[self.axis]
         return self.values if self.axis == "weather" else tuple(float(v) for v in self.values)
 
     @property
@@ -173,6 +177,7 @@ class Cell:
     penetration: float
     weather: str
     seed: int
+    detection_range: float = 1.0
 
     def key(self) -> tuple:
         return tuple(getattr(self, k) for k in CELL_KEYS)
@@ -186,6 +191,7 @@ def cells(sweep: SweepConfig) -> list[Cell]:
         density=density,
         penetration=sweep.at_penetration,
         weather="normal",
+        detection_range=1.0,
     )
     out: list[Cell] = []
     for seed in sweep.seeds:
@@ -196,8 +202,15 @@ def cells(sweep: SweepConfig) -> list[Cell]:
     return out
 
 
+def with_axis(config: EnvConfig, axis: str, value: float | str) -> EnvConfig:
+    """``config`` with sweep ``axis`` set to ``value`` (the detection range is a sensor field)."""
+    if axis == "detection_range":
+        return replace(config, sensors=replace(config.sensors, range_factor=float(value)))
+    return replace(config, **{axis: value})
+
+
 def cell_config(cell: Cell, sweep: SweepConfig) -> EnvConfig:
-    return EnvConfig(
+    base = EnvConfig(
         scenario=cell.scenario,
         density=cell.density,
         penetration=cell.penetration,
@@ -205,6 +218,7 @@ def cell_config(cell: Cell, sweep: SweepConfig) -> EnvConfig:
         seed=cell.seed,
         episode_length=sweep.episode_length,
     )
+    return with_axis(base, "detection_range", cell.detection_range)
 
 
 def episode_record(cell: Cell, sweep: SweepConfig) -> dict:
@@ -403,7 +417,8 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
     """SweepConfig from the command line; exits with a message naming a bad option."""
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.sweep",
-        description="Penetration / density / weather sweeps with figures and a PDF report.",
+        description="Penetration / density / weather / detection-range sweeps with figures and a "
+        "PDF report.",
     )
     axis = p.add_mutually_exclusive_group()
     dest = config_dest("axis")  # the config field `axis`, set by one of three flags
@@ -413,6 +428,10 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
                       help=f"sweep density {DENSITIES} veh/km")  # fmt: skip
     axis.add_argument("--weather", dest=dest, action="store_const", const="weather",
                       help=f"sweep the weather presets {WEATHERS}")  # fmt: skip
+    axis.add_argument("--detection-range", dest=dest, action="store_const",
+                      const="detection_range",
+                      help=f"sweep the LiDAR and camera range as a share of the nominal 90 m / 60 m "
+                      f"{DETECTION_RANGES} (SensorConfig.range_factor)")  # fmt: skip
     fields = [f.name for f in dataclasses.fields(SweepConfig) if f.name != "axis"]
     add_config_args(p, SweepConfig, only=fields)
     try:

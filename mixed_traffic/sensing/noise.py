@@ -69,13 +69,10 @@ def degrade(
     truth: PerceptionFrame, weather: WeatherPreset, sensors: SensorConfig, rng: np.random.Generator
 ) -> PerceptionFrame:
     """The sensed frame: ``truth`` with the weather's ranges, noise and light misdetection."""
-    w, s = weather, sensors
-    nb = truth.neighbours
-    z_veh, z_ego, u_light, shift, z_ldist = noise_draws(rng, len(nb.lane))
-    # ranges
-    lidar = s.lidar_range * w.lidar_range_factor
-    seen = (nb.vehicle >= 0) & (np.abs(nb.distance) <= lidar)
-    # continuous noise
+    w = weather
+    z_veh, z_ego, u_light, shift, z_ldist = noise_draws(rng, len(truth.neighbours.lane))
+    cut = within_range(truth, sensors, w.lidar_range_factor, w.camera_range_factor)
+    seen = cut.neighbours.vehicle >= 0
     # veh + rel_noise * (|veh| + floor) * N(0, 1), evaluated in place (the same roundings)
     noise = np.abs(truth.vehicles)
     noise += VEHICLE_NOISE_FLOOR
@@ -83,15 +80,29 @@ def degrade(
     noise *= z_veh
     noise += truth.vehicles
     veh = np.where(seen[..., None], noise, 0.0)
-    dist = np.where(seen, veh[..., 0], np.where(np.arange(2) == 0, np.inf, -np.inf))
-    ego = truth.ego
-    ego = ego + EGO_NOISY * w.rel_noise * (np.abs(ego) + EGO_NOISE_FLOOR) * z_ego
-    # traffic lights: shorter range, wrong states
-    cam = s.camera_range * w.camera_range_factor
-    state = np.where(truth.light_dist <= cam, truth.light_state, NO_LIGHT)
+    dist = np.where(seen, veh[..., 0], cut.neighbours.distance)
+    ego = truth.ego + EGO_NOISY * w.rel_noise * (np.abs(truth.ego) + EGO_NOISE_FLOOR) * z_ego
+    # traffic lights: wrong states, noisy distances
+    state = cut.light_state
     wrong = (state != NO_LIGHT) & (u_light < w.light_misdetect)
     state = np.where(wrong, (state + shift) % 3, state).astype(np.int8)
     ldist = truth.light_dist * (1.0 + w.rel_noise * z_ldist)
     ldist = np.where(state != NO_LIGHT, np.maximum(ldist, 0.0), np.inf)
+    return PerceptionFrame(replace(cut.neighbours, distance=dist), veh, ego, state, ldist)
+
+
+def within_range(
+    truth: PerceptionFrame, sensors: SensorConfig, lidar_factor: float, camera_factor: float
+) -> PerceptionFrame:
+    """``truth`` without the vehicles and lights beyond the sensors' ranges times
+    ``range_factor`` and the given factors (noise off, another detection range)."""
+    nb, f = truth.neighbours, sensors.range_factor
+    seen = (nb.vehicle >= 0) & (np.abs(nb.distance) <= sensors.lidar_range * lidar_factor * f)
+    veh = np.where(seen[..., None], truth.vehicles, 0.0)
+    dist = np.where(seen, nb.distance, np.where(np.arange(2) == 0, np.inf, -np.inf))
+    lit = truth.light_dist <= sensors.camera_range * camera_factor * f
+    state = np.where(lit, truth.light_state, NO_LIGHT).astype(np.int8)
     sensed_nb = replace(nb, vehicle=np.where(seen, nb.vehicle, -1), distance=dist)
-    return PerceptionFrame(sensed_nb, veh, ego, state, ldist)
+    return PerceptionFrame(
+        sensed_nb, veh, truth.ego, state, np.where(lit, truth.light_dist, np.inf)
+    )

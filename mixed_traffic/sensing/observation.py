@@ -83,19 +83,41 @@ MANDATORY_DISTANCE = 100.0
 LEFT_CHANGE, FOLLOW, RIGHT_CHANGE = 0, 1, 2
 
 
+VEHICLE_DISTANCES = (0, 6)
+"""Columns of ``vehicles`` holding the front and rear distances."""
+
+
+def reach_of(config: EnvConfig) -> float:
+    """Largest normalised distance an observation holds: 1, or the detection-range factor
+    where it exceeds 1 (``SensorConfig.range_factor``)."""
+    return max(1.0, config.sensors.range_factor)
+
+
+def clip_far(x: np.ndarray, far: tuple[int, ...], reach: float) -> np.ndarray:
+    """``x`` clipped to [-1, 1], and to [-reach, reach] in the last-axis columns ``far``."""
+    out = np.clip(x, -1.0, 1.0)
+    if reach > 1.0:
+        out[..., list(far)] = np.clip(x[..., list(far)], -reach, reach)
+    return out
+
+
 def observation_space(config: EnvConfig) -> gym.spaces.Dict:
     """The per-agent observation space of DESIGN §6 for ``config``."""
     z, m = config.sensors.history, config.sensors.waypoints
+    reach = reach_of(config)
 
-    def box(*shape: int) -> gym.spaces.Box:
-        return gym.spaces.Box(-1.0, 1.0, shape=shape, dtype=np.float32)
+    def box(*shape: int, far: tuple[int, ...] = ()) -> gym.spaces.Box:
+        """[-1, 1], [-reach, reach] in the last-axis columns ``far`` (distances)."""
+        high = np.ones(shape, np.float32)
+        high[..., list(far)] = reach
+        return gym.spaces.Box(-high, high, dtype=np.float32)
 
     return gym.spaces.Dict(
         {
             "ego": box(z, 5),
             "lanes": box(3, z, 4 * m),
-            "vehicles": box(3, z, 12),
-            "lights": box(3, z, 4),
+            "vehicles": box(3, z, 12, far=VEHICLE_DISTANCES),
+            "lights": box(3, z, 4, far=(3,)),
             "node_mask": gym.spaces.Box(0, 1, (3, 3), np.int8),
             "action_mask": gym.spaces.MultiBinary(3),
         }
@@ -118,6 +140,7 @@ class ObservationBuilder:
         self.m = config.sensors.waypoints
         s = config.sensors
         self._veh_scale = np.concatenate([[s.lidar_range], VEHICLE_SCALE_TAIL])
+        self._reach = reach_of(config)
         self._wp_scale = np.tile(WAYPOINT_SCALE, self.m)
         self.reset()
 
@@ -207,7 +230,7 @@ class ObservationBuilder:
         lights[..., 3] = np.where(
             light_on, sensed.light_dist / self.config.sensors.camera_range, 0.0
         )
-        lights = np.clip(lights, -1.0, 1.0)
+        lights = clip_far(lights, (3,), self._reach)
         node = np.stack([exists, present, light_on & exists], axis=-1).astype(np.int8)
 
         slots = self._slots(agent_ids)
@@ -288,7 +311,7 @@ class ObservationBuilder:
         )  # fmt: skip
         veh[:, CURRENT, 0] = np.where(virt[:, None], virtual, cur_front)
         found[:, CURRENT, 0] |= virt
-        out = np.clip(veh / self._veh_scale, -1.0, 1.0)
+        out = clip_far(veh / self._veh_scale, (0,), self._reach)
         out = np.where(found[..., None], out, 0.0).reshape(len(veh), 3, 12)
         return out, found.any(axis=2)
 

@@ -64,7 +64,13 @@ from mixed_traffic.sensing.gnss import ego_features
 from mixed_traffic.sensing.lane_graph import CURRENT, lane_graph
 from mixed_traffic.sensing.lidar import vehicle_features
 from mixed_traffic.sensing.neighbours import find_neighbours
-from mixed_traffic.sensing.noise import WEATHER_PRESETS, WeatherPreset, degrade, noise_draws
+from mixed_traffic.sensing.noise import (
+    WEATHER_PRESETS,
+    WeatherPreset,
+    degrade,
+    noise_draws,
+    within_range,
+)
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -117,20 +123,22 @@ class Perception:
         """
         rows = np.asarray(rows, dtype=np.int64)
         next_edge = np.asarray(next_edge, dtype=np.int64)
-        nb = find_neighbours(snap, self.hdmap, rows, self.sensors.lidar_range, next_edge)
+        s = self.sensors
+        far = max(1.0, s.range_factor)  # the truth keeps at least the nominal ranges
+        nb = find_neighbours(snap, self.hdmap, rows, s.lidar_range * far, next_edge)
         state, dist = traffic_lights(
             self.graph, self.hdmap, snap, rows, nb.lane, next_edge, tls_states
         )
         if gates is not None and (gates != NO_LIGHT).any():
             give_way(self.hdmap, snap, rows, nb.lane[:, CURRENT], gates, state, dist)
-        cam = self.sensors.camera_range
+        cam = s.camera_range * far
         state = np.where(dist <= cam, state, NO_LIGHT).astype(np.int8)
         dist = np.where(state != NO_LIGHT, dist, np.inf)
         truth = PerceptionFrame(nb, vehicle_features(snap, rows, nb), ego_features(snap, self.hdmap, rows),
                                 state, dist)  # fmt: skip
-        if not self.sensors.noise:
-            return truth, truth
-        return truth, degrade(truth, self.weather, self.sensors, rng)
+        if not s.noise:
+            return truth, truth if s.range_factor == 1 else within_range(truth, s, 1.0, 1.0)
+        return truth, degrade(truth, self.weather, s, rng)
 
     def skip_noise(self, n_agents: int, rng: np.random.Generator) -> None:
         """Consume exactly the random numbers ``sense`` would draw for ``n_agents`` agents,
