@@ -13,7 +13,7 @@ import json
 import shutil
 import subprocess
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from mixed_traffic.provenance import atomic_write
@@ -84,41 +84,60 @@ def train_command(name: str, budget: Budget, runs: Path = RUNS) -> list[str]:
             "--out", str(runs / name)]  # fmt: skip
 
 
-def trained_steps(name: str, runs: Path = RUNS) -> int:
-    """Transitions the run of ``name`` in ``runs`` has finished (0 without a final policy)."""
-    info = runs / name / "auto.json"
-    if not (runs / name / "auto.pt").is_file() or not info.is_file():
+def installed_steps(name: str, dest: Path) -> int:
+    """Transitions the installed policy ``dest/<name>.pt`` was trained on (0 if none)."""
+    info = dest / f"{name}.json"
+    if not (dest / f"{name}.pt").is_file() or not info.is_file():
         return 0
     return int(json.loads(info.read_text()).get("env_steps", 0))
 
 
 def train_method(name: str, budget: Budget, dest: Path, runs: Path = RUNS,
                  log: Path | None = None) -> Path:  # fmt: skip
-    """Train (or resume) ``name`` to ``budget`` and install it as ``dest/<name>.pt`` with its
-    lineage (.json) and curves (.csv); returns the checkpoint. RuntimeError if train fails."""
-    argv = train_command(name, budget, runs)
-    if (runs / name / "COMMIT").is_file():
+    """Train ``name`` up to ``budget`` transitions and install it as ``dest/<name>.pt`` with
+    its lineage (.json) and curves (.csv); returns the checkpoint. A run folder with a commit
+    is resumed; without one, an installed policy trained on less is continued from its
+    weights (``--init``: fresh replay and optimiser counters). RuntimeError if train fails."""
+    done = installed_steps(name, dest)
+    if done >= budget.env_steps:
+        return dest / f"{name}.pt"
+    run = runs / name
+    base_file = run / "base.json"  # transitions before this run's --init leg
+    if not (run / "COMMIT").is_file():
+        shutil.rmtree(run, ignore_errors=True)
+        run.mkdir(parents=True)
+        atomic_write(base_file, lambda f: f.write(json.dumps({"init_steps": done}).encode()))
+    base = int(json.loads(base_file.read_text())["init_steps"]) if base_file.is_file() else 0
+    argv = train_command(name, replace(budget, env_steps=budget.env_steps - base), runs)
+    if (run / "COMMIT").is_file():
         argv.append("--resume")
-    if trained_steps(name, runs) < budget.env_steps:
-        with open(log or "/dev/null", "ab") as out:
-            rc = subprocess.call(argv, stdout=out, stderr=subprocess.STDOUT)
-        if rc != 0:
-            raise RuntimeError(f"training {name} failed (exit {rc}); see {log or runs / name}")
-    return install(name, dest, runs, argv)
+    elif base:
+        argv += ["--init", str(dest / f"{name}.pt")]
+    with open(log or "/dev/null", "ab") as out:
+        rc = subprocess.call(argv, stdout=out, stderr=subprocess.STDOUT)
+    if rc != 0:
+        raise RuntimeError(f"training {name} failed (exit {rc}); see {log or run}")
+    return install(name, dest, run, argv, base)
 
 
-def install(name: str, dest: Path, runs: Path, argv: list[str]) -> Path:
-    """Copy the run's policy, lineage and curves into ``dest`` (each atomically)."""
-    src = runs / name
+def install(name: str, dest: Path, run: Path, argv: list[str], base: int = 0) -> Path:
+    """Copy the run's policy, lineage and curves into ``dest`` (each atomically); the
+    lineage counts ``base`` transitions of earlier legs."""
     dest.mkdir(parents=True, exist_ok=True)
-    info = json.loads((src / "auto.json").read_text())
+    info = json.loads((run / "auto.json").read_text())
+    if base:
+        earlier = json.loads((dest / f"{name}.json").read_text())
+        info["earlier_legs"] = [*earlier.pop("earlier_legs", []), earlier]
+        info["env_steps"] = int(info["env_steps"]) + base
     info["study_command"] = " ".join(["python", *argv[1:]])
-    for suffix, source in ((".pt", src / "auto.pt"), (".csv", src / "curves.csv")):
-        atomic_write(dest / f"{name}{suffix}", lambda f, s=source: f.write(s.read_bytes()))
+    curves = (run / "curves.csv").read_text()
+    if base:  # earlier legs' rows first, this leg's transitions counted after them
+        rows = curves.splitlines()
+        head, _, body = rows[0], None, rows[1:]
+        shifted = [f"{int(r.split(',', 1)[0]) + base},{r.split(',', 1)[1]}" for r in body]
+        curves = "\n".join([(dest / f"{name}.csv").read_text().rstrip("\n"), *shifted]) + "\n"
+        assert head.startswith("env_steps,")
+    atomic_write(dest / f"{name}.pt", lambda f: f.write((run / "auto.pt").read_bytes()))
+    atomic_write(dest / f"{name}.csv", lambda f: f.write(curves.encode()))
     atomic_write(dest / f"{name}.json", lambda f: f.write(json.dumps(info, indent=1).encode()))
     return dest / f"{name}.pt"
-
-
-def clear_run(name: str, runs: Path = RUNS) -> None:
-    """Remove the run folder of ``name`` (a fresh start)."""
-    shutil.rmtree(runs / name, ignore_errors=True)

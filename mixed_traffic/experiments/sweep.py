@@ -34,7 +34,7 @@ from mixed_traffic.provenance import (
     rewrite_records,
     write_record_atomic,
 )
-from mixed_traffic.schema import CELL_KEYS, FD_DIR, LEARNED, POLICIES, TRACE_DIR
+from mixed_traffic.schema import CELL_KEYS, FD_DIR, LEARNED, POLICIES, STUDY_POLICIES, TRACE_DIR
 from mixed_traffic.world.registry import load_scenario
 
 PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -76,6 +76,8 @@ class SweepConfig:
     """Time before flow metrics are recorded [s]."""
     checkpoint: Path | None = None
     """AUTO checkpoint (default: the shipped agents/checkpoints/auto.pt)."""
+    checkpoints: Path | None = None
+    """Folder of the study policies' checkpoints, <policy>.pt (default: agents/checkpoints/study)."""
     workers: int = 2
     """Parallel worker processes (or Ray tasks at a time)."""
     backend: str = "process"
@@ -158,6 +160,14 @@ class SweepConfig:
         default = (self.out if self.out else Path("reports")) / f"{self.axis}.pdf"
         return (self.pdf or default) if self.report else None
 
+    def cell_checkpoint(self, policy: str) -> Path | None:
+        """The checkpoint option of ``policy``'s cells (None: the policy's default)."""
+        if policy in ("auto", "auto-raw"):
+            return self.checkpoint
+        if policy in STUDY_POLICIES and self.checkpoints is not None:
+            return self.checkpoints / f"{policy}.pt"
+        return None
+
     def checkpoint_key(self, policy: str) -> str:
         """The weights ``policy``'s cells run (an absolute path; '' for a rule), part of their
         key: other weights are another cell."""
@@ -165,8 +175,18 @@ class SweepConfig:
             return ""
         from agents.policies import checkpoint_path
 
-        given = self.checkpoint if policy in ("auto", "auto-raw") else None
-        return str(checkpoint_path(policy, given).resolve())
+        return str(checkpoint_path(policy, self.cell_checkpoint(policy)).resolve())
+
+    def check_checkpoints(self) -> None:
+        """ValueError naming the first learned policy whose checkpoint is unreadable."""
+        from agents.policies import checkpoint_path
+        from mixed_traffic.experiments.runner import check_checkpoint
+
+        for policy in (p for p in self.policies if p in LEARNED):
+            try:
+                check_checkpoint(checkpoint_path(policy, self.cell_checkpoint(policy)))
+            except ValueError as e:
+                raise ValueError(f"--policies {policy}: {e}") from e
 
 
 @dataclass(frozen=True)
@@ -227,7 +247,8 @@ def episode_record(cell: Cell, sweep: SweepConfig) -> dict:
         from mixed_traffic.experiments.runner import run_episode
 
         config = cell_config(cell, sweep)
-        record = run_episode(config, cell.policy, sweep.warmup, checkpoint=sweep.checkpoint,
+        record = run_episode(config, cell.policy, sweep.warmup,
+                             checkpoint=sweep.cell_checkpoint(cell.policy),
                              trace=trace_path(cell, sweep))  # fmt: skip
     except Exception as e:  # any failure becomes a failed record; the sweep carries on
         return _failed(cell, sweep, f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=3)}")
@@ -436,6 +457,7 @@ def parse_args(argv: list[str] | None) -> SweepConfig:
     add_config_args(p, SweepConfig, only=fields)
     try:
         sweep = config_from_args(p.parse_args(argv), SweepConfig)
+        sweep.check_checkpoints()
         check_writable(sweep.results / "records.jsonl")
         if sweep.report_pdf is not None:  # not only after every cell has run
             check_writable(sweep.report_pdf, what="report")
