@@ -121,9 +121,13 @@ def plot_learning_curves(policies: Sequence[str], checkpoints: Path, out: Path) 
 
 
 def build_study_report(results_dir: Path, out_pdf: Path, study: str, reference: str,
-                       checkpoints: Path, setup: str) -> Path:  # fmt: skip
-    """Write the PDF of ``study`` from the records in ``results_dir``; returns its path."""
+                       checkpoints: Path, setup: str,
+                       policies: Sequence[str] | None = None) -> Path:  # fmt: skip
+    """Write the PDF of ``study`` from the records of ``policies`` (default: all) in
+    ``results_dir``; returns its path."""
     df = load_results(results_dir)
+    if policies is not None:
+        df = df[df["policy"].isin(policies)]
     if df.empty:
         raise ValueError(f"no records in {str(results_dir)!r}: nothing to report")
     styles = make_styles()

@@ -79,7 +79,8 @@ class StudyConfig:
     address: str = ""
     """With backend ray: cluster address for ray.init."""
     out: Path | None = None
-    """Results folder (default: results/study-<study>)."""
+    """Results folder (default: results/study for the table studies, which share their cells;
+    results/study-<study> for the sweeps)."""
     pdf: Path | None = None
     """Report path (default: reports/<study>.pdf)."""
 
@@ -103,7 +104,10 @@ class StudyConfig:
 
     @property
     def results(self) -> Path:
-        return self.out or Path("results") / f"study-{self.study}"
+        """Records folder: the table studies share results/study (a policy's cells run once
+        for every study it is in), the sweeps have their own."""
+        default = f"study-{self.study}" if self.study in SWEEP_STUDIES else "study"
+        return self.out or Path("results") / default
 
     @property
     def report_pdf(self) -> Path:
@@ -178,7 +182,7 @@ def run_study(cfg: StudyConfig) -> Path:
     if cfg.study in SWEEP_STUDIES:
         return build_report(cfg.results, cfg.report_pdf, title=f"Mixed-traffic study: {cfg.study}")
     return build_study_report(cfg.results, cfg.report_pdf, cfg.study, REFERENCE,
-                              cfg.checkpoints, setup_text(cfg))  # fmt: skip
+                              cfg.checkpoints, setup_text(cfg), cfg.policies)  # fmt: skip
 
 
 def parse_args(argv: list[str] | None) -> StudyConfig:
