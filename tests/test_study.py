@@ -171,23 +171,25 @@ def test_no_train_names_the_untrained_methods(tmp_path: Path, capsys) -> None:
     assert not (tmp_path / "res" / "records.jsonl").exists()
 
 
-def test_study_report_tests_each_method_against_the_reference(head: Path) -> None:
-    from analysis.study_report import build_study_report
-    from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
-
-    res = head / "res"
-    sweep = SweepConfig(scenario="straight-eval", values=(0.5,), reference=False,
-                        policies=("acc-lc", "head"), seeds=(0, 1), episode_length=40.0,
-                        warmup=10.0, out=res, report=False, traffic=False,
-                        checkpoints=head / "ck")  # fmt: skip
-    run_sweep(sweep, progress=False)
-    records = [json.loads(line) for line in (res / "records.jsonl").read_text().splitlines()]
-    assert {r["status"] for r in records} == {"ok"}
+def test_study_command_reports_and_resumes_without_rerunning(head: Path) -> None:
+    """A study run writes the paper-style report; a second run trains and runs nothing."""
+    res, ck = head / "res", head / "ck"
+    argv = ["--baselines", "--policies", "acc-lc", "head", "--reference", "acc-lc",
+            "--env-steps", "1500", "--checkpoints", str(ck), "--runs", str(head / "runs"),
+            "--seeds", "0", "1", "--episode-length", "40", "--warmup", "10", "--out", str(res),
+            "--pdf", str(head / "t.pdf")]  # fmt: skip
+    assert study.main(argv) == 0
+    lines = (res / "records.jsonl").read_text().splitlines()
+    records = [json.loads(line) for line in lines]
+    assert len(records) == 4 and {r["status"] for r in records} == {"ok"}
     assert {r["checkpoint"] for r in records if r["cell"]["policy"] == "head"} == {
-        str((head / "ck" / "head.pt").resolve())
+        str((ck / "head.pt").resolve())
     }
-    pdf = build_study_report(res, head / "t.pdf", "test", "acc-lc", head / "ck", "setup text")
-    text = "\n".join(p.extract_text() for p in PdfReader(pdf).pages)
+    text = "\n".join(p.extract_text() for p in PdfReader(head / "t.pdf").pages)
     for part in ("Paired differences to acc-lc", "AvgR", "MinTTC-A", "Training lineage",
-                 "Learning curves", "setup text"):  # fmt: skip
+                 "Learning curves", "same pipeline"):  # fmt: skip
         assert part in text, part
+    weights = (ck / "head.pt").stat().st_mtime_ns
+    assert study.main(argv) == 0
+    assert (res / "records.jsonl").read_text().splitlines() == lines
+    assert (ck / "head.pt").stat().st_mtime_ns == weights

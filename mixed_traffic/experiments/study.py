@@ -40,8 +40,6 @@ SWEEP_STUDIES = {
     "detection-range": ("detection_range", ("auto", "rbp-dqn", "acc-lc")),
 }
 """Studies that are sweeps: (axis, policies)."""
-REFERENCE = "rbp-dqn"
-"""The policy every table study tests against: AUTO's pipeline at the study's budget."""
 
 
 @dataclass(frozen=True)
@@ -50,6 +48,11 @@ class StudyConfig:
 
     study: str = "baselines"
     """baselines | rl-models | ablations | robustness | detection-range."""
+    policies: tuple[str, ...] = ()
+    """Policies to run (default: the study's own, docs/studies.md)."""
+    reference: str = "rbp-dqn"
+    """Table studies: the policy each other one is tested against (default: AUTO's pipeline
+    at the study's budget)."""
     scenario: str = "straight-eval"
     """Held-out evaluation scenario (name or .net.xml/.sumocfg path)."""
     at_density: float | None = None
@@ -91,16 +94,22 @@ class StudyConfig:
             raise ValueError(f"--seeds={list(self.seeds)}: give at least 2 distinct seeds >= 0")
         if not self.env_steps > 0:
             raise ValueError(f"--env-steps={self.env_steps}: the training budget must be > 0")
+        if self.study not in SWEEP_STUDIES and self.reference not in self.run_policies:
+            raise ValueError(f"--reference={self.reference!r}: not among the policies "
+                             f"{list(self.run_policies)}")  # fmt: skip
         self.sweep()  # the evaluation's own checks (scenario, density, episode, workers)
 
     @property
-    def policies(self) -> tuple[str, ...]:
+    def run_policies(self) -> tuple[str, ...]:
+        """``policies``, or the study's own."""
+        if self.policies:
+            return self.policies
         return SWEEP_STUDIES[self.study][1] if self.study in SWEEP_STUDIES else STUDIES[self.study]
 
     @property
     def trained(self) -> tuple[str, ...]:
         """The study's policies that its training pipeline makes."""
-        return tuple(p for p in self.policies if p in METHOD_FLAGS)
+        return tuple(p for p in self.run_policies if p in METHOD_FLAGS)
 
     @property
     def results(self) -> Path:
@@ -126,7 +135,7 @@ class StudyConfig:
         return SweepConfig(
             axis=axis, scenario=self.scenario, at_density=self.at_density,
             at_penetration=self.at_penetration, values=values, reference=False,
-            policies=self.policies, seeds=self.seeds, episode_length=self.episode_length,
+            policies=self.run_policies, seeds=self.seeds, episode_length=self.episode_length,
             warmup=self.warmup, workers=self.workers, backend=self.backend,
             address=self.address, out=self.results, report=False, traffic=False,
             checkpoints=self.checkpoints,
@@ -153,13 +162,13 @@ def train_missing(cfg: StudyConfig, log=print) -> None:
 def setup_text(cfg: StudyConfig) -> str:
     """The report's description of the study's setup."""
     return (
-        f"Policies: {', '.join(cfg.policies)}. Evaluation: {cfg.scenario}, seeds "
+        f"Policies: {', '.join(cfg.run_policies)}. Evaluation: {cfg.scenario}, seeds "
         f"{', '.join(map(str, cfg.seeds))}, {cfg.episode_length:g} s episodes after "
         f"{cfg.warmup:g} s warm-up. Every trained method ran the same pipeline "
         "(python -m mixed_traffic.train) on the same train-split scenarios, densities, "
         "penetrations, weathers and training seed, for the same number of transitions (see "
-        f"'Training lineage'); {REFERENCE} is AUTO's own pipeline at that budget, the reference "
-        "of the paired tests. 'auto' is the shipped AUTO, trained longer (agents/checkpoints/"
+        "'Training lineage'); rbp-dqn is AUTO's own pipeline at that budget, and "
+        f"{cfg.reference} the reference of the paired tests. 'auto' is the shipped AUTO, trained longer (agents/checkpoints/"
         "auto.json): not a same-budget comparison. Learned policies run behind the same safety "
         "module; its share of changed decisions is the 'safety module' column."
     )
@@ -181,8 +190,8 @@ def run_study(cfg: StudyConfig) -> Path:
     run_sweep(cfg.sweep())
     if cfg.study in SWEEP_STUDIES:
         return build_report(cfg.results, cfg.report_pdf, title=f"Mixed-traffic study: {cfg.study}")
-    return build_study_report(cfg.results, cfg.report_pdf, cfg.study, REFERENCE,
-                              cfg.checkpoints, setup_text(cfg), cfg.policies)  # fmt: skip
+    return build_study_report(cfg.results, cfg.report_pdf, cfg.study, cfg.reference,
+                              cfg.checkpoints, setup_text(cfg), cfg.run_policies)  # fmt: skip
 
 
 def parse_args(argv: list[str] | None) -> StudyConfig:
