@@ -143,11 +143,13 @@ def build_study_report(results_dir: Path, out_pdf: Path, study: str, reference: 
                                    title="Reward and inference time")):  # fmt: skip
         story.append(para(table.attrs["title"], styles["h2"]))
         story.append(grid(frame_rows(tbl.format_table(table)), styles))
-    story.append(para(f"Paired differences to {reference}", styles["h1"]))
-    story.append(para(f"Each method minus {reference}, paired by seed (the seed fixes the demand "
-                      "and the human drivers): mean ± 95 % t half-width, paired t-test p; * where "
-                      "the interval excludes 0.", styles["small"]))  # fmt: skip
-    story.append(grid(paired_rows(df, reference), styles))
+    # the shipped AUTO too, where it ran (trained longer: not a same-budget comparison)
+    for ref in dict.fromkeys([reference, *(["auto"] if (df["policy"] == "auto").any() else [])]):
+        story.append(para(f"Paired differences to {ref}", styles["h1"]))
+        story.append(para(f"Each method minus {ref}, paired by seed (the seed fixes the demand "
+                          "and the human drivers): mean ± 95 % t half-width, paired t-test p; * "
+                          "where the interval excludes 0.", styles["small"]))  # fmt: skip
+        story.append(grid(paired_rows(df, ref), styles))
     trained = [p for p in order_policies(df["policy"]) if (checkpoints / f"{p}.json").is_file()]
     fig = plot_learning_curves(
         trained, checkpoints, out_pdf.with_name(f"{out_pdf.stem}-curves.png")
