@@ -61,6 +61,11 @@ def code_key(root: Path = REPO_ROOT, scenarios: Path = SCENARIOS_DIR) -> str:
     return h.hexdigest()[:12]
 
 
+def file_digest(path: str | Path) -> str:
+    """SHA-256 (12 hex digits) of a file's bytes, e.g. the weights a record's policy ran."""
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()[:12]
+
+
 @functools.cache
 def current_code_key() -> str:
     """``code_key`` of this process's code, taken once (edits after import do not run)."""

@@ -193,3 +193,10 @@ def test_study_command_reports_and_resumes_without_rerunning(head: Path) -> None
     assert study.main(argv) == 0
     assert (res / "records.jsonl").read_text().splitlines() == lines
     assert (ck / "head.pt").stat().st_mtime_ns == weights
+    # other weights at the same path (a retrained method) are other cells: head runs again
+    data = torch.load(ck / "head.pt", weights_only=True)
+    data["meta"]["note"] = "retrained"
+    torch.save(data, ck / "head.pt")
+    assert study.main(argv) == 0
+    again = [json.loads(line) for line in (res / "records.jsonl").read_text().splitlines()]
+    assert sorted(r["cell"]["policy"] for r in again[4:]) == ["head", "head"]

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.parallel import MixedTrafficEnv, check_warmup
-from mixed_traffic.provenance import json_safe, record_meta
+from mixed_traffic.provenance import file_digest, json_safe, record_meta
 from mixed_traffic.schema import CELL_KEYS, LEARNED, METRICS, POLICIES
 from mixed_traffic.world.registry import load_scenario
 
@@ -115,7 +115,8 @@ def run_episode(
         "diagnostics": json_safe(diagnostics),
     }
     if policy in LEARNED:
-        record["checkpoint"] = str(getattr(agent, "checkpoint", ""))
+        record["checkpoint"] = str(agent.checkpoint)
+        record["checkpoint_sha"] = file_digest(agent.checkpoint)
     return record
 
 

@@ -29,6 +29,7 @@ from mixed_traffic.provenance import (
     check_writable,
     current_code_key,
     exclusive_folder,
+    file_digest,
     read_records,
     record_meta,
     rewrite_records,
@@ -168,14 +169,16 @@ class SweepConfig:
             return self.checkpoints / f"{policy}.pt"
         return None
 
-    def checkpoint_key(self, policy: str) -> str:
-        """The weights ``policy``'s cells run (an absolute path; '' for a rule), part of their
-        key: other weights are another cell."""
+    def checkpoint_key(self, policy: str) -> tuple[str, str]:
+        """The weights ``policy``'s cells run: (absolute path, content digest), ('', '') for a
+        rule; part of their key, so other weights (another file, or the same file retrained)
+        are another cell."""
         if policy not in LEARNED:
-            return ""
+            return "", ""
         from agents.policies import checkpoint_path
 
-        return str(checkpoint_path(policy, self.cell_checkpoint(policy)).resolve())
+        path = checkpoint_path(policy, self.cell_checkpoint(policy)).resolve()
+        return str(path), file_digest(path) if path.is_file() else ""
 
     def check_checkpoints(self) -> None:
         """ValueError naming the first learned policy whose checkpoint is unreadable."""
@@ -364,7 +367,7 @@ def _collect(
         record = None
     if record is not None:
         write_record_atomic(records_path, record)
-        key = _cell_key(record)[:-1]  # the cell, without the checkpoint
+        key = _cell_key(record)[:-2]  # the cell, without the checkpoint
         for pid, (proc, cell, _) in list(running.items()):
             if cell.key() == key:
                 proc.join(timeout=10)
@@ -413,12 +416,13 @@ def _advance(bar: tqdm, record: dict) -> None:
 def _cell_key(record: dict) -> tuple:
     """A record's cell, with the checkpoint its auto cells ran (other weights: another cell)."""
     cell = record.get("cell", {})
-    return (*(cell.get(k) for k in CELL_KEYS), record.get("checkpoint", ""))
+    return (*(cell.get(k) for k in CELL_KEYS), record.get("checkpoint", ""),
+            record.get("checkpoint_sha", ""))  # fmt: skip
 
 
 def _planned_key(cell: Cell, sweep: SweepConfig) -> tuple:
     """``_cell_key`` of the record ``cell`` will write."""
-    return (*cell.key(), sweep.checkpoint_key(cell.policy))
+    return (*cell.key(), *sweep.checkpoint_key(cell.policy))
 
 
 def failed_cells(sweep: SweepConfig) -> list[Cell]:
