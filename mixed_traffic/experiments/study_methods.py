@@ -131,12 +131,10 @@ def install(name: str, dest: Path, run: Path, argv: list[str], base: int = 0) ->
         info["env_steps"] = int(info["env_steps"]) + base
     info["study_command"] = " ".join(["python", *argv[1:]])
     curves = (run / "curves.csv").read_text()
-    if base:  # earlier legs' rows first, this leg's transitions counted after them
-        rows = curves.splitlines()
-        head, _, body = rows[0], None, rows[1:]
-        shifted = [f"{int(r.split(',', 1)[0]) + base},{r.split(',', 1)[1]}" for r in body]
+    if base:  # earlier legs' rows first, this leg's transitions (column 1) counted after them
+        rows = [r.split(",", 1) for r in curves.splitlines()[1:]]
+        shifted = [f"{int(n) + base},{r}" for n, r in rows]
         curves = "\n".join([(dest / f"{name}.csv").read_text().rstrip("\n"), *shifted]) + "\n"
-        assert head.startswith("env_steps,")
     atomic_write(dest / f"{name}.pt", lambda f: f.write((run / "auto.pt").read_bytes()))
     atomic_write(dest / f"{name}.csv", lambda f: f.write(curves.encode()))
     atomic_write(dest / f"{name}.json", lambda f: f.write(json.dumps(info, indent=1).encode()))
