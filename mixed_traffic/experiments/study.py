@@ -94,10 +94,10 @@ class StudyConfig:
             raise ValueError(f"--seeds={list(self.seeds)}: give at least 2 distinct seeds >= 0")
         if not self.env_steps > 0:
             raise ValueError(f"--env-steps={self.env_steps}: the training budget must be > 0")
+        self.sweep()  # the evaluation's own checks (scenario, policies, density, episode, ...)
         if self.study not in SWEEP_STUDIES and self.reference not in self.run_policies:
             raise ValueError(f"--reference={self.reference!r}: not among the policies "
                              f"{list(self.run_policies)}")  # fmt: skip
-        self.sweep()  # the evaluation's own checks (scenario, density, episode, workers)
 
     @property
     def run_policies(self) -> tuple[str, ...]:
@@ -147,6 +147,14 @@ def missing_checkpoints(cfg: StudyConfig) -> list[str]:
     return [p for p in cfg.trained if installed_steps(p, cfg.checkpoints) < cfg.env_steps]
 
 
+def check_trained(cfg: StudyConfig) -> None:
+    """With ``--no-train``, ValueError naming the methods that are not trained on the budget."""
+    missing = missing_checkpoints(cfg)
+    if missing and not cfg.train:
+        raise ValueError(f"{missing} in {cfg.checkpoints} are not trained on {cfg.env_steps} "
+                         "transitions: drop --no-train")  # fmt: skip
+
+
 def train_missing(cfg: StudyConfig, log=print) -> None:
     """Train every method of ``cfg`` without a checkpoint (each resumable in ``cfg.runs``)."""
     from mixed_traffic.experiments.study_methods import train_method
@@ -180,12 +188,7 @@ def run_study(cfg: StudyConfig) -> Path:
     from analysis.study_report import build_study_report
     from mixed_traffic.experiments.sweep import run_sweep
 
-    missing = missing_checkpoints(cfg)
-    if missing and not cfg.train:
-        raise ValueError(
-            f"{missing} in {cfg.checkpoints} are not trained on {cfg.env_steps} "
-            "transitions: drop --no-train"
-        )
+    check_trained(cfg)
     train_missing(cfg)
     run_sweep(cfg.sweep())
     if cfg.study in SWEEP_STUDIES:
@@ -210,6 +213,7 @@ def parse_args(argv: list[str] | None) -> StudyConfig:
         cfg = config_from_args(p.parse_args(argv), StudyConfig)
         check_writable(cfg.results / "records.jsonl")
         check_writable(cfg.report_pdf, what="report")
+        check_trained(cfg)
     except ValueError as e:
         p.error(str(e))
     return cfg

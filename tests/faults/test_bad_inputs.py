@@ -34,7 +34,7 @@ import torch
 from agents.policies import SHIPPED_CHECKPOINT, make_policy
 from mixed_traffic.config import EnvConfig, HumanConfig, SensorConfig
 from mixed_traffic.env.parallel import MixedTrafficEnv, parallel_env
-from mixed_traffic.experiments import bench, compare, evaluate, fleet, sweep, train
+from mixed_traffic.experiments import bench, compare, evaluate, fleet, study, sweep, train
 from mixed_traffic.world.backend import binary
 from mixed_traffic.world.registry import load_scenario
 
@@ -46,12 +46,14 @@ PROG = {
     "compare": "python -m mixed_traffic.compare",
     "fleet": "python -m mixed_traffic.experiments.fleet",
     "bench": "python -m mixed_traffic.bench",
+    "study": "python -m mixed_traffic.study",
 }
 MODULE = {"sweep": sweep, "evaluate": evaluate, "train": train, "compare": compare,
-          "fleet": fleet, "bench": bench}  # fmt: skip
+          "fleet": fleet, "bench": bench, "study": study}  # fmt: skip
 #: Where each CLI writes, unless the case names its own --out ({out}: an empty folder per case).
 OUT = {"sweep": "--out {out}", "evaluate": "--out {out}/records.jsonl", "train": "--out {out}",
-       "compare": "--out {out}", "fleet": "--out {out}", "bench": ""}  # fmt: skip
+       "compare": "--out {out}", "fleet": "--out {out}", "bench": "",
+       "study": "--out {out}"}  # fmt: skip
 CKPT = str(SHIPPED_CHECKPOINT)
 RECORD = b'{"status": "ok", "code": "earlier", "metrics": {}}\n'
 
@@ -80,6 +82,8 @@ SWEEP = [
     cli("sweep", "--checkpoint {d}/garbage.pt", "garbage.pt: corrupt or unreadable", "bad-checkpoint"),
     cli("sweep", "--policies acc-lc --checkpoint {ckpt}", "no auto or auto-raw policy", "unused-checkpoint"),
     cli("sweep", "--workers 0", "--workers=0: must be >= 1", "zero-workers"),
+    cli("sweep", "--detection-range --values 3", "SensorConfig.range_factor=3.0", "range-above-2"),
+    cli("sweep", "--detection-range --values 0", "SensorConfig.range_factor=0.0", "zero-range"),
     cli("sweep", "--weather --values snow", "EnvConfig.weather='snow' is not one of", "unknown-weather"),
     cli("sweep", "--episode-length nan", "--episode-length=nan: must be in", "nan-episode", keep=True),
     cli("sweep", "--out {d}/blocker/results", "blocker is a file, not a folder", "unwritable-out"),
@@ -103,7 +107,9 @@ EVALUATE = [
     cli("evaluate", "--policy nope", "argument --policy: invalid choice: 'nope'", "unknown-policy"),
     cli("evaluate", "--policy auto --checkpoint {d}/garbage.pt", "garbage.pt: corrupt or unreadable",
         "bad-checkpoint", keep=True),
-    cli("evaluate", "--checkpoint {ckpt}", "--checkpoint is used by --policy auto", "unused-checkpoint"),
+    cli("evaluate", "--checkpoint {ckpt}", "--checkpoint is used by a learned policy", "unused-checkpoint"),
+    cli("evaluate", "--policy transfuser --checkpoint {d}/garbage.pt", "garbage.pt: corrupt or unreadable",
+        "bad-study-checkpoint"),
     cli("evaluate", "--gif {d}/blocker/e.gif", "cannot write GIF to", "unwritable-gif"),
 ]
 # fmt: on
@@ -125,6 +131,24 @@ TRAIN = [
     cli("train", "--env-steps 10 --learner-threads 0", "TrainConfig.learner_threads=0", "zero-threads"),
     cli("train", "--env-steps 10 --init {d}/garbage.pt", "garbage.pt: corrupt or unreadable", "bad-init"),
     cli("train", "--env-steps 10 --out {d}/blocker", "--out: cannot use", "out-is-a-file"),
+    cli("train", "--env-steps 10 --baseline nope", "TrainConfig.baseline='nope'", "unknown-baseline"),
+    cli("train", "--env-steps 10 --baseline transfuser", "needs --no-residual", "baseline-form"),
+    cli("train", "--env-steps 10 --baseline head --ablation nohis", "its own method",
+        "baseline-and-ablation"),
+]
+# fmt: on
+# fmt: off
+STUDY = [
+    cli("study", "--seeds 0", "give at least 2 distinct seeds", "one-seed"),
+    cli("study", "--seeds 1 1", "give at least 2 distinct seeds", "repeated-seed"),
+    cli("study", "--env-steps 0", "the training budget must be > 0", "zero-budget"),
+    cli("study", "--scenario nowhere", "unknown scenario", "unknown-scenario"),
+    cli("study", "--policies magic", "unknown policies ['magic']", "unknown-policy"),
+    cli("study", "--ablations --reference head", "--reference='head': not among", "bad-reference"),
+    cli("study", "--no-train --checkpoints {d}", "drop --no-train", "untrained"),
+    cli("study", "--workers 0", "--workers=0", "zero-workers"),
+    cli("study", "--episode-length nan", "--episode-length=nan", "nan-episode"),
+    cli("study", "--detection-range --at-penetration 2", "EnvConfig.penetration=2.0", "penetration-2"),
 ]
 # fmt: on
 # fmt: off
@@ -172,7 +196,7 @@ BENCH = [
     cli("bench", "--section learner --learner-threads 0", "--learner-threads=0", "zero-threads"),
 ]
 # fmt: on
-CLI_CASES = SWEEP + EVALUATE + TRAIN + COMPARE + FLEET + BENCH
+CLI_CASES = SWEEP + EVALUATE + TRAIN + COMPARE + FLEET + BENCH + STUDY
 
 #: Real processes: a bad input is refused with no traceback at the process level either.
 # fmt: off
@@ -274,6 +298,7 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(evaluate, "run_episode", started)
     monkeypatch.setattr(fleet.FleetSearch, "run", started)
     monkeypatch.setattr(Trainer, "run", started)
+    monkeypatch.setattr(study, "train_missing", started)
     monkeypatch.setattr(bench, "section_env", started)
     for name in bench.SECTIONS:
         monkeypatch.setitem(bench.SECTIONS, name, started)
@@ -554,6 +579,7 @@ TALLY = {
     "compare CLI": len(COMPARE),
     "fleet CLI": len(FLEET),
     "bench CLI": len(BENCH),
+    "study CLI": len(STUDY),
     "env API": len(ENV_PHASES) + len(ACTIONS) + len(RESETS),
     "env config": len(ENV_CONFIG),
     "scenario files": len(SCENARIO_FILES),
