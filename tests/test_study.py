@@ -162,15 +162,6 @@ def test_bad_study_options_exit_before_any_work(argv, message, capsys) -> None:
     assert e.value.code == 2 and message in capsys.readouterr().err
 
 
-def test_no_train_names_the_untrained_methods(tmp_path: Path, capsys) -> None:
-    argv = ["--ablations", "--no-train", "--checkpoints", str(tmp_path / "none"), "--out",
-            str(tmp_path / "res")]  # fmt: skip
-    assert study.main(argv) == 2
-    err = capsys.readouterr().err
-    assert "auto-novec" in err and "drop --no-train" in err
-    assert not (tmp_path / "res" / "records.jsonl").exists()
-
-
 def test_study_command_reports_and_resumes_without_rerunning(head: Path) -> None:
     """A study run writes the paper-style report; a second run trains and runs nothing."""
     res, ck = head / "res", head / "ck"
