@@ -191,3 +191,27 @@ def test_study_command_reports_and_resumes_without_rerunning(head: Path) -> None
     assert study.main(argv) == 0
     again = [json.loads(line) for line in (res / "records.jsonl").read_text().splitlines()]
     assert sorted(r["cell"]["policy"] for r in again[4:]) == ["head", "head"]
+
+
+def test_every_shipped_study_policy_drives_straight_eval() -> None:
+    """Each study policy loads its own committed checkpoint (none is an alias of another) and
+    acts on a real straight-eval observation batch within the action space."""
+    from agents.policies import STUDY_CHECKPOINTS, make_policy, stack_obs
+    from mixed_traffic import mixed_traffic_v0
+    from mixed_traffic.provenance import file_digest
+    from mixed_traffic.schema import STUDY_POLICIES
+
+    env = mixed_traffic_v0.parallel_env(scenario="straight-eval", penetration=0.2, seed=0)
+    obs, _ = env.reset(seed=0)
+    agents = list(env.agents)
+    batch = stack_obs(obs, agents)
+    env.close()
+    digests = set()
+    for name in STUDY_POLICIES:
+        policy = make_policy(name, z=batch["ego"].shape[1], m=batch["lanes"].shape[-1] // 4)
+        assert policy.name == name and policy.checkpoint == STUDY_CHECKPOINTS / f"{name}.pt"
+        digests.add(file_digest(policy.checkpoint))
+        decision, params = policy.act(batch, agents)
+        assert decision.shape == (len(agents),) and np.abs(params).max() <= 1.0
+        assert batch["action_mask"][np.arange(len(agents)), decision].all(), name
+    assert len(digests) == len(STUDY_POLICIES)
