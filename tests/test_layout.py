@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-COMMANDS = ("sweep", "evaluate", "train", "compare", "bench", "report", "scenario",
+COMMANDS = ("sweep", "study", "evaluate", "train", "compare", "bench", "report", "scenario",
             "experiments.safety_matrix", "experiments.fleet")  # fmt: skip
 
 
@@ -169,3 +169,7 @@ def test_a_wheel_install_runs_the_shipped_scenarios_from_any_folder(tmp_path: Pa
                          capture_output=True, text=True, cwd=elsewhere, env=env, timeout=300)  # fmt: skip
     assert run.returncode == 0, run.stderr[-2000:]
     assert '"policy"' in run.stdout
+    from mixed_traffic.schema import STUDY_POLICIES
+
+    shipped = {p.stem for p in (site / "agents" / "checkpoints" / "study").glob("*.pt")}
+    assert shipped == set(STUDY_POLICIES)
