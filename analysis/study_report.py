@@ -80,7 +80,20 @@ def verdicts(df: pd.DataFrame, reference: str,
         tail = (f"; better than {reference} beyond noise: {', '.join(beats)}" if beats
                 else f"; no method beats {reference} beyond noise")  # fmt: skip
         out.append(lead + tail + ".")
-    return out
+    return out + fallback_notes(ok)
+
+
+LEANS_ON_SAFETY = 50.0
+"""Safety-module share [%] above which a policy's numbers are mostly ACC-LC's fallback."""
+
+
+def fallback_notes(ok: pd.DataFrame) -> list[str]:
+    """A warning per policy whose decisions the safety module changed more than
+    ``LEANS_ON_SAFETY`` % of the time: its metrics then describe the fallback."""
+    share = ok.groupby("policy")["sm_share"].mean().dropna()
+    return [f"{p}: the safety module changed {share[p]:.0f} % of its decisions, so its numbers "
+            "are mostly those of the ACC-LC fallback, not of the policy."
+            for p in order_policies(share.index) if share[p] > LEANS_ON_SAFETY]  # fmt: skip
 
 
 def lineage_rows(policies: Sequence[str], checkpoints: Path) -> list[list[str]]:

@@ -215,3 +215,13 @@ def test_every_shipped_study_policy_drives_straight_eval() -> None:
         assert decision.shape == (len(agents),) and np.abs(params).max() <= 1.0
         assert batch["action_mask"][np.arange(len(agents)), decision].all(), name
     assert len(digests) == len(STUDY_POLICIES)
+
+
+def test_a_policy_the_safety_module_drives_is_called_out() -> None:
+    import pandas as pd
+
+    from analysis.study_report import fallback_notes
+
+    ok = pd.DataFrame({"policy": ["drl-mf", "drl-mf", "head"], "sm_share": [100.0, 96.0, 1.0]})
+    notes = fallback_notes(ok)
+    assert len(notes) == 1 and notes[0].startswith("drl-mf: the safety module changed 98 %")
