@@ -83,6 +83,11 @@ class SensorConfig:
     """z: number of history steps in each observation [steps]."""
     waypoints: int = 10
     """m: lane waypoints per lane in each observation [count], spaced 1 m."""
+    preview_points: int = 3
+    """k: speed-limit drops ahead in the ``limits`` observation [count]."""
+    preview_range: float = 150.0
+    """How far along the route the speed-limit preview looks [m] (braking from 33 to 14 m/s
+    at 3 m/s² takes 149 m). An HD-map lookup: weather and ``range_factor`` leave it alone."""
     noise: bool = True
     """Apply the weather preset's sensor noise and misdetection (False = exact ground truth)."""
     range_factor: float = 1.0
@@ -96,6 +101,8 @@ class SensorConfig:
         _check_range(self, "range_factor", 0.0, 2.0, lo_open=True)
         _check_range(self, "history", 1, 50, integer=True)
         _check_range(self, "waypoints", 1, 200, integer=True)
+        _check_range(self, "preview_points", 1, 16, integer=True)
+        _check_range(self, "preview_range", 0.0, 2000.0, lo_open=True)
         _check_bool(self, "noise")
 
 

@@ -312,20 +312,27 @@ def test_acc_lc_holds_a_constant_time_gap_and_the_conservative_one_does_not() ->
 
 def test_speed_cap_holds_the_limit_curves_and_a_red_light() -> None:
     """The governor's cap (``speed_cap``, pure): below the limit on a straight lane it lets
-    the ego speed up, at the limit it does not, and a red light 20 m ahead at 10 m/s needs
-    braking."""
+    the ego speed up, at the limit it does not, a red light 20 m ahead at 10 m/s needs
+    braking, and so does a turn limited to 5 m/s 60 m ahead (the preview, beyond the
+    waypoints), by what reaches 0.95 x 5 m/s there."""
     from agents.rules.acc_lc_longitudinal import speed_cap
 
-    a, m = 3, 10
+    a, m = 4, 10
+    pv_dist, pv_speed = np.full((a, 3, 2), np.inf), np.full((a, 3, 2), np.inf)
+    pv_dist[3, 1, 0], pv_speed[3, 1, 0] = 60.0, 5.0
     f = {
-        "v": np.array([10.0, 13.9, 10.0]),
+        "v": np.array([10.0, 13.9, 10.0, 13.0]),
         "d": np.zeros(a),
         "wp_speed": np.full((a, 3, m), 13.9),
         "wp_orient": np.zeros((a, 3, m)),
-        "light": np.array([[-1, -1, -1], [-1, -1, -1], [-1, 0, -1]]),
-        "light_dist": np.array([[np.inf] * 3, [np.inf] * 3, [np.inf, 20.0, np.inf]]),
-    }
+        "pv_dist": pv_dist,
+        "pv_speed": pv_speed,
+        "light": np.array([[-1, -1, -1], [-1, -1, -1], [-1, 0, -1], [-1, -1, -1]]),
+        "light_dist": np.array([[np.inf] * 3, [np.inf] * 3, [np.inf, 20.0, np.inf],
+                                [np.inf] * 3]),
+    }  # fmt: skip
     cap = speed_cap(f, AccLcConfig())
     assert cap[0] == pytest.approx(13.9 - 10.0)  # reaches the limit within 1 s
     assert cap[1] == pytest.approx(0.0, abs=1e-9)
     assert cap[2] < -1.0  # stop before the red light
+    assert cap[3] == pytest.approx(1.3 * ((0.95 * 5.0) ** 2 - 13.0**2) / (2 * 60.0))

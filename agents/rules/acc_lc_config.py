@@ -21,6 +21,7 @@ class AccLcConfig:
     # the env's sensor ranges and vehicle limits (one source: mixed_traffic.config)
     lidar_range: float = SensorConfig.lidar_range
     camera_range: float = SensorConfig.camera_range
+    preview_range: float = SensorConfig.preview_range
     wheelbase: float = VehicleConfig.wheelbase
     max_steer_deg: float = VehicleConfig.max_steer_deg
     max_accel: float = VehicleConfig.max_accel

@@ -6,6 +6,8 @@ constants of ``mixed_traffic.sensing.observation`` via ``mixed_traffic.env.api``
 - ego: ``v``, ``h`` (heading), ``len``, ``wid``, ``d`` (lateral offset), ``vlat_hist`` (lateral
   velocity from the offset history, unwrapped across lane switches);
 - waypoints: ``wp_speed``, ``wp_orient`` (A, 3, m);
+- speed-limit preview (A, 3, k): ``pv_dist`` [m] (inf = none) and ``pv_speed`` [m/s] of the
+  drops ahead (k = 0 for an observation without ``limits``);
 - neighbours of the latest frame (A, 3, 2: lane column x front/rear): ``present``, ``vdist``,
   ``vrel``, ``vlen``, ``vwid``, ``vlat``;
 - front vehicles of the last frames since the last lane switch (A, 3, K): ``h_dist`` (extrapolated
@@ -47,6 +49,7 @@ def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarr
     wp = lanes[:, :, -1].reshape(A, 3, m, 4) * WAYPOINT_SCALE
     f["wp_speed"] = wp[..., 3]  # (A, 3, m)
     f["wp_orient"] = wp[..., 2]
+    _preview_features(f, ob, c)
     scale = np.array([c.lidar_range, SPEED_SCALE, np.pi, 10.0, 5.0, 2.0])
     _neighbour_features(f, veh, scale, A)
     _history_features(f, veh, scale, dh, valid)
@@ -55,6 +58,16 @@ def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarr
     f["mask"] = np.asarray(ob["action_mask"]) > 0
     _light_features(f, lights, c)
     return f
+
+
+def _preview_features(f: dict[str, np.ndarray], ob: Mapping[str, np.ndarray], c: AccLcConfig
+                      ) -> None:  # fmt: skip
+    """``pv_dist`` and ``pv_speed`` of the ``limits`` key (none in an older observation)."""
+    A = len(f["v"])
+    lm = np.asarray(ob["limits"], np.float64) if "limits" in ob else np.zeros((A, 3, 0, 2))
+    seen = lm[..., 1] > 0
+    f["pv_dist"] = np.where(seen, lm[..., 0] * c.preview_range, np.inf)
+    f["pv_speed"] = np.where(seen, lm[..., 1] * SPEED_SCALE, np.inf)
 
 
 def _ego_features(ego: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:

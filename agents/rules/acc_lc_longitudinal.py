@@ -150,6 +150,11 @@ def _speed_limits(
     v0 = np.minimum(v0, target[:, 0])
     lower = (target < target[:, :1] - c.limit_deadband) & (target < v[:, None])
     need = np.where(lower, (target**2 - v[:, None] ** 2) / (2 * dist_wp), np.inf)
+    # the preview's drops beyond the waypoints (a junction's turn speed), braked for alike
+    pv_t, pv_d = c.speed_factor * f["pv_speed"][ar, ln], f["pv_dist"][ar, ln]  # (A, k)
+    far = (pv_t < v[:, None]) & (pv_d > dist_wp[-1])
+    need_pv = np.where(far, (pv_t**2 - v[:, None] ** 2) / (2 * np.where(far, pv_d, 1.0)), np.inf)
+    need = np.concatenate([need, need_pv], axis=1)
     a_lim = np.min(need, axis=1)
     a_lim = np.where(a_lim < 0, 1.3 * a_lim, np.inf)
     return lim_now, v0, a_lim

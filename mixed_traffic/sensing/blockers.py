@@ -18,7 +18,7 @@ from mixed_traffic.world.snapshot import TrafficSnapshot
 PATH_GEOMETRY = ("speed", "along", "across", "lateral")
 
 
-def _path_lanes(
+def path_lanes(
     hdmap: HDMap, lane: np.ndarray, pos: np.ndarray, max_range: float,
     next_edge: np.ndarray | None,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
@@ -149,7 +149,7 @@ def _pairs(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, sub: np.ndarra
     cand, cl, cj = cand
     cur = snap.lane.astype(np.int64)[rows]
     nxt = None if next_edge is None else np.asarray(next_edge)[sub]
-    hops, start = _path_lanes(hdmap, cur[sub], snap.lane_pos[rows[sub]], max_range, nxt)
+    hops, start = path_lanes(hdmap, cur[sub], snap.lane_pos[rows[sub]], max_range, nxt)
     hj = np.where(hops >= 0, g.junction[np.maximum(hops, 0)], -1)  # (a, H)
     match = (hj[:, :, None] == cj[None, None, :]) & (hj >= 0)[:, :, None]  # (a, H, C)
     pair = match.any(axis=1)

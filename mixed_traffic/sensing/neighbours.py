@@ -11,6 +11,7 @@ import numpy as np
 
 from mixed_traffic.sensing.blockers import PATH_GEOMETRY, path_blockers
 from mixed_traffic.sensing.lane_graph import CURRENT, LEFT, RIGHT, SEARCH_DEPTH, lane_graph
+from mixed_traffic.sensing.merges import merge_leaders
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -222,6 +223,7 @@ def _in_the_way(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np
     on_path, geom = np.zeros(A, bool), np.zeros((A, len(PATH_GEOMETRY)))
     for other, gap, other_geom in (
         path_blockers(snap, hdmap, rows, max_range, next_edge, lead_gap),
+        merge_leaders(snap, hdmap, rows, max_range, next_edge),
         _straddlers(snap, hdmap, rows, lanes, i, pos, srt, max_range),
     ):
         take = (other >= 0) & (gap < lead_gap)

@@ -26,6 +26,10 @@ vehicles   (3, z, 12)  f32    front then rear vehicle, each: along-lane distance
                               lidar_range, relative velocity / 40 m/s, relative heading / pi,
                               length / 10 m, width / 5 m, lateral offset / 2 m
 lights     (3, z, 4)   f32    one-hot red, yellow, green; distance to stop line / camera_range
+limits     (3, k, 2)   f32    latest frame only (k = ``sensors.preview_points``): the next k
+                              points along the route within ``sensors.preview_range`` where
+                              the speed limit drops below every limit before it, each:
+                              distance / preview_range, limit / 40 m/s; zeros = none
 node_mask  (3, 3)      int8   per lane: lane exists, vehicle(s) detected, light detected
 action_mask (3,)       int8   allowed decisions: left change, follow, right change
 ========== =========== ====== ========================================================
@@ -48,7 +52,7 @@ front vehicle of the current lane, unless a real vehicle is closer. The mask alw
 least one decision: with no continuing lane on either side, follow stays allowed.
 Waypoints follow the route beyond a lane's end (first hop ``hdmap.conn_to[(lane,
 next_route_edge)]`` when that lane continues the route, else the lane's primary successor; later
-hops primary successors); waypoint features come from
+hops primary successors); so does the speed-limit preview (``limits``). Both come from
 the HD map and are not perturbed by weather.
 """
 
@@ -65,6 +69,7 @@ from mixed_traffic.sensing.camera import NO_LIGHT
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import wrap_angle
 from mixed_traffic.sensing.lane_graph import CURRENT, lane_graph, next_route_edge
+from mixed_traffic.sensing.preview import limit_preview
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -118,6 +123,7 @@ def observation_space(config: EnvConfig) -> gym.spaces.Dict:
             "lanes": box(3, z, 4 * m),
             "vehicles": box(3, z, 12, far=VEHICLE_DISTANCES),
             "lights": box(3, z, 4, far=(3,)),
+            "limits": gym.spaces.Box(0.0, 1.0, (3, config.sensors.preview_points, 2), np.float32),
             "node_mask": gym.spaces.Box(0, 1, (3, 3), np.int8),
             "action_mask": gym.spaces.MultiBinary(3),
         }
@@ -222,7 +228,9 @@ class ObservationBuilder:
         act, mandatory, end_dist = self.action_mask(snap, rows, lanes, nxt)
 
         ego = np.clip(sensed.ego / EGO_SCALE, -1.0, 1.0)  # (A, 5)
-        wp = self._waypoints(snap, rows, lanes, nxt)  # (A, 3, 4m)
+        pos, via = self._route_hops(snap, rows, lanes, nxt)
+        wp = self._waypoints(snap, rows, lanes, pos, via)  # (A, 3, 4m)
+        limits = self._limits(lanes, pos, via)  # (A, 3, k, 2)
         veh, present = self._vehicles(sensed, lanes, mandatory, end_dist, snap.speed[rows])
         light_on = sensed.light_state != NO_LIGHT
         lights = np.zeros((A, 3, 4))
@@ -241,46 +249,69 @@ class ObservationBuilder:
         act = act.astype(np.int8)
         # list(array) makes the per-agent views in C; a dict literal per agent is the cheapest
         return {
-            a: {"ego": e, "lanes": ln, "vehicles": v, "lights": li, "node_mask": nm,
-                "action_mask": am}
-            for a, e, ln, v, li, nm, am in zip(agent_ids, list(h_ego), list(h_lanes),
-                                                list(h_veh), list(h_lights), list(node), list(act))
+            a: {"ego": e, "lanes": ln, "vehicles": v, "lights": li, "limits": lm,
+                "node_mask": nm, "action_mask": am}
+            for a, e, ln, v, li, lm, nm, am in zip(agent_ids, list(h_ego), list(h_lanes),
+                                                    list(h_veh), list(h_lights), list(limits),
+                                                    list(node), list(act))
         }  # fmt: skip
 
     # ------------------------------------------------------------------ features
+    def _route_hops(
+        self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray, next_edge: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """(A, 3) the ego's position projected onto each lane column [m] (scaled by the lane
+        lengths), and the lane each column's route hop enters at its end: its connection to
+        the route's next edge (``hdmap.conn_to``), -1 where it has none."""
+        hd = self.hdmap
+        cur = np.maximum(lanes[:, CURRENT], 0)
+        lsafe = np.maximum(lanes, 0)
+        ratio = hd.lane_length[lsafe] / np.maximum(hd.lane_length[cur], 1e-9)[:, None]
+        pos = snap.lane_pos[rows][:, None] * ratio
+        nxt = np.broadcast_to(np.asarray(next_edge, np.int64)[:, None], lanes.shape)
+        via = np.where(lanes >= 0, self.graph.connection(lsafe, nxt), -1)
+        return pos, via
+
+    def _limits(self, lanes: np.ndarray, pos: np.ndarray, via: np.ndarray) -> np.ndarray:
+        """(A, 3, k, 2) the speed-limit preview (:mod:`~mixed_traffic.sensing.preview`) as
+        (distance / preview_range, limit / SPEED_SCALE), zeros where no drop is seen."""
+        hd, s = self.hdmap, self.config.sensors
+        lsafe = np.maximum(lanes, 0)
+        hop = np.where(via >= 0, via, np.where(lanes >= 0, hd.lane_next[lsafe], -1))
+        dist, speed = limit_preview(hd, lanes, pos, hop, s.preview_points, s.preview_range)
+        seen = np.isfinite(dist)
+        out = np.zeros((*dist.shape, 2), np.float32)
+        out[..., 0] = np.where(seen, dist / s.preview_range, 0.0)
+        out[..., 1] = np.where(seen, speed / SPEED_SCALE, 0.0)
+        return out
+
     def _waypoints(
         self,
         snap: TrafficSnapshot,
         rows: np.ndarray,
         lanes: np.ndarray,
-        next_edge: np.ndarray | None = None,
+        pos: np.ndarray,
+        via: np.ndarray,
     ) -> np.ndarray:
         """(A, 3, 4m) normalised waypoint features of the m waypoints ahead on each lane.
 
-        Beyond a lane's end the first hop follows the agent's route (``hdmap.conn_to[(lane,
-        next_edge)]``) when that lane continues it, else the lane's primary successor; later
-        hops follow primary successors."""
+        Beyond a lane's end the first hop follows the agent's route (``via``, see
+        :meth:`_route_hops`) where the lane continues it, else the lane's primary successor;
+        later hops follow primary successors."""
         hd, m = self.hdmap, self.m
         A = len(rows)
         cur = lanes[:, CURRENT]
         lsafe = np.maximum(lanes, 0)
-        ratio = (
-            hd.lane_length[lsafe] / np.maximum(hd.lane_length[np.maximum(cur, 0)], 1e-9)[:, None]
-        )
-        pos = snap.lane_pos[rows][:, None] * ratio
         w0 = hd.waypoint_at(lsafe.ravel(), pos.ravel()).reshape(A, 3)
         wp = hd.ahead_table(m)[w0]  # (A, 3, m) along primary successors
-        if next_edge is not None:
-            nxt = np.broadcast_to(np.asarray(next_edge, np.int64)[:, None], lanes.shape)
-            via = self.graph.connection(lsafe, nxt)  # (A, 3) route's first hop, -1 if none
-            use = (via >= 0) & (lanes >= 0)
-            if use.any():
-                left = hd.wp_offset[lsafe] + hd.wp_count[lsafe] - 1 - w0  # wps left on lane
-                j = np.arange(m)
-                k = j[None, None, :] - left[..., None] - 1  # index into the successor's table
-                succ = hd.ahead_table(m)[hd.wp_offset[np.maximum(via, 0)]]  # (A, 3, m)
-                on_succ = np.take_along_axis(succ, np.clip(k, 0, m - 1), axis=2)
-                wp = np.where(use[..., None] & (k >= 0), on_succ, wp)
+        use = via >= 0
+        if use.any():
+            left = hd.wp_offset[lsafe] + hd.wp_count[lsafe] - 1 - w0  # wps left on lane
+            j = np.arange(m)
+            k = j[None, None, :] - left[..., None] - 1  # index into the successor's table
+            succ = hd.ahead_table(m)[hd.wp_offset[np.maximum(via, 0)]]  # (A, 3, m)
+            on_succ = np.take_along_axis(succ, np.clip(k, 0, m - 1), axis=2)
+            wp = np.where(use[..., None] & (k >= 0), on_succ, wp)
         ego_lane_idx = hd.lane_index[np.maximum(cur, 0)].astype(np.float64)
         feats = np.empty((A, 3, m, 4))
         feats[..., 0] = hd.wp_xyz[wp, 2] - snap.z[rows][:, None, None]

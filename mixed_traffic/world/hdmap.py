@@ -26,7 +26,11 @@ import sumolib.net
 from mixed_traffic.paths import cache_dir
 
 SPACING = 1.0  # waypoint spacing along the centreline [m]
-_CACHE_VERSION = "hdmap-v4"  # v2: read with sumolib; v3: lane permissions; v4: yield links
+#: A junction lane leaving the road's direction by more than this is a lane shift [rad] ...
+SHIFT_ANGLE = np.deg2rad(45.0)
+#: ... where the road's direction changes by less than this across the junction [rad].
+SHIFT_STRAIGHT = np.deg2rad(20.0)
+_CACHE_VERSION = "hdmap-v5"  # v2: sumolib; v3: lane permissions; v4: yield links; v5: shifts
 YIELD_STATES = frozenset("m=swZ")
 """SUMO link states that give way to foes (minor, equal, stop, all-way stop, zipper)."""
 CAR = "passenger"
@@ -303,7 +307,7 @@ def build_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
     yields = np.array([any(c.getState() in YIELD_STATES for c in ln.getOutgoing()) for ln in lanes])
     samples = [_sample(np.reshape(ln.getShape3D(), (-1, 3)), ln.getLength()) for ln in lanes]
     counts = np.array([len(pts) for pts, _ in samples], dtype=np.int64)
-    return HDMap(
+    hdmap = HDMap(
         net_file=str(net_file),
         lane_ids=lane_ids,
         lane_edge=np.array(lane_edge, dtype=np.int32),
@@ -325,6 +329,43 @@ def build_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
         wp_heading=np.concatenate([hdg for _, hdg in samples]),
         wp_lane=np.repeat(np.arange(len(lanes), dtype=np.int32), counts),
     )
+    _straighten_shifts(hdmap)
+    return hdmap
+
+
+def _straighten_shifts(hd: HDMap) -> None:
+    """Give the waypoints of every lane shift the road's heading (in place).
+
+    A lane shift is a junction lane that leaves the road's direction by more than
+    ``SHIFT_ANGLE`` although the road keeps it (within ``SHIFT_STRAIGHT``) across the
+    junction: imported networks join edges whose centrelines are offset sideways this way
+    (a 4.8 m jump on a 4.8 m junction lane of SUMO's highway example), and zero-length
+    junction lanes have no heading at all. SUMO moves a vehicle across along the lane; read as
+    a curve, the kink asked for yaw no car has and sent the AVs off the road."""
+    if not hd.conn_to:
+        return
+    src = np.fromiter((a for a, _ in hd.conn_to), np.int64, len(hd.conn_to))
+    via = np.fromiter(hd.conn_to.values(), np.int64, len(hd.conn_to))
+    dst = hd.lane_next[via].astype(np.int64)
+    ok = (hd.lane_edge[via] < 0) & (dst >= 0)
+    ok[ok] &= hd.lane_edge[dst[ok]] >= 0
+    src, via, dst = src[ok], via[ok], dst[ok]
+    h_in = hd.wp_heading[hd.wp_offset[src] + hd.wp_count[src] - 1]
+    turn = _wrap(hd.wp_heading[hd.wp_offset[dst]] - h_in)
+    dev = np.zeros(len(via))
+    for k in range(int(hd.wp_count[via].max(initial=0))):
+        w = hd.wp_offset[via] + np.minimum(k, hd.wp_count[via] - 1)
+        dev = np.maximum(dev, np.abs(_wrap(hd.wp_heading[w] - h_in)))
+    shift = (np.abs(turn) < SHIFT_STRAIGHT) & (dev > SHIFT_ANGLE)
+    for lane, h0, dh in zip(via[shift].tolist(), h_in[shift], turn[shift]):
+        n = int(hd.wp_count[lane])
+        w = slice(int(hd.wp_offset[lane]), int(hd.wp_offset[lane]) + n)
+        hd.wp_heading[w] = _wrap(h0 + dh * (np.arange(n) + 0.5) / n)
+
+
+def _wrap(a: np.ndarray) -> np.ndarray:
+    """Angles [rad] wrapped into [-pi, pi)."""
+    return (a + np.pi) % (2 * np.pi) - np.pi
 
 
 def _lane_table(net: Any) -> tuple[list, list[int], list[str], list[list[int]], dict]:
