@@ -81,3 +81,18 @@ def test_a_lane_shift_is_driven_straight() -> None:
     m = _episode(net, 60.0)
     assert m["av_trips"] >= 30
     assert m["terminal_off_road"] == 0 and m["terminal_speed_limit"] == 0
+
+
+def test_the_examples_tool_lists_sumos_networks_and_sums_per_trip() -> None:
+    from mixed_traffic.experiments.sumo_examples import sumo_examples, summary
+
+    nets = sumo_examples("net")
+    assert len(nets) >= 20 and any(p.name.endswith(".net.xml.gz") for p in nets)
+    rows = [
+        {"file": "a", "status": "ok", "av_trips": 30, "terminal": {"collision": 2}},
+        {"file": "b", "status": "ok", "av_trips": 10, "terminal": {}},
+        {"file": "c", "status": "no car lane"},
+    ]
+    text = summary(rows)
+    assert text.splitlines()[-1] == "all: 2 terminal events in 40 AV trips = 5.0 % per trip"
+    assert "no car lane" in text

@@ -16,6 +16,9 @@ from mixed_traffic.world.snapshot import TrafficSnapshot
 #: where the path meets it: speed along the path [m/s], extent of its body along the path [m]
 #: and across it [m], offset of its centre from the path, + = left [m].
 PATH_GEOMETRY = ("speed", "along", "across", "lateral")
+#: Added to the agent's half width when testing bodies against its path [m]: in a turn its
+#: body (a rectangle behind the front bumper, as SUMO checks collisions) sweeps wider.
+SWEEP_MARGIN = 0.5
 
 
 def path_lanes(
@@ -164,7 +167,7 @@ def _pairs(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, sub: np.ndarra
     h2 = H - 1 - np.argmax(m[:, ::-1], axis=1)
     v = cand[ci]
     half_l, half_w = 0.5 * snap.length[v], 0.5 * snap.width[v]
-    r = 0.5 * snap.width[rows[sub[ai]]]  # the agent's half width
+    r = 0.5 * snap.width[rows[sub[ai]]] + SWEEP_MARGIN  # the agent's half width, and more
     reach = np.hypot(half_l, half_w) + r
     st = start[ai]  # (P, H)
     lo = np.maximum(st[np.arange(len(ai)), h1] - reach, 0.0)

@@ -30,7 +30,10 @@ SPACING = 1.0  # waypoint spacing along the centreline [m]
 SHIFT_ANGLE = np.deg2rad(45.0)
 #: ... where the road's direction changes by less than this across the junction [rad].
 SHIFT_STRAIGHT = np.deg2rad(20.0)
-_CACHE_VERSION = "hdmap-v5"  # v2: sumolib; v3: lane permissions; v4: yield links; v5: shifts
+#: Extra cost of a turnaround in ``HDMap.fastest_path`` [s].
+UTURN_PENALTY = 120.0
+_CACHE_VERSION = "hdmap-v6"  # v2: sumolib; v3: lane permissions; v4: yield links; v5: shifts,
+# turnarounds; v6: internal yields
 YIELD_STATES = frozenset("m=swZ")
 """SUMO link states that give way to foes (minor, equal, stop, all-way stop, zipper)."""
 CAR = "passenger"
@@ -59,7 +62,10 @@ class HDMap:
     .sumocfg's own class): not a sidewalk, bike, bus or rail lane."""
     lane_yields: np.ndarray
     """(L,) bool: a connection at the lane's end must give way (SUMO link state m, =, s, w or
-    Z: a minor road, an all-way stop, a stop sign, right before left, a zipper merge)."""
+    Z: a minor road, an all-way stop, a stop sign, right before left, a zipper merge); for a
+    junction lane, at the internal junction where a turn waits for the oncoming stream."""
+    lane_uturn: np.ndarray
+    """(L,) bool: the junction lane of a turnaround (SUMO direction t)."""
     lane_next: np.ndarray
     """(L,) int32 primary successor lane row (via the junction lane if any; a car lane's is a
     car lane), -1 at a dead end."""
@@ -142,14 +148,26 @@ class HDMap:
         speed = np.where(car, self.lane_speed[rows], 0.0).max(axis=1)
         return self.edge_length / np.maximum(speed, 0.1)
 
+    @cached_property
+    def edge_uturns(self) -> set[tuple[int, int]]:
+        """(edge row, next edge row) pairs joined by a turnaround's junction lane."""
+        return {(int(self.lane_edge[a]), b) for (a, b), v in self.conn_to.items()
+                if self.lane_uturn[v]}  # fmt: skip
+
     def fastest_path(self, lane: int, destination: int) -> list[int] | None:
         """Edge rows from ``lane``'s edge to ``destination`` with the least free-flow travel
-        time whose first junction is one ``lane`` connects through (None: there is none)."""
+        time whose first junction is one ``lane`` connects through (None: there is none).
+        A turnaround costs ``UTURN_PENALTY`` more: drivers turn around where nothing else
+        leads on, not to save a block."""
         start = int(self.lane_edge[lane])
         if start == destination:
             return [start]
-        cost = self.edge_free_time
-        heap = [(float(cost[e]), e, [start, e]) for e in self.lane_exits.get(lane, ())]
+        free, turns = self.edge_free_time, self.edge_uturns
+
+        def cost(e: int, n: int) -> float:
+            return float(free[n]) + (UTURN_PENALTY if (e, n) in turns else 0.0)
+
+        heap = [(cost(start, e), e, [start, e]) for e in self.lane_exits.get(lane, ())]
         heapq.heapify(heap)
         done: set[int] = set()
         while heap:
@@ -161,7 +179,7 @@ class HDMap:
             done.add(e)
             for n in self.edge_successors.get(e, ()):
                 if n not in done:
-                    heapq.heappush(heap, (t + float(cost[n]), n, [*path, n]))
+                    heapq.heappush(heap, (t + cost(e, n), n, [*path, n]))
         return None
 
     @cached_property
@@ -304,6 +322,7 @@ def build_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
         edge_lanes[e, : len(rows)] = rows
     lane_car = np.array([lane.allows(vclass) for lane in lanes], dtype=bool)
     lane_next, conn_to, tls_links = _connections(lanes, lane_ids, lane_edge, edge_row, lane_car)
+    uturn = {c.getViaLaneID() for ln in lanes for c in ln.getOutgoing() if c.getDirection() == "t"}
     yields = np.array([any(c.getState() in YIELD_STATES for c in ln.getOutgoing()) for ln in lanes])
     samples = [_sample(np.reshape(ln.getShape3D(), (-1, 3)), ln.getLength()) for ln in lanes]
     counts = np.array([len(pts) for pts, _ in samples], dtype=np.int64)
@@ -316,7 +335,8 @@ def build_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
         lane_width=np.array([lane.getWidth() for lane in lanes]),
         lane_speed=np.array([lane.getSpeed() for lane in lanes]),
         lane_car=lane_car,
-        lane_yields=yields & (np.asarray(lane_edge) >= 0),
+        lane_yields=yields,
+        lane_uturn=np.array([lid in uturn for lid in lane_ids], dtype=bool),
         lane_next=lane_next,
         edge_ids=edge_ids,
         edge_lanes=edge_lanes,
@@ -445,6 +465,7 @@ def _sample(shape: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
 
 _ARRAYS = [
     "lane_edge",
+    "lane_uturn",
     "lane_index",
     "lane_length",
     "lane_width",
