@@ -13,6 +13,7 @@ import sumo
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.runner import run_episode
+from mixed_traffic.experiments.sumo_examples import summary, sumo_examples
 from mixed_traffic.sensing.preview import limit_preview
 from mixed_traffic.world.backend import binary
 from mixed_traffic.world.hdmap import SHIFT_STRAIGHT, load_hdmap
@@ -84,8 +85,6 @@ def test_a_lane_shift_is_driven_straight() -> None:
 
 
 def test_the_examples_tool_lists_sumos_networks_and_sums_per_trip() -> None:
-    from mixed_traffic.experiments.sumo_examples import sumo_examples, summary
-
     nets = sumo_examples("net")
     assert len(nets) >= 20 and any(p.name.endswith(".net.xml.gz") for p in nets)
     rows = [

@@ -15,6 +15,7 @@ from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
 from mixed_traffic.experiments.bench_env import bench_actions
 from mixed_traffic.experiments.runner import run_episode
+from mixed_traffic.schema import TERMINAL_REASONS
 from mixed_traffic.world.backend import binary
 from mixed_traffic.world.registry import load_scenario
 
@@ -149,7 +150,9 @@ def test_acc_lc_gives_way_at_unsignalised_junctions(tmp_path: Path) -> None:
     assert hd.lane_yields.any(), "netgenerate's priority junctions have minor links"
     record = _episode(net, density=30.0, seed=2, episode_length=60.0)
     m = record["metrics"]
-    assert m["av_trips"] >= 15 and m["collisions"] == 0 and m["terminal_collision"] == 0
+    # (the 23 trips before the speed-limit preview were mostly AVs removed for speeding)
+    assert m["av_trips"] >= 4 and m["collisions"] == 0
+    assert sum(m[f"terminal_{r}"] for r in TERMINAL_REASONS) == 0
 
 
 def test_avs_derive_from_a_sumocfg_type_of_another_class(tmp_path: Path) -> None:
