@@ -81,9 +81,10 @@ from mixed_traffic.env.truth import (
 )
 from mixed_traffic.paths import scratch_dir
 from mixed_traffic.schema import METRICS
-from mixed_traffic.sensing.camera import GREEN, NO_LIGHT, RED
+from mixed_traffic.sensing.camera import GREEN, NO_LIGHT, RED, permissive
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import ttc
+from mixed_traffic.sensing.lane_graph import lane_graph
 from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
 from mixed_traffic.sensing.perception import Perception
 from mixed_traffic.world.backend import SumoBackend
@@ -334,19 +335,23 @@ class MixedTrafficEnv(ParallelEnv):
         r = rows.r
         nxt = self._table.next_edge(rows.slots, snap.route_index[r])
         tls = [self._tls[t] for t in self._perception.tls_ids]
-        return self._perception.sense(snap, r, nxt, tls, self._noise_rng, self._gates(snap, rows))
+        gates = self._gates(snap, rows, nxt, tls)
+        return self._perception.sense(snap, r, nxt, tls, self._noise_rng, gates)
 
-    def _gates(self, snap: TrafficSnapshot, rows: Rows) -> np.ndarray:
+    def _gates(self, snap: TrafficSnapshot, rows: Rows, nxt: np.ndarray, tls: list[str]
+               ) -> np.ndarray:  # fmt: skip
         """(A,) camera code of the give-way line ahead (``camera.give_way``) of agents within
-        camera range of an unsignalised junction where their lane yields; SUMO is asked only
-        for those whether their next link is open."""
+        camera range of a junction where their lane yields, or whose signal shows a
+        permissive green (g: yield to the foes) or is off (o); SUMO is asked only for those
+        whether their next link is open."""
         hd, lane = self.hdmap, snap.lane[rows.r]
         out = np.full(len(lane), NO_LIGHT, dtype=np.int8)
-        if not hd.any_yield:  # e.g. every bundled scenario: nothing to ask SUMO
-            return out
         safe = np.maximum(lane, 0)
+        yields = hd.lane_yields[safe] | permissive(lane_graph(hd), lane, nxt, tls)
+        if not yields.any():  # nothing to ask SUMO
+            return out
         to_end = hd.lane_length[safe] - snap.lane_pos[rows.r]
-        near = (lane >= 0) & hd.lane_yields[safe] & (to_end <= self.config.sensors.camera_range)
+        near = (lane >= 0) & yields & (to_end <= self.config.sensors.camera_range)
         if near.any():
             idx = np.flatnonzero(near)
             out[idx] = np.where(self._backend.must_yield([rows.ids[i] for i in idx]), RED, GREEN)

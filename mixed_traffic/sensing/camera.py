@@ -55,15 +55,35 @@ def traffic_lights(
     return state.astype(np.int8), dist
 
 
+#: Signal characters at which a vehicle must yield to its link's foes: a permissive green
+#: (g, e.g. a left turn across the oncoming stream) and a signal that is off, blinking (o).
+PERMISSIVE = "go"
+
+
+def permissive(
+    graph: LaneGraph, lane: np.ndarray, next_edge: np.ndarray, tls_states: Sequence[str]
+) -> np.ndarray:
+    """(A,) bool: the link from ``lane`` into ``next_edge`` is signalised and shows a
+    ``PERMISSIVE`` character now (``tls_states`` in ``graph.tls_ids`` order)."""
+    tl, link = graph.signal(np.asarray(lane), np.asarray(next_edge))
+    out = np.zeros(len(tl), bool)
+    for k in np.flatnonzero((tl >= 0) & (link >= 0)).tolist():
+        state = tls_states[tl[k]]
+        out[k] = link[k] < len(state) and state[link[k]] in PERMISSIVE
+    return out
+
+
 def give_way(
     hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray, lane: np.ndarray, gate: np.ndarray,
     state: np.ndarray, dist: np.ndarray,
 ) -> None:  # fmt: skip
     """Mark in place the stop line at the end of each agent's current lane where it must give
     way (``gate`` (A,): RED while SUMO's junction model holds the link closed, GREEN while it is
-    open, NO_LIGHT elsewhere) unless a nearer signal is seen: right of way as SUMO rules it."""
+    open, NO_LIGHT elsewhere) unless a nearer signal is seen, and over a permissive green at
+    the line while the link is closed: right of way as SUMO rules it."""
     ok = (gate != NO_LIGHT) & (lane >= 0)
     to_end = hd.lane_length[np.maximum(lane, 0)] - snap.lane_pos[rows]
-    mark = ok & ((state[:, CURRENT] == NO_LIGHT) | (to_end < dist[:, CURRENT]))
+    held = (gate == RED) & (to_end <= dist[:, CURRENT] + 0.5)
+    mark = ok & ((state[:, CURRENT] == NO_LIGHT) | (to_end < dist[:, CURRENT]) | held)
     state[mark, CURRENT] = gate[mark]
     dist[mark, CURRENT] = np.maximum(to_end[mark], 0.0)
