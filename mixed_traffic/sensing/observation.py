@@ -49,7 +49,9 @@ on the route's last edge every lane continues). Within ``MANDATORY_DISTANCE`` of
 lane from which the route cannot continue, ``follow`` is masked (mandatory lane change) and a
 virtual stopped vehicle (zero length, width of the lane) sits at the lane's end line as the
 front vehicle of the current lane, unless a real vehicle is closer. The mask always allows at
-least one decision: with no continuing lane on either side, follow stays allowed.
+least one decision: with no continuing lane on either side, follow stays allowed. Past a
+next route edge shorter than ``SHORT_EDGE`` a lane continues only if the lane it lands on
+there continues too.
 Waypoints follow the route beyond a lane's end (first hop ``hdmap.conn_to[(lane,
 next_route_edge)]`` when that lane continues the route, else the lane's primary successor; later
 hops primary successors); so does the speed-limit preview (``limits``). Both come from
@@ -69,6 +71,7 @@ from mixed_traffic.sensing.camera import NO_LIGHT
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import wrap_angle
 from mixed_traffic.sensing.lane_graph import CURRENT, lane_graph, next_route_edge
+from mixed_traffic.sensing.merges import exit_table
 from mixed_traffic.sensing.preview import limit_preview
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
@@ -82,6 +85,9 @@ WAYPOINT_SCALE = np.array([10.0, 4.0, np.pi, SPEED_SCALE])
 #: Vehicle feature scales after the distance (divided by lidar_range): rel. velocity [m/s],
 #: rel. heading [rad], length [m], width [m], lateral [m].
 VEHICLE_SCALE_TAIL = np.array([SPEED_SCALE, np.pi, 10.0, 5.0, 2.0])
+#: A next route edge shorter than this leaves no room for a lane change [m]: a lane counts as
+#: continuing the route only if the lane it lands on there continues too.
+SHORT_EDGE = 20.0
 #: Distance to the end of a non-continuing lane below which a lane change is mandatory [m].
 MANDATORY_DISTANCE = 100.0
 #: Decisions in ``action_mask`` order.
@@ -225,7 +231,8 @@ class ObservationBuilder:
         nxt = next_route_edge(routes, snap.route_index[rows])
         lanes = sensed.neighbours.lane  # (A, 3)
         exists = lanes >= 0
-        act, mandatory, end_dist = self.action_mask(snap, rows, lanes, nxt)
+        after = next_route_edge(routes, snap.route_index[rows] + 1)
+        act, mandatory, end_dist = self.action_mask(snap, rows, lanes, nxt, after)
 
         ego = np.clip(sensed.ego / EGO_SCALE, -1.0, 1.0)  # (A, 5)
         pos, via = self._route_hops(snap, rows, lanes, nxt)
@@ -347,10 +354,13 @@ class ObservationBuilder:
         return out, found.any(axis=2)
 
     def action_mask(
-        self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray, next_edge: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray, next_edge: np.ndarray,
+        after: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
         """(A, 3) bool allowed (left, follow, right); (A,) bool mandatory-change zone; (A,)
-        distance from the front bumper to the current lane's end [m]."""
+        distance from the front bumper to the current lane's end [m]. ``after``: (A,) the
+        route edge after ``next_edge`` (-1 none); a lane whose connection lands on a lane of a
+        next edge shorter than ``SHORT_EDGE`` that cannot reach it does not continue."""
         hd, g = self.hdmap, self.graph
         cur = lanes[:, CURRENT]
         csafe = np.maximum(cur, 0)
@@ -360,6 +370,8 @@ class ObservationBuilder:
         k = np.arange(edge_lanes.shape[1])
         valid = (edge_lanes >= 0) & (edge >= 0)[:, None]
         cont = g.connection(edge_lanes, np.broadcast_to(next_edge[:, None], edge_lanes.shape)) >= 0
+        if after is not None:
+            cont &= self._through_short_edge(edge_lanes, next_edge, after)
         cont = valid & (cont | (next_edge < 0)[:, None])
         idx = hd.lane_index[csafe].astype(np.int64)[:, None]
         left_ok = lanes[:, 0] >= 0
@@ -371,6 +383,26 @@ class ObservationBuilder:
         mandatory = ~cur_cont & (end_dist <= MANDATORY_DISTANCE) & (edge >= 0)
         follow = ~mandatory | ~(left_ok | right_ok)
         return np.stack([left_ok, follow, right_ok], axis=1), mandatory, end_dist
+
+    def _through_short_edge(
+        self, lanes: np.ndarray, next_edge: np.ndarray, after: np.ndarray
+    ) -> np.ndarray:
+        """(A, K) bool: from ``lanes`` (A, K) the route goes on past ``next_edge`` (A,): True
+        unless it is shorter than ``SHORT_EDGE`` and the lane the connection lands on has no
+        connection into ``after`` (imported networks split roads into edges of centimetres,
+        on which no lane change fits)."""
+        hd, g = self.hdmap, self.graph
+        nxt = np.broadcast_to(next_edge[:, None], lanes.shape)
+        short = (next_edge >= 0) & (after >= 0)
+        short &= hd.edge_length[np.maximum(next_edge, 0)] < SHORT_EDGE
+        if not short.any():
+            return np.ones(lanes.shape, bool)
+        via = g.connection(lanes, nxt)
+        exit_lane, _ = exit_table(hd)
+        vsafe = np.maximum(via, 0)
+        land = np.where(hd.lane_edge[vsafe] >= 0, via, exit_lane[vsafe])
+        on = g.connection(land, np.broadcast_to(after[:, None], lanes.shape)) >= 0
+        return ~short[:, None] | (via < 0) | on
 
 
 def _push(buf: np.ndarray, slots: np.ndarray, frame: np.ndarray, axis: int) -> np.ndarray:
