@@ -131,3 +131,14 @@ def test_a_lane_continues_the_route_only_if_it_does_past_a_short_edge(tmp_path: 
     assert b._through_short_edge(lanes, via, np.array([e["CD"]])).tolist() == [[True, False]]
     assert b._through_short_edge(lanes, via, np.array([e["CE"]])).tolist() == [[False, True]]
     assert b._through_short_edge(lanes, via, np.array([-1])).all()  # the route ends there
+
+
+def test_an_unsignalised_link_at_a_signal_gives_way_by_the_junction_table() -> None:
+    """RiLSA example 2: lane ins_0 enters signalised junction 0s by a link without a signal
+    whose state reads M, yet SUMO's right-of-way table makes it yield to the signalised
+    links. Read from the state alone, its AVs did not yield (4 collisions in 90 s)."""
+    net = (Path(sumo.SUMO_HOME) / "tools" / "sumolib" / "scenario" / "scenarios" / "RealWorld"
+           / "RiLSA_example2" / "rilsa2.net.xml")  # fmt: skip
+    hd = load_hdmap(net)
+    assert hd.lane_yields[hd.lane_row["ins_0"]]
+    assert not hd.lane_yields[hd.lane_row["wm_0"]]  # signalised: the light rules it

@@ -32,8 +32,8 @@ SHIFT_ANGLE = np.deg2rad(45.0)
 SHIFT_STRAIGHT = np.deg2rad(20.0)
 #: Extra cost of a turnaround in ``HDMap.fastest_path`` [s].
 UTURN_PENALTY = 120.0
-_CACHE_VERSION = "hdmap-v6"  # v2: sumolib; v3: lane permissions; v4: yield links; v5: shifts,
-# turnarounds; v6: internal yields
+_CACHE_VERSION = "hdmap-v7"  # v2: sumolib; v3: lane permissions; v4: yield links; v5: shifts,
+# turnarounds; v6: internal yields; v7: unsignalised links at signals
 YIELD_STATES = frozenset("m=swZ")
 """SUMO link states that give way to foes (minor, equal, stop, all-way stop, zipper)."""
 CAR = "passenger"
@@ -277,7 +277,7 @@ def read_net(net_file: str | Path, with_internal: bool = True) -> sumolib.net.Ne
         net = None
         if tag == "net" and not empty:
             net = sumolib.net.readNet(
-                str(net_file), withInternal=with_internal, withMacroConnectors=True, withFoes=False
+                str(net_file), withInternal=with_internal, withMacroConnectors=True, withFoes=True
             )
     except (SyntaxError, SAXException, EOFError, zlib.error, gzip.BadGzipFile) as e:
         detail = str(e)
@@ -323,7 +323,7 @@ def build_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
     lane_car = np.array([lane.allows(vclass) for lane in lanes], dtype=bool)
     lane_next, conn_to, tls_links = _connections(lanes, lane_ids, lane_edge, edge_row, lane_car)
     uturn = {c.getViaLaneID() for ln in lanes for c in ln.getOutgoing() if c.getDirection() == "t"}
-    yields = np.array([any(c.getState() in YIELD_STATES for c in ln.getOutgoing()) for ln in lanes])
+    yields = np.array([any(map(_gives_way, ln.getOutgoing())) for ln in lanes])
     samples = [_sample(np.reshape(ln.getShape3D(), (-1, 3)), ln.getLength()) for ln in lanes]
     counts = np.array([len(pts) for pts, _ in samples], dtype=np.int64)
     hdmap = HDMap(
@@ -351,6 +351,18 @@ def build_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
     )
     _straighten_shifts(hdmap)
     return hdmap
+
+
+def _gives_way(c: Any) -> bool:
+    """A sumolib connection must give way: its state is one of ``YIELD_STATES``, or it is a
+    link without a signal at a signalised junction whose right-of-way table (``<request>``
+    response) lets other links go first: its state reads M, SUMO still makes it yield."""
+    if c.getState() in YIELD_STATES:
+        return True
+    node = c.getFrom().getToNode()
+    if c.getState() != "M" or c.getTLSID() or not node.getType().startswith("traffic_light"):
+        return False
+    return "1" in node._prohibits.get(node.getLinkIndex(c), "")  # sumolib keeps it private
 
 
 def _straighten_shifts(hd: HDMap) -> None:
