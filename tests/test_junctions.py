@@ -127,10 +127,11 @@ def test_a_lane_continues_the_route_only_if_it_does_past_a_short_edge(tmp_path: 
     assert hd.edge_length[e["BC"]] < SHORT_EDGE
     b = ObservationBuilder(EnvConfig(), hd)
     lanes = hd.edge_lanes[[e["AB"]]].astype(np.int64)  # (1, 2): AB_0, AB_1
-    via = np.array([e["BC"]])
-    assert b._through_short_edge(lanes, via, np.array([e["CD"]])).tolist() == [[True, False]]
-    assert b._through_short_edge(lanes, via, np.array([e["CE"]])).tolist() == [[False, True]]
-    assert b._through_short_edge(lanes, via, np.array([-1])).all()  # the route ends there
+    nxt = np.array([e["BC"]])
+    via = b.graph.connection(lanes, np.broadcast_to(nxt[:, None], lanes.shape))
+    assert b._through_short_edge(via, nxt, np.array([e["CD"]])).tolist() == [[True, False]]
+    assert b._through_short_edge(via, nxt, np.array([e["CE"]])).tolist() == [[False, True]]
+    assert b._through_short_edge(via, nxt, np.array([-1])).all()  # the route ends there
 
 
 def test_an_unsignalised_link_at_a_signal_gives_way_by_the_junction_table() -> None:

@@ -21,9 +21,18 @@ for _c in "yYu":
     _CODE[ord(_c)] = YELLOW
 
 
-def _state_codes(state: str) -> np.ndarray:
-    """SUMO signal characters -> codes: r/R/s red, y/Y/u yellow, g/G/o/O green."""
-    return _CODE[np.frombuffer(state.encode("ascii"), dtype=np.uint8)]
+def _link_chars(
+    tls_states: Sequence[str], tl: np.ndarray, link: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(...) uint8 SUMO signal character of link ``link`` of light ``tl`` (an index into
+    ``tls_states``) now, and (...) bool: that link exists (0 where not)."""
+    chars = np.frombuffer("".join(tls_states).encode("ascii"), dtype=np.uint8)
+    offsets = np.concatenate([[0], np.cumsum([len(s) for s in tls_states])]).astype(np.int64)
+    flat = offsets[np.maximum(tl, 0)] + link
+    ok = (tl >= 0) & (link >= 0) & (flat < len(chars))
+    if not len(chars):
+        return np.zeros(np.shape(flat), np.uint8), ok
+    return chars[np.clip(flat, 0, len(chars) - 1)], ok
 
 
 def traffic_lights(
@@ -44,11 +53,8 @@ def traffic_lights(
     tl2, link2 = g.signal(lanes, g.next_edge[lsafe])  # lane's own way on
     miss = tl < 0
     tl, link = np.where(miss, tl2, tl), np.where(miss, link2, link)
-    codes = _state_codes("".join(tls_states))
-    offsets = np.concatenate([[0], np.cumsum([len(s) for s in tls_states])])
-    flat = offsets[np.maximum(tl, 0)] + link
-    ok = (tl >= 0) & (link >= 0) & (flat < len(codes))
-    state = np.where(ok, codes[np.minimum(flat, max(len(codes) - 1, 0))], NO_LIGHT)
+    chars, ok = _link_chars(tls_states, tl, link)
+    state = np.where(ok, _CODE[chars], NO_LIGHT)
     ratio = hd.lane_length[lsafe] / np.maximum(hd.lane_length[lsafe[:, CURRENT]], 1e-9)[:, None]
     pos = snap.lane_pos[rows][:, None] * ratio
     dist = np.where(ok, np.maximum(hd.lane_length[lsafe] - pos, 0.0), np.inf)
@@ -57,7 +63,7 @@ def traffic_lights(
 
 #: Signal characters at which a vehicle must yield to its link's foes: a permissive green
 #: (g, e.g. a left turn across the oncoming stream) and a signal that is off, blinking (o).
-PERMISSIVE = "go"
+PERMISSIVE = np.frombuffer(b"go", dtype=np.uint8)
 
 
 def permissive(
@@ -66,11 +72,8 @@ def permissive(
     """(A,) bool: the link from ``lane`` into ``next_edge`` is signalised and shows a
     ``PERMISSIVE`` character now (``tls_states`` in ``graph.tls_ids`` order)."""
     tl, link = graph.signal(np.asarray(lane), np.asarray(next_edge))
-    out = np.zeros(len(tl), bool)
-    for k in np.flatnonzero((tl >= 0) & (link >= 0)).tolist():
-        state = tls_states[tl[k]]
-        out[k] = link[k] < len(state) and state[link[k]] in PERMISSIVE
-    return out
+    chars, ok = _link_chars(tls_states, tl, link)
+    return ok & np.isin(chars, PERMISSIVE)
 
 
 def give_way(

@@ -355,7 +355,7 @@ class ObservationBuilder:
 
     def action_mask(
         self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray, next_edge: np.ndarray,
-        after: np.ndarray | None = None,
+        after: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
         """(A, 3) bool allowed (left, follow, right); (A,) bool mandatory-change zone; (A,)
         distance from the front bumper to the current lane's end [m]. ``after``: (A,) the
@@ -369,9 +369,8 @@ class ObservationBuilder:
         edge_lanes = hd.edge_lanes[esafe].astype(np.int64)  # (A, K)
         k = np.arange(edge_lanes.shape[1])
         valid = (edge_lanes >= 0) & (edge >= 0)[:, None]
-        cont = g.connection(edge_lanes, np.broadcast_to(next_edge[:, None], edge_lanes.shape)) >= 0
-        if after is not None:
-            cont &= self._through_short_edge(edge_lanes, next_edge, after)
+        via = g.connection(edge_lanes, np.broadcast_to(next_edge[:, None], edge_lanes.shape))
+        cont = (via >= 0) & self._through_short_edge(via, next_edge, after)
         cont = valid & (cont | (next_edge < 0)[:, None])
         idx = hd.lane_index[csafe].astype(np.int64)[:, None]
         left_ok = lanes[:, 0] >= 0
@@ -385,23 +384,21 @@ class ObservationBuilder:
         return np.stack([left_ok, follow, right_ok], axis=1), mandatory, end_dist
 
     def _through_short_edge(
-        self, lanes: np.ndarray, next_edge: np.ndarray, after: np.ndarray
+        self, via: np.ndarray, next_edge: np.ndarray, after: np.ndarray
     ) -> np.ndarray:
-        """(A, K) bool: from ``lanes`` (A, K) the route goes on past ``next_edge`` (A,): True
-        unless it is shorter than ``SHORT_EDGE`` and the lane the connection lands on has no
-        connection into ``after`` (imported networks split roads into edges of centimetres,
-        on which no lane change fits)."""
+        """(A, K) bool: through the connections ``via`` (A, K) of a lane into ``next_edge``
+        (A,), the route goes on past it: True unless it is shorter than ``SHORT_EDGE`` and the
+        lane the connection lands on has no connection into ``after`` (imported networks split
+        roads into edges of centimetres, on which no lane change fits)."""
         hd, g = self.hdmap, self.graph
-        nxt = np.broadcast_to(next_edge[:, None], lanes.shape)
         short = (next_edge >= 0) & (after >= 0)
         short &= hd.edge_length[np.maximum(next_edge, 0)] < SHORT_EDGE
         if not short.any():
-            return np.ones(lanes.shape, bool)
-        via = g.connection(lanes, nxt)
+            return np.ones(via.shape, bool)
         exit_lane, _ = exit_table(hd)
         vsafe = np.maximum(via, 0)
         land = np.where(hd.lane_edge[vsafe] >= 0, via, exit_lane[vsafe])
-        on = g.connection(land, np.broadcast_to(after[:, None], lanes.shape)) >= 0
+        on = g.connection(land, np.broadcast_to(after[:, None], via.shape)) >= 0
         return ~short[:, None] | (via < 0) | on
 
 
