@@ -330,22 +330,29 @@ def test_reset_waits_for_the_first_av_and_pettingzoo_accepts_a_sparse_env() -> N
     performance_benchmark(mixed_traffic.env(**SPARSE))
 
 
+def _grid_sumocfg(tmp_path, begin: float = 5.0, end: float = 100.0, turn: bool = True) -> str:
+    """A netgenerate 3x3 grid (100 m blocks) and a .sumocfg whose two flows run from
+    ``begin`` to ``end`` [s], turning at a corner or (``turn`` False) straight across."""
+    net = tmp_path / "grid.net.xml"
+    subprocess.run([binary("netgenerate"), "--grid", "--grid.number", "3", "--grid.length", "100",
+                    "-L", "2", "--tls.guess", "-o", str(net)], check=True, capture_output=True)  # fmt: skip
+    (tmp_path / "r.rou.xml").write_text(
+        f'<routes><flow id="ac" begin="{begin}" end="{end}" period="3" from="A0A1" '
+        f'to="{"C1C2" if turn else "A1A2"}"/><flow id="ca" begin="{begin + 1}" end="{end}" '
+        f'period="4" from="C2C1" to="{"A1A0" if turn else "C1C0"}"/></routes>'
+    )
+    cfg = tmp_path / "run.sumocfg"
+    cfg.write_text('<configuration><input><net-file value="grid.net.xml"/>'
+                   '<route-files value="r.rou.xml"/></input></configuration>')  # fmt: skip
+    return str(cfg)
+
+
 def test_pettingzoo_accepts_a_user_sumocfg_whose_vehicles_depart_later(tmp_path) -> None:
     """A netgenerate grid and a .sumocfg whose flows start at 5 s: reset() waits for the
     first AV, then all four PettingZoo test functions pass."""
     from pettingzoo.test import performance_benchmark
 
-    net = tmp_path / "grid.net.xml"
-    subprocess.run([binary("netgenerate"), "--grid", "--grid.number", "3", "--grid.length", "100",
-                    "-L", "2", "--tls.guess", "-o", str(net)], check=True, capture_output=True)  # fmt: skip
-    (tmp_path / "r.rou.xml").write_text(
-        '<routes><flow id="ac" begin="5" end="100" period="3" from="A0A1" to="C1C2"/>'
-        '<flow id="ca" begin="6" end="100" period="4" from="C2C1" to="A1A0"/></routes>'
-    )
-    cfg = tmp_path / "run.sumocfg"
-    cfg.write_text('<configuration><input><net-file value="grid.net.xml"/>'
-                   '<route-files value="r.rou.xml"/></input></configuration>')  # fmt: skip
-    kw = dict(scenario=str(cfg), penetration=0.3, episode_length=30.0)
+    kw = dict(scenario=_grid_sumocfg(tmp_path), penetration=0.3, episode_length=30.0)
     e = parallel_env(**kw)
     try:
         e.reset(seed=0)
@@ -356,6 +363,37 @@ def test_pettingzoo_accepts_a_user_sumocfg_whose_vehicles_depart_later(tmp_path)
     api_test(mixed_traffic.env(**kw), num_cycles=10)
     parallel_seed_test(lambda: parallel_env(**kw), num_cycles=10)
     performance_benchmark(mixed_traffic.env(**kw))
+
+
+def test_a_fixed_fleet_drives_a_sumocfgs_av_trips_in_turn(tmp_path) -> None:
+    """fixed_fleet on a .sumocfg: a pool of agents bounded by how many AV trips overlap
+    drives all of them, each agent trip after trip under its own id; PettingZoo's test passes
+    (issue 24: a slot pool instead of one agent per trip)."""
+    from agents.rules.acc_lc import AccLcPolicy
+
+    grid = _grid_sumocfg(tmp_path, 0.0, 200.0, turn=False)
+    kw = dict(scenario=grid, penetration=0.5, episode_length=200.0)
+    per_trip = parallel_env(**kw).possible_agents  # one agent per AV trip of the episode
+    e = parallel_env(**kw, fixed_fleet=True)
+    fleet = list(e.possible_agents)
+    assert 0 < len(fleet) < len(per_trip)
+    policy, entries = AccLcPolicy(), dict.fromkeys(fleet, 0)
+    try:
+        obs, _ = e.reset(seed=0)
+        while e.agents:
+            assert e.agents == fleet
+            obs, _, term, _, infos = e.step(policy.actions({a: obs[a] for a in e.agents}))
+            assert not any(term.values())
+            for a, info in infos.items():
+                entries[a] += info["event"] == "entered"
+        served = e.flow_diagnostics()
+    finally:
+        e.close()
+    assert max(entries.values()) >= 3, "agents drive trip after trip"
+    # every AV trip due was served or still waits; the first ones entered during reset
+    assert served["fleet_trips"] >= sum(entries.values()) > len(fleet)
+    assert served["fleet_trips"] + served["fleet_unserved"] >= len(per_trip) - 2
+    parallel_api_test(parallel_env(**kw, fixed_fleet=True), num_cycles=60)
 
 
 def test_reset_names_a_wait_that_runs_out() -> None:

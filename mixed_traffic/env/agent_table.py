@@ -91,6 +91,8 @@ class AgentTable:
         """(n,) decision of the last step by slot (follow for agents that did not act)."""
         self._rows_key: tuple = ()
         self._rows: Rows | None = None
+        self._admissions = 0
+        """Changes of the admitted set (the ``live_rows`` cache key)."""
 
     def reset(self, agents: list[str]) -> None:
         """Start an episode with ``agents`` live (all of them with a fixed fleet, else none)."""
@@ -107,6 +109,7 @@ class AgentTable:
     def set_route(self, agent: str, route: np.ndarray) -> None:
         """Store an admitted agent's route (the table widens when a route is longer)."""
         self.routes[agent] = route
+        self._admissions += 1
         slot, table = self.slot[agent], self.route_table
         if len(route) > table.shape[1]:
             wider = np.full((len(table), len(route)), -1, dtype=np.int64)
@@ -115,6 +118,11 @@ class AgentTable:
         table[slot] = -1
         table[slot, : len(route)] = route
         self.route_len[slot] = len(route)
+
+    def end_trip(self, agent: str) -> None:
+        """``agent`` is no longer on the road: not live until admitted again."""
+        if self.routes.pop(agent, None) is not None:
+            self._admissions += 1
 
     def next_edge(self, slots: np.ndarray, route_index: np.ndarray) -> np.ndarray:
         """(A,) next edge row of each agent's route after ``route_index`` (A,), -1 on the last."""
@@ -132,7 +140,7 @@ class AgentTable:
         """
         agents, routes = self.agents, self.routes
         # by content: the env rebuilds the agent list every step, usually with the same agents
-        key = (tuple(agents), len(routes))
+        key = (tuple(agents), self._admissions)
         if self._rows_key and self._rows_key[0] is snap and self._rows_key[1:] == key:
             return self._rows
         index = snap.index_of()

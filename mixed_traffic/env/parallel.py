@@ -48,7 +48,7 @@ from __future__ import annotations
 import contextlib
 import os
 import shutil
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 from itertools import compress, repeat
 from pathlib import Path
@@ -88,8 +88,9 @@ from mixed_traffic.sensing.lane_graph import lane_graph
 from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
 from mixed_traffic.sensing.perception import Perception
 from mixed_traffic.world.backend import SumoBackend
-from mixed_traffic.world.boundary import PeriodicBoundary
+from mixed_traffic.world.boundary import PeriodicBoundary, make_boundary
 from mixed_traffic.world.demand import av_count, make_demand, write_demand
+from mixed_traffic.world.fleet_pool import FleetPool
 from mixed_traffic.world.registry import load_scenario
 from mixed_traffic.world.scenario import sumo_args
 from mixed_traffic.world.snapshot import TrafficSnapshot
@@ -154,7 +155,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._episode_rng = np.random.default_rng(cfg.seed)
         # per episode, set by reset()
         self._snap: TrafficSnapshot | None = None
-        self._boundary: PeriodicBoundary | None = None
+        self._boundary: PeriodicBoundary | FleetPool | None = None
         self._noise_rng: np.random.Generator | None = None
         self._flow: FlowRecorder | None = None
         self._av: AVMetrics | None = None
@@ -199,9 +200,8 @@ class MixedTrafficEnv(ParallelEnv):
         sc = self.scenario
         write_demand(demand, cfg, route_file, self.sumo_drives_avs, sc.vtypes, sc.vclass)
         self._backend.start(sumo_args(self.scenario, cfg, route_file, seed=int(sumo_seed) % 2**31))
-        self._boundary = PeriodicBoundary.for_demand(
-            self.scenario, demand, cfg.human, cfg.step_length, cfg.fixed_fleet
-        )
+        fleet = self.possible_agents if cfg.fixed_fleet else None
+        self._boundary = make_boundary(self.scenario, demand, cfg.human, cfg.step_length, fleet)
         self._noise_rng = np.random.default_rng(noise_seed)
         self._controller.reset()
         self._builder.reset()
@@ -310,11 +310,12 @@ class MixedTrafficEnv(ParallelEnv):
         self._tls = dict(zip(ids, self._backend.tls_states(ids)))
         return snap
 
-    def _admit(self, snap: TrafficSnapshot) -> list[str]:
-        """Start controlling AVs that (re-)entered the network; returns their ids."""
+    def _admit(self, snap: TrafficSnapshot, gone: Sequence[str] = ()) -> list[str]:
+        """Start controlling AVs that (re-)entered the network; returns their ids. ``gone``:
+        agents removed after ``snap`` was taken (a fixed fleet's may re-enter later)."""
         table = self._table
         avs = list(compress(snap.ids, snap.is_av.tolist()))
-        fresh = set(avs).difference(self._controller.tracked, table.finished, table.released)
+        fresh = set(avs).difference(self._controller.tracked, table.finished, table.released, gone)
         if not fresh:  # the usual step: set operations only, no per-vehicle Python loop
             return []
         new = [v for v in avs if v in fresh]  # in snapshot order
@@ -439,7 +440,7 @@ class MixedTrafficEnv(ParallelEnv):
         if not cfg.fixed_fleet:
             table.finished.update(done)
             table.agents = [a for a in agents if not terminated[a]]
-        new = [] if truncate else self._admit(snap)  # nobody enters at the time limit
+        new = [] if truncate else self._admit(snap, done)  # nobody enters at the time limit
         if new:
             new_obs = self._observe_new(snap, new)
             for a in new:
@@ -475,6 +476,8 @@ class MixedTrafficEnv(ParallelEnv):
         removed = [a for a in done if events[a] not in ("arrived", "collision")]
         self._boundary.replace(self._backend, removed)
         self._controller.remove(done)
+        for a in done:  # not live until admitted again (the step's snapshot still shows it)
+            self._table.end_trip(a)
 
     def _observe_new(self, snap: TrafficSnapshot, new: list[str]) -> dict[str, dict]:
         """Observations of agents that entered this step (they act from the next step on)."""
@@ -513,8 +516,11 @@ class MixedTrafficEnv(ParallelEnv):
 
     def flow_diagnostics(self) -> dict[str, float | int | None]:
         """Flow figures of the episode beyond the metric catalogue (delay indices, free-flow
-        time, vehicles seen, steps)."""
-        return self._recorder("flow_diagnostics").diagnostics()
+        time, vehicles seen, steps; with a fleet pool, its trips and waits)."""
+        out = self._recorder("flow_diagnostics").diagnostics()
+        if isinstance(self._boundary, FleetPool):
+            out.update(self._boundary.summary())
+        return out
 
     def trajectories(self) -> dict[str, np.ndarray]:
         """With ``trace=True``: every vehicle's time ``t`` [s], position ``s`` [m] along the

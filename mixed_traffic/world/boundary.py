@@ -16,6 +16,7 @@ import numpy as np
 from mixed_traffic.config import HumanConfig
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.demand import Demand, QueuedVehicle
+from mixed_traffic.world.fleet_pool import FleetPool
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.scenario import Scenario
 from mixed_traffic.world.snapshot import TrafficSnapshot
@@ -141,3 +142,13 @@ class PeriodicBoundary:
     def inserted(self) -> int:
         """Queued vehicles inserted so far."""
         return self._next
+
+
+def make_boundary(
+    scenario: Scenario, demand: Demand, human: HumanConfig, dt: float, fleet: list[str] | None
+) -> PeriodicBoundary | FleetPool:
+    """What brings vehicles in during an episode: the fixed ``fleet`` (agent ids) driving a
+    user's AV trips in turn, else the periodic boundary (``fleet`` None: no fixed fleet)."""
+    if fleet is not None and scenario.own_vehicles:
+        return FleetPool.for_trips(fleet, demand.fleet_trips, demand.routes, scenario.begin)
+    return PeriodicBoundary.for_demand(scenario, demand, human, dt, fleet is not None)

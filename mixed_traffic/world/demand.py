@@ -25,6 +25,7 @@ from mixed_traffic.world.drivers import (
     add_vehicle_types,
     cautious,
 )
+from mixed_traffic.world.fleet_pool import FleetTrip, pool_size
 from mixed_traffic.world.hdmap import CAR
 from mixed_traffic.world.placement import (
     Placed,
@@ -80,6 +81,8 @@ class Demand:
     """IDM equilibrium speed at the target density [m/s]."""
     inflow: float
     """Total inflow [veh/s]."""
+    fleet_trips: tuple[FleetTrip, ...] = ()
+    """A .sumocfg's AV trips that a fixed fleet drives in turn (``fleet_pool``)."""
 
     @property
     def placed_ids(self) -> frozenset[str]:
@@ -160,6 +163,8 @@ def _lane_count(length: float, per_lane: float) -> int:
 
 def av_count(scenario: Scenario, config: EnvConfig) -> int:
     """Number of AVs ``make_demand`` plans for ``config`` under any seed (without drawing it)."""
+    if scenario.own_vehicles and config.fixed_fleet:
+        return pool_size(scenario, config.penetration, config.episode_length)
     if scenario.own_vehicles:
         return int(round(config.penetration * len(scenario.own_in_episode(config.episode_length))))
     plan, hd = _plan(scenario, config), scenario.hdmap
@@ -343,20 +348,24 @@ def _vehicles(placed: _Placement, queue_routes: np.ndarray, is_av: np.ndarray, c
 
 
 def _own_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator) -> Demand:
-    """The user's vehicles as given; exactly round(p*N) of them, drawn by the seed, become AVs."""
+    """The user's vehicles as given; exactly round(p*N) of them, drawn by the seed, become AVs
+    (with a fixed fleet: trips that the fleet drives in turn, see ``fleet_pool``)."""
     own = scenario.own_in_episode(config.episode_length)  # sorted: SUMO wants it so
     n_av = int(round(config.penetration * len(own)))
     is_av = np.zeros(len(own), dtype=bool)
     is_av[rng.choice(len(own), size=n_av, replace=False)] = True
-    vehicles, k = [], 0
+    vehicles, trips, k = [], [], 0
     for v, av in zip(own, is_av):
+        if av and config.fixed_fleet:
+            trips.append(FleetTrip(v.depart, v.route))
+            continue
         if av:
             vid, k = f"av_{k}", k + 1
         else:  # keep the user's id unless it could clash with an AV id
             vid = f"hv_{v.vid}" if v.vid.startswith("av_") else v.vid
         vehicles.append(PlannedVehicle(vid, v.depart, v.route, bool(av), vtype=v.vtype))
     span = max(1.0, own[-1].depart - own[0].depart) if own else 1.0
-    return Demand(scenario.routes, tuple(vehicles), (), 0.0, len(own) / span)
+    return Demand(scenario.routes, tuple(vehicles), (), 0.0, len(own) / span, tuple(trips))
 
 
 def _type_of(v: PlannedVehicle, avs_as_humans: bool) -> str:
