@@ -89,13 +89,16 @@ def test_the_examples_tool_lists_sumos_networks_and_sums_per_trip() -> None:
     nets = sumo_examples("net")
     assert len(nets) >= 20 and any(p.name.endswith(".net.xml.gz") for p in nets)
     rows = [
-        {"file": "a", "status": "ok", "av_trips": 30, "terminal": {"collision": 2}},
-        {"file": "b", "status": "ok", "av_trips": 10, "terminal": {}},
+        {"file": "a", "status": "ok", "av_trips": 30, "terminal": {"collision": 2},
+         "possible_agents": 40, "wall_per_sim_s": 0.5},
+        {"file": "b", "status": "ok", "av_trips": 10, "terminal": {},
+         "possible_agents": 12, "wall_per_sim_s": 0.25},
         {"file": "c", "status": "no car lane"},
-    ]
+        {"file": "d", "status": "error", "error": "KeyError: 'x'"},
+    ]  # fmt: skip
     text = summary(rows)
     assert text.splitlines()[-1] == "all: 2 terminal events in 40 AV trips = 5.0 % per trip"
-    assert "no car lane" in text
+    assert "no car lane" in text and "error: KeyError: 'x'" in text
 
 
 SHORT_NET = {

@@ -155,6 +155,41 @@ def test_acc_lc_gives_way_at_unsignalised_junctions(tmp_path: Path) -> None:
     assert sum(m[f"terminal_{r}"] for r in TERMINAL_REASONS) == 0
 
 
+def test_a_sumocfg_keeps_what_the_env_does_not_model(tmp_path: Path) -> None:
+    """A person on foot, a bus routed only by its stops and bikes on a bike-only road go to
+    SUMO as written and are never AVs; the cars are the traffic the AVs come from."""
+    net = _netconvert(tmp_path, '<edge id="AB" from="A" to="B" numLanes="2" speed="14" '
+                      'sidewalkWidth="2"/><edge id="BC" from="B" to="C" numLanes="2" speed="14" '
+                      'sidewalkWidth="2"/><edge id="BK" from="B" to="C" numLanes="1" '
+                      'allow="bicycle"/>', "mixed.net.xml")  # fmt: skip
+    (tmp_path / "stops.add.xml").write_text('<additional><busStop id="s1" lane="BC_1" '
+                                            'startPos="20" endPos="40"/></additional>')  # fmt: skip
+    (tmp_path / "r.rou.xml").write_text(
+        '<routes><vType id="bus" vClass="bus" length="12"/><route id="bike_way" edges="BK"/>'
+        '<flow id="cars" begin="0" end="30" period="2" from="AB" to="BC"/>'
+        '<trip id="bus0" type="bus" depart="3"><stop busStop="s1" duration="5"/></trip>'
+        '<flow id="bikes" type="DEFAULT_BIKETYPE" begin="1" end="30" period="5" '
+        'route="bike_way"/><person id="walker" depart="2"><walk edges="AB BC"/></person>'
+        "</routes>"
+    )
+    cfg = tmp_path / "mixed.sumocfg"
+    cfg.write_text(f'<configuration><input><net-file value="{net.name}"/><route-files '
+                   'value="r.rou.xml"/><additional-files value="stops.add.xml"/></input>'
+                   "</configuration>")  # fmt: skip
+    sc = load_scenario(str(cfg))
+    assert len(sc.own_vehicles) == 15  # the cars only
+    env = parallel_env(scenario=str(cfg), penetration=1.0, episode_length=30.0)
+    assert len(env.possible_agents) == 15
+    env.reset(seed=0)
+    api, seen = env._backend._api, set()
+    while env.agents:
+        seen |= set(api.vehicle.getIDList()) | {f"person:{p}" for p in api.person.getIDList()}
+        env.step({a: {"decision": 1, "params": np.zeros((3, 2), np.float32)} for a in env.agents})
+    env.close()
+    assert {"bus0", "bikes.0", "person:walker"} <= seen
+    assert not any(v.startswith("av_") for v in ("bus0", "bikes.0"))
+
+
 def test_avs_derive_from_a_sumocfg_type_of_another_class(tmp_path: Path) -> None:
     """A file with only racing cars of class vip on vip-only lanes: the AVs are vip cars the
     size of the racing type, and the lanes are theirs (issue 24, part 2)."""

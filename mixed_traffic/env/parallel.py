@@ -198,7 +198,9 @@ class MixedTrafficEnv(ParallelEnv):
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
         route_file = Path(self._tmp) / "demand.rou.xml"
         sc = self.scenario
-        write_demand(demand, cfg, route_file, self.sumo_drives_avs, sc.vtypes, sc.vclass)
+        write_demand(
+            demand, cfg, route_file, self.sumo_drives_avs, sc.vtypes, sc.vclass, sc.verbatim
+        )
         self._backend.start(sumo_args(self.scenario, cfg, route_file, seed=int(sumo_seed) % 2**31))
         fleet = self.possible_agents if cfg.fixed_fleet else None
         self._boundary = make_boundary(self.scenario, demand, cfg.human, cfg.step_length, fleet)

@@ -390,17 +390,24 @@ def write_demand(
     avs_as_humans: bool = False,
     vtypes: tuple[str, ...] = (),
     av_class: str = CAR,
+    verbatim: tuple[tuple[float, str], ...] = (),
 ) -> None:
     """Write vehicle types and the planned vehicles as a SUMO route file (``avs_as_humans``: the
     AV-labelled vehicles get the human drivers' types, for the all-human reference; ``vtypes``:
     a user's vType elements as XML text, for its own vehicles; ``av_class``: the AVs' SUMO
-    vehicle class)."""
+    vehicle class; ``verbatim``: (departure [s], XML text) of elements written as given, in
+    departure order among the vehicles)."""
     root = ET.Element("routes")
     add_vehicle_types(root, config.human, config.vehicle, avs_as_humans, av_class)
     root.extend(ET.fromstring(t) for t in vtypes)
     for i, r in enumerate(demand.routes):
         ET.SubElement(root, "route", id=f"r{i}", edges=" ".join(r.edges or (r.origin,)))
+    written = iter(verbatim)
+    pending = next(written, None)
     for v in demand.vehicles:
+        while pending is not None and pending[0] <= v.depart:  # SUMO reads departures in order
+            root.append(ET.fromstring(pending[1]))
+            pending = next(written, None)
         r = demand.routes[v.route]
         attrs = {"id": v.vid, "type": _type_of(v, avs_as_humans), "depart": f"{v.depart:.2f}"}
         if not attrs["type"]:
@@ -414,6 +421,7 @@ def write_demand(
             ET.SubElement(root, "vehicle", route=f"r{v.route}", **attrs)
         else:
             ET.SubElement(root, "trip", attrs, **{"from": r.origin, "to": r.destination})
+    root.extend(ET.fromstring(text) for _, text in ([pending] if pending else []) + list(written))
     ET.indent(root)
     tmp = path.with_suffix(".tmp")
     ET.ElementTree(root).write(tmp, encoding="utf-8", xml_declaration=True)

@@ -75,6 +75,10 @@ class Scenario:
     vtypes: tuple[str, ...] = ()
     """A user's vType / vTypeDistribution elements from its route files, as XML text (they go
     into the episode's route file; those of additional files SUMO loads itself)."""
+    verbatim: tuple[tuple[float, str], ...] = ()
+    """(departure [s], XML text) of what a .sumocfg's route files define that SUMO runs as
+    written, in departure order: persons, containers, vehicles routed by their stops or on roads
+    the AVs may not use, and the named routes these use."""
     begin: float = 0.0
     """A .sumocfg's begin [s of SUMO time]: the episode's clock starts there."""
     step_length: float | None = None

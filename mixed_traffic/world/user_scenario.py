@@ -74,6 +74,7 @@ class _Net:
                 "lanes allow only e.g. pedestrians, bicycles or rail)"
             )
         self.path = path
+        self.edges = {e.getID() for e in normal}
         # lanes cars may use, per edge (sidewalks and bike lanes do not count for density)
         self.lanes: dict[str, int] = {
             e.getID(): sum(ln.allows(vclass) for ln in e.getLanes()) for e in edges
@@ -179,12 +180,14 @@ def _from_sumocfg(path: Path) -> Scenario:
     seed = int(_cfg_value(root, "seed") or 0)
     routes: list[Route] = []
     own: list[OwnVehicle] = []
+    verbatim: list[tuple[float, str]] = []
     begin, end = (_seconds(root, path, key) for key in ("begin", "end"))
     rng = np.random.default_rng(seed)
     for rf, rroot in roots:
-        _read_routes(rroot, rf, net, routes, own, rng, end or DEFAULT_FLOW_END)
+        _read_routes(rroot, rf, net, routes, own, rng, end or DEFAULT_FLOW_END, verbatim)
     if not own:
-        raise ValueError(f"SUMO configuration {path}: its route files define no vehicles")
+        raise ValueError(f"SUMO configuration {path}: its route files define no vehicle on "
+                         f"roads the AVs may use")  # fmt: skip
     return Scenario(
         name=str(path),
         family="user",
@@ -199,6 +202,7 @@ def _from_sumocfg(path: Path) -> Scenario:
         vclass=vclass,
         av_size=size,
         vtypes=tuple(ET.tostring(el, encoding="unicode") for el in types),
+        verbatim=tuple(sorted(verbatim, key=lambda tv: tv[0])),
         begin=begin or 0.0,
         step_length=_seconds(root, path, "step-length"),
         end=None if end is None else end - (begin or 0.0),
@@ -270,6 +274,10 @@ def _route_of(el: ET.Element, named: dict[str, tuple[str, ...]], net: _Net, sour
     return Route(edges=edges)
 
 
+#: Route-file elements the env passes to SUMO as written (never AVs).
+PASSENGERS = ("person", "personFlow", "container", "containerFlow")
+
+
 def _read_routes(
     root: ET.Element,
     source: Path,
@@ -278,21 +286,47 @@ def _read_routes(
     own: list[OwnVehicle],
     rng: np.random.Generator,
     flow_end: float,
+    verbatim: list[tuple[float, str]],
 ) -> None:
+    """Append ``root``'s vehicles to ``own`` (their routes to ``routes``) and, as (departure
+    [s], XML text), what SUMO runs as written to ``verbatim``: persons and containers, and
+    vehicles routed by their stops or on roads the AVs may not use (trains, bikes), with the
+    named routes these use (departure -1: before everything)."""
     named = {r.get("id", ""): tuple(r.get("edges", "").split()) for r in root.findall("route")}
+    used: set[str] = set()
     for el in root:
         vtype = el.get("type", "")
-        if el.tag in ("vehicle", "trip"):
+        if el.tag in PASSENGERS or (el.tag in ("vehicle", "trip", "flow")
+                                    and _as_written(el, named, net, source)):  # fmt: skip
+            used.add(el.get("route", ""))
+            verbatim.append((_depart(el, source), ET.tostring(el, encoding="unicode")))
+        elif el.tag in ("vehicle", "trip"):
             r = _route_index(routes, _route_of(el, named, net, source))
             own.append(OwnVehicle(el.get("id", ""), _depart(el, source), r, vtype))
         elif el.tag == "flow":
             r = _route_index(routes, _route_of(el, named, net, source))
             for k, t in enumerate(_flow_departures(el, source, rng, flow_end)):
                 own.append(OwnVehicle(f"{el.get('id')}.{k}", t, r, vtype))
+    verbatim.extend((-1.0, ET.tostring(r, encoding="unicode"))
+                    for r in root.findall("route") if r.get("id") in used)  # fmt: skip
+
+
+def _as_written(el: ET.Element, named: dict[str, tuple[str, ...]], net: _Net, source: Path) -> bool:
+    """A vehicle the env leaves to SUMO as written: routed only by its stops (no route and no
+    from/to), or on an existing road that the AVs may not use."""
+    if el.get("route"):
+        edges = named.get(el.get("route", ""), ())
+    elif el.find("route") is not None:
+        edges = tuple(el.find("route").get("edges", "").split())  # type: ignore[union-attr]
+    elif el.get("from") and el.get("to"):
+        edges = (el.get("from", ""), el.get("to", ""))
+    else:
+        return el.find("stop") is not None
+    return all(e in net.edges for e in edges) and not all(e in net.lanes for e in edges)
 
 
 def _depart(el: ET.Element, source: Path) -> float:
-    value = el.get("depart", "0")
+    value = el.get("depart", el.get("begin", "0"))  # a flow's first departure
     try:
         return float(value)
     except ValueError:
