@@ -18,9 +18,8 @@ where the leader could stop, blended in as it grows from ``b`` to ``2 b``; a swi
 steady following alternate between accelerating and braking hard on sensor noise), the desired
 speed 0.95 x the speed limit where the ego is (braking kinematically towards lower limits and
 curves ahead), red / yellow lights as a
-stopped leader at the stop line (yellow only if it can stop comfortably), a junction approach
-speed at signalised stop lines (turn lanes behind a stop line are slow and the waypoints only
-look 10 m ahead), vehicles of the neighbouring lanes that overlap the ego laterally (cut-ins, or
+stopped leader at the stop line (yellow only if it can stop comfortably; the speeds of the turn
+behind a stop line come from the route's speed-limit preview, ``limits``), vehicles of the neighbouring lanes that overlap the ego laterally (cut-ins, or
 the ego straddling during its own change) as leaders too. The virtual stopped vehicle at the end
 of a lane that must be left is a leader like any other. The light state is a majority over the
 last three frames (misdetection filter). Cooperation: a vehicle ahead in a neighbouring lane

@@ -40,7 +40,6 @@ class AccLcConfig:
     # lights and junctions
     yellow_stop_decel: float = 3.5
     stop_margin: float = 1.5
-    junction_speed: float = 3.3
     curve_accel: float = 2.0
     # a target speed ahead this much below the present one is braked for kinematically [m/s]
     limit_deadband: float = 0.5

@@ -1,6 +1,6 @@
 """ACC-LC's longitudinal control: IDM with a kinematic emergency term, the acceleration for a
 candidate lane (speed limits and curves ahead, leaders of that lane and overlapping ones,
-cooperation, traffic lights, junction approach), the hidden-vehicle cap and the acceleration of
+cooperation, traffic lights), the hidden-vehicle cap and the acceleration of
 a mandatory change waiting for a gap (see :mod:`agents.rules.acc_lc` for the rules).
 
 ``f`` is the feature dict of :func:`agents.rules.acc_lc_features.features`; every function is
@@ -107,7 +107,7 @@ def lane_accels(
     base = {  # free road, kinematic braking for lower limits, light
         ln: np.minimum(
             np.minimum(acc[:, 2 * i], limits[ln][2]),
-            _light_bound(f, c, limits[ln][1], limits[ln][0], acc[:, 2 * i + 1], stop_room),
+            _light_bound(f, c, acc[:, 2 * i + 1], stop_room),
         )
         for i, ln in enumerate(lanes)
     }
@@ -121,12 +121,11 @@ def speed_cap(f: Features, c: AccLcConfig, horizon: float = 1.0) -> np.ndarray:
     """(A,) the largest acceleration [m/s²] that keeps the ego within the speed limit of its
     lane, the curve and limit targets ahead and the traffic light: towards the speed limit
     where it is (or the curve's speed there) within ``horizon`` [s], ACC-LC's kinematic
-    braking for lower targets ahead, and its stop at a red or yellow light and junction
-    approach speed."""
+    braking for lower targets ahead, and its stop at a red or yellow light."""
     ln = np.full(len(f["v"]), _C)
-    lim_now, v0, a_lim = _speed_limits(f, c, ln, f["d"])
+    _, v0, a_lim = _speed_limits(f, c, ln, f["d"])
     cap = np.minimum((v0 / c.speed_factor - f["v"]) / horizon, a_lim)
-    return _light_accel(f, c, cap, v0, lim_now)
+    return _light_accel(f, c, cap, v0)
 
 
 def _speed_limits(
@@ -243,42 +242,27 @@ def _stop_room(f: Features, c: AccLcConfig) -> np.ndarray:
     return np.maximum(f["light_dist"][:, _C] - c.stop_margin, 0.05)
 
 
-def _light_accel(
-    f: Features, c: AccLcConfig, acc: np.ndarray, v0: np.ndarray, lim_now: np.ndarray
-) -> np.ndarray:
+def _light_accel(f: Features, c: AccLcConfig, acc: np.ndarray, v0: np.ndarray) -> np.ndarray:
     """``acc`` (A,) bounded by :func:`_light_bound`."""
     room = _stop_room(f, c)
     a_stop = _idm(f["v"], v0, room, f["v"], c)
-    return np.minimum(acc, _light_bound(f, c, v0, lim_now, a_stop, room))
+    return np.minimum(acc, _light_bound(f, c, a_stop, room))
 
 
 def _light_bound(
-    f: Features,
-    c: AccLcConfig,
-    v0: np.ndarray,
-    lim_now: np.ndarray,
-    a_stop: np.ndarray,
-    stop_room: np.ndarray,
+    f: Features, c: AccLcConfig, a_stop: np.ndarray, stop_room: np.ndarray
 ) -> np.ndarray:
     """(A,) acceleration bound (inf = none) of the traffic light of the current lane (a change
-    does not escape the light) and of the junction approach speed at a signalised stop line;
-    ``a_stop`` is IDM's acceleration behind a stopped vehicle at ``stop_room``."""
+    does not escape the light); ``a_stop`` is IDM's acceleration behind a stopped vehicle at
+    ``stop_room``. (The speeds of a turn behind the light come from the route's preview.)"""
     v = f["v"]
-    ld = f["light_dist"][:, _C]
     st = f["light"][:, _C]
     need_stop = v**2 / (2 * stop_room)
     stop = ((st == 0) & (need_stop < c.max_decel * 1.1)) | (
         (st == 1) & (need_stop < c.yellow_stop_decel)
     )
     a_stop = np.minimum(a_stop, np.where(need_stop > 1.0, -need_stop * 1.1, a_stop))
-    bound = np.where(stop, a_stop, np.inf)
-    # junction approach speed at a signalised stop line (turns behind it are slow)
-    lightish = (st >= 0) & np.isfinite(ld)
-    # (the waypoints see only 10 m ahead along the primary successor, not the route's turn;
-    # the tightest turns of the urban nets are limited to ~3.6 m/s)
-    vj = np.minimum(c.junction_speed, v0)
-    a_j = np.where(v > vj, (vj**2 - v**2) / (2 * np.maximum(ld - 1.0, 0.5)), np.inf)
-    return np.where(lightish & (lim_now < 20.0), np.minimum(bound, a_j), bound)
+    return np.where(stop, a_stop, np.inf)
 
 
 def hidden_cap(f: Features, c: AccLcConfig) -> np.ndarray:
