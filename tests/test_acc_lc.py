@@ -330,9 +330,15 @@ def test_speed_cap_holds_the_limit_curves_and_a_red_light() -> None:
         "light": np.array([[-1, -1, -1], [-1, -1, -1], [-1, 0, -1], [-1, -1, -1]]),
         "light_dist": np.array([[np.inf] * 3, [np.inf] * 3, [np.inf, 20.0, np.inf],
                                 [np.inf] * 3]),
+        "give_way": np.zeros(a, bool),
     }  # fmt: skip
     cap = speed_cap(f, AccLcConfig())
     assert cap[0] == pytest.approx(13.9 - 10.0)  # reaches the limit within 1 s
     assert cap[1] == pytest.approx(0.0, abs=1e-9)
     assert cap[2] < -1.0  # stop before the red light
     assert cap[3] == pytest.approx(1.3 * ((0.95 * 5.0) ** 2 - 13.0**2) / (2 * 60.0))
+    # green 20 m ahead: a signal is passed at speed, a give-way line approached at 3.3 m/s
+    f["light"][2, 1] = 2
+    assert speed_cap(f, AccLcConfig())[2] == pytest.approx(13.9 - 10.0)
+    f["give_way"][2] = True
+    assert speed_cap(f, AccLcConfig())[2] == pytest.approx((3.3**2 - 10.0**2) / (2 * 19.0))

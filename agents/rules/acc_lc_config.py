@@ -40,6 +40,9 @@ class AccLcConfig:
     # lights and junctions
     yellow_stop_decel: float = 3.5
     stop_margin: float = 1.5
+    # approach speed at a give-way line [m/s]: SUMO may close the link at any moment (no yellow
+    # phase warns), so the AV must be able to stop at the line when it does
+    junction_speed: float = 3.3
     curve_accel: float = 2.0
     # a target speed ahead this much below the present one is braked for kinematically [m/s]
     limit_deadband: float = 0.5

@@ -1,6 +1,6 @@
 """ACC-LC's longitudinal control: IDM with a kinematic emergency term, the acceleration for a
 candidate lane (speed limits and curves ahead, leaders of that lane and overlapping ones,
-cooperation, traffic lights), the hidden-vehicle cap and the acceleration of
+cooperation, traffic lights and give-way lines), the hidden-vehicle cap and the acceleration of
 a mandatory change waiting for a gap (see :mod:`agents.rules.acc_lc` for the rules).
 
 ``f`` is the feature dict of :func:`agents.rules.acc_lc_features.features`; every function is
@@ -107,7 +107,7 @@ def lane_accels(
     base = {  # free road, kinematic braking for lower limits, light
         ln: np.minimum(
             np.minimum(acc[:, 2 * i], limits[ln][2]),
-            _light_bound(f, c, acc[:, 2 * i + 1], stop_room),
+            _light_bound(f, c, limits[ln][0], acc[:, 2 * i + 1], stop_room),
         )
         for i, ln in enumerate(lanes)
     }
@@ -121,11 +121,12 @@ def speed_cap(f: Features, c: AccLcConfig, horizon: float = 1.0) -> np.ndarray:
     """(A,) the largest acceleration [m/s²] that keeps the ego within the speed limit of its
     lane, the curve and limit targets ahead and the traffic light: towards the speed limit
     where it is (or the curve's speed there) within ``horizon`` [s], ACC-LC's kinematic
-    braking for lower targets ahead, and its stop at a red or yellow light."""
+    braking for lower targets ahead, its stop at a red or yellow light and its approach to a
+    give-way line."""
     ln = np.full(len(f["v"]), _C)
-    _, v0, a_lim = _speed_limits(f, c, ln, f["d"])
+    lim_now, v0, a_lim = _speed_limits(f, c, ln, f["d"])
     cap = np.minimum((v0 / c.speed_factor - f["v"]) / horizon, a_lim)
-    return _light_accel(f, c, cap, v0)
+    return _light_accel(f, c, cap, v0, lim_now)
 
 
 def _speed_limits(
@@ -242,27 +243,37 @@ def _stop_room(f: Features, c: AccLcConfig) -> np.ndarray:
     return np.maximum(f["light_dist"][:, _C] - c.stop_margin, 0.05)
 
 
-def _light_accel(f: Features, c: AccLcConfig, acc: np.ndarray, v0: np.ndarray) -> np.ndarray:
+def _light_accel(
+    f: Features, c: AccLcConfig, acc: np.ndarray, v0: np.ndarray, lim_now: np.ndarray
+) -> np.ndarray:
     """``acc`` (A,) bounded by :func:`_light_bound`."""
     room = _stop_room(f, c)
     a_stop = _idm(f["v"], v0, room, f["v"], c)
-    return np.minimum(acc, _light_bound(f, c, a_stop, room))
+    return np.minimum(acc, _light_bound(f, c, lim_now, a_stop, room))
 
 
 def _light_bound(
-    f: Features, c: AccLcConfig, a_stop: np.ndarray, stop_room: np.ndarray
+    f: Features, c: AccLcConfig, lim_now: np.ndarray, a_stop: np.ndarray, stop_room: np.ndarray
 ) -> np.ndarray:
-    """(A,) acceleration bound (inf = none) of the traffic light of the current lane (a change
-    does not escape the light); ``a_stop`` is IDM's acceleration behind a stopped vehicle at
-    ``stop_room``. (The speeds of a turn behind the light come from the route's preview.)"""
+    """(A,) acceleration bound (inf = none) of the traffic light or give-way line of the
+    current lane (a change does not escape it) and of the approach speed at a give-way line;
+    ``a_stop`` is IDM's acceleration behind a stopped vehicle at ``stop_room``. (The speeds of
+    a turn behind a signal come from the route's preview.)"""
     v = f["v"]
+    ld = f["light_dist"][:, _C]
     st = f["light"][:, _C]
     need_stop = v**2 / (2 * stop_room)
     stop = ((st == 0) & (need_stop < c.max_decel * 1.1)) | (
         (st == 1) & (need_stop < c.yellow_stop_decel)
     )
     a_stop = np.minimum(a_stop, np.where(need_stop > 1.0, -need_stop * 1.1, a_stop))
-    return np.where(stop, a_stop, np.inf)
+    bound = np.where(stop, a_stop, np.inf)
+    # a give-way line may close at any moment: approach it at ``junction_speed`` (in town: a
+    # ramp's merge on a fast road is taken at speed)
+    vj = c.junction_speed
+    a_j = np.where(v > vj, (vj**2 - v**2) / (2 * np.maximum(ld - 1.0, 0.5)), np.inf)
+    line = (st >= 0) & np.isfinite(ld) & f["give_way"] & (lim_now < 20.0)
+    return np.where(line, np.minimum(bound, a_j), bound)
 
 
 def hidden_cap(f: Features, c: AccLcConfig) -> np.ndarray:

@@ -17,7 +17,7 @@ ACC-LC (``agents.rules.acc_lc``) as the rule-based method. Per agent and step:
 * **longitudinal** (``SafetyConfig.longitudinal``, default ``rss``): the learned acceleration
   stands while it is RSS-safe (``agents.rules.rss``) behind every leader of the chosen
   decision's lane (the virtual vehicle at a lane's end is a stopped leader) and within ACC-LC's
-  speed cap (limits and curves ahead, red and yellow lights). Above
+  speed cap (limits and curves ahead, red and yellow lights, give-way lines). Above
   that it is capped, never below ACC-LC's own plus ``accel_tolerance``. The older ``clamp``
   held it to ACC-LC's plus ``accel_tolerance`` whenever ACC-LC braked, i.e. to ACC-LC's 1.4 s
   comfort gap: it changed 73-89 % of a learned policy's actions.

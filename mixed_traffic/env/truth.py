@@ -45,7 +45,7 @@ def gather(a: PerceptionFrame, b: PerceptionFrame, idx: np.ndarray) -> Perceptio
     return PerceptionFrame(
         Neighbours(cat(na.lane, nb.lane), cat(na.vehicle, nb.vehicle), cat(na.distance, nb.distance)),
         cat(a.vehicles, b.vehicles), cat(a.ego, b.ego), cat(a.light_state, b.light_state),
-        cat(a.light_dist, b.light_dist),
+        cat(a.light_dist, b.light_dist), cat(a.give_way, b.give_way),
     )  # fmt: skip
 
 

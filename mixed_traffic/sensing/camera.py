@@ -79,8 +79,8 @@ def permissive(
 def give_way(
     hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray, lane: np.ndarray, gate: np.ndarray,
     state: np.ndarray, dist: np.ndarray,
-) -> None:  # fmt: skip
-    """Mark in place the stop line at the end of each agent's current lane where it must give
+) -> np.ndarray:  # fmt: skip
+    """(A,) bool where it marked: mark in place the stop line at the end of each agent's current lane where it must give
     way (``gate`` (A,): RED while SUMO's junction model holds the link closed, GREEN while it is
     open, NO_LIGHT elsewhere) unless a nearer signal is seen, and over a permissive green at
     the line while the link is closed: right of way as SUMO rules it."""
@@ -90,3 +90,4 @@ def give_way(
     mark = ok & ((state[:, CURRENT] == NO_LIGHT) | (to_end < dist[:, CURRENT]) | held)
     state[mark, CURRENT] = gate[mark]
     dist[mark, CURRENT] = np.maximum(to_end[mark], 0.0)
+    return mark

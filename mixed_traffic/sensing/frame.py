@@ -23,3 +23,6 @@ class PerceptionFrame:
     """(A, 3) int8 RED / YELLOW / GREEN of the next signal on each lane, NO_LIGHT if none."""
     light_dist: np.ndarray
     """(A, 3) distance from the front bumper to the stop line [m], +inf where no light."""
+    give_way: np.ndarray
+    """(A,) bool: the current lane's line is a give-way line (right of way as SUMO rules it,
+    ``camera.give_way``), not a signal."""

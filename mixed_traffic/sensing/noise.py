@@ -88,7 +88,8 @@ def degrade(
     state = np.where(wrong, (state + shift) % 3, state).astype(np.int8)
     ldist = truth.light_dist * (1.0 + w.rel_noise * z_ldist)
     ldist = np.where(state != NO_LIGHT, np.maximum(ldist, 0.0), np.inf)
-    return PerceptionFrame(replace(cut.neighbours, distance=dist), veh, ego, state, ldist)
+    return PerceptionFrame(replace(cut.neighbours, distance=dist), veh, ego, state, ldist,
+                           truth.give_way)  # fmt: skip
 
 
 def within_range(
@@ -104,5 +105,5 @@ def within_range(
     state = np.where(lit, truth.light_state, NO_LIGHT).astype(np.int8)
     sensed_nb = replace(nb, vehicle=np.where(seen, nb.vehicle, -1), distance=dist)
     return PerceptionFrame(
-        sensed_nb, veh, truth.ego, state, np.where(lit, truth.light_dist, np.inf)
+        sensed_nb, veh, truth.ego, state, np.where(lit, truth.light_dist, np.inf), truth.give_way
     )

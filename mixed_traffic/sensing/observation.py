@@ -30,6 +30,9 @@ limits     (3, k, 2)   f32    latest frame only (k = ``sensors.preview_points``)
                               points along the route within ``sensors.preview_range`` where
                               the speed limit drops below every limit before it, each:
                               distance / preview_range, limit / 40 m/s; zeros = none
+give_way   (3,)        int8   latest frame only: 1 where the line in ``lights`` is a give-way
+                              line (SUMO's right of way: a minor link, a turn waiting for
+                              the oncoming stream, a permissive green), not a signal
 node_mask  (3, 3)      int8   per lane: lane exists, vehicle(s) detected, light detected
 action_mask (3,)       int8   allowed decisions: left change, follow, right change
 ========== =========== ====== ========================================================
@@ -130,6 +133,7 @@ def observation_space(config: EnvConfig) -> gym.spaces.Dict:
             "vehicles": box(3, z, 12, far=VEHICLE_DISTANCES),
             "lights": box(3, z, 4, far=(3,)),
             "limits": gym.spaces.Box(0.0, 1.0, (3, config.sensors.preview_points, 2), np.float32),
+            "give_way": gym.spaces.Box(0, 1, (3,), np.int8),
             "node_mask": gym.spaces.Box(0, 1, (3, 3), np.int8),
             "action_mask": gym.spaces.MultiBinary(3),
         }
@@ -247,6 +251,8 @@ class ObservationBuilder:
         )
         lights = clip_far(lights, (3,), self._reach)
         node = np.stack([exists, present, light_on & exists], axis=-1).astype(np.int8)
+        gw = np.zeros((A, 3), np.int8)
+        gw[:, CURRENT] = sensed.give_way & light_on[:, CURRENT]
 
         slots = self._slots(agent_ids)
         h_ego = _push(self._ego, slots, ego, axis=1)
@@ -257,10 +263,10 @@ class ObservationBuilder:
         # list(array) makes the per-agent views in C; a dict literal per agent is the cheapest
         return {
             a: {"ego": e, "lanes": ln, "vehicles": v, "lights": li, "limits": lm,
-                "node_mask": nm, "action_mask": am}
-            for a, e, ln, v, li, lm, nm, am in zip(agent_ids, list(h_ego), list(h_lanes),
-                                                    list(h_veh), list(h_lights), list(limits),
-                                                    list(node), list(act))
+                "give_way": g, "node_mask": nm, "action_mask": am}
+            for a, e, ln, v, li, lm, g, nm, am in zip(agent_ids, list(h_ego), list(h_lanes),
+                                                       list(h_veh), list(h_lights), list(limits),
+                                                       list(gw), list(node), list(act))
         }  # fmt: skip
 
     # ------------------------------------------------------------------ features

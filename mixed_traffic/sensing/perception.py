@@ -129,13 +129,14 @@ class Perception:
         state, dist = traffic_lights(
             self.graph, self.hdmap, snap, rows, nb.lane, next_edge, tls_states
         )
+        yields = np.zeros(len(rows), bool)
         if gates is not None and (gates != NO_LIGHT).any():
-            give_way(self.hdmap, snap, rows, nb.lane[:, CURRENT], gates, state, dist)
+            yields = give_way(self.hdmap, snap, rows, nb.lane[:, CURRENT], gates, state, dist)
         cam = s.camera_range * far
         state = np.where(dist <= cam, state, NO_LIGHT).astype(np.int8)
         dist = np.where(state != NO_LIGHT, dist, np.inf)
         truth = PerceptionFrame(nb, vehicle_features(snap, rows, nb), ego_features(snap, self.hdmap, rows),
-                                state, dist)  # fmt: skip
+                                state, dist, yields)  # fmt: skip
         if not s.noise:
             return truth, truth if s.range_factor == 1 else within_range(truth, s, 1.0, 1.0)
         return truth, degrade(truth, self.weather, s, rng)
