@@ -3,6 +3,7 @@
 - ``parallel``: ``MixedTrafficEnv``, the step template (action -> control -> SUMO -> perception
   -> termination -> reward -> metrics -> observation), ``parallel_env`` and ``env`` (AEC).
 - ``agent_table``: agent ids, slots and their alignment with the snapshot.
+- ``checks``: argument checks that name a misuse before any work starts.
 - ``action``, ``control``, ``reward``, ``metrics``, ``render``, ``wrappers``.
 - ``api``: what policies may use (observation scales, action conversion, vehicle model).
 

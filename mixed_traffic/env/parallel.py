@@ -8,11 +8,12 @@ Agents
     arrives (terminated, ``event="arrived"``), collides or commits another terminal event;
     ids are never reused within an episode. ``fixed_fleet=True``: all AVs are agents from
     reset until truncation; an AV that arrives or fails re-enters upstream under the same id
-    (a failure still gives its penalty and ``event``), and an AV waiting to re-enter gets the
-    empty observation (only ``follow`` allowed) and its actions are ignored.
+    (a failure still gives its penalty and ``event``; on a .sumocfg a pool of agents drives
+    the file's AV trips in turn, ``world.fleet_pool``), and an AV waiting to (re-)enter gets
+    the empty observation (only ``follow`` allowed) and its actions are ignored.
 Observation
-    ``Dict(ego (z,5), lanes (3,z,4m), vehicles (3,z,12), lights (3,z,4), node_mask (3,3),
-    action_mask (3,))``, see ``mixed_traffic.sensing.observation`` for features and scales. Sensors
+    ``Dict(ego (z,5), lanes (3,z,4m), vehicles (3,z,12), lights (3,z,4), limits (3,k,2),
+    give_way (3,), node_mask (3,3), action_mask (3,))``, see ``mixed_traffic.sensing.observation`` for features and scales. Sensors
     (LiDAR vehicles, camera lights, GNSS/IMU ego) apply the weather preset's noise and
     misdetection; rewards, terminations and metrics use ground truth.
 Action
@@ -46,7 +47,6 @@ whole ``config=EnvConfig(...)``; ``render_mode`` ``"rgb_array"`` (headless bird'
 from __future__ import annotations
 
 import contextlib
-import os
 import shutil
 from collections.abc import Mapping, Sequence
 from dataclasses import replace
@@ -68,6 +68,7 @@ from mixed_traffic.env.action import (
 )
 from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
 from mixed_traffic.env.av_metrics import AVMetrics, AVStep
+from mixed_traffic.env.checks import check_gui, check_reset_args, check_warmup
 from mixed_traffic.env.control import BicycleController
 from mixed_traffic.env.flow_metrics import FlowRecorder
 from mixed_traffic.env.reward import agent_rewards
@@ -130,7 +131,7 @@ class MixedTrafficEnv(ParallelEnv):
                 f"render_mode={render_mode!r} is not one of {self.metadata['render_modes']}"
             )
         if render_mode == "human":
-            _check_gui()
+            check_gui()
         self.render_mode = render_mode
         check_warmup(warmup, cfg.episode_length)
         self.warmup = warmup
@@ -187,7 +188,7 @@ class MixedTrafficEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | None = None, options: dict | None = None):
-        _check_reset_args(seed, options)
+        check_reset_args(seed, options)
         if seed is None:
             seed = int(self._episode_rng.integers(2**31 - 1))
         if self._phase == "closed":  # reopened: a new scratch folder for the route file
@@ -564,31 +565,6 @@ class MixedTrafficEnv(ParallelEnv):
         so copies neither overwrite each other's route file nor delete it on close."""
         self.__dict__.update(state)
         self._tmp = scratch_dir()
-
-
-def _check_reset_args(seed: Any, options: Any) -> None:
-    """Name a seed that is not an integer >= 0 (or None) and options that are not a dict."""
-    if seed is not None and (
-        not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0
-    ):
-        raise ValueError(f"reset(seed={seed!r}): seed must be an integer >= 0 or None")
-    if options is not None and not isinstance(options, Mapping):
-        raise ValueError(f"reset(options={options!r}): options must be a dict or None")
-
-
-def check_warmup(warmup: float, episode_length: float) -> None:
-    """Raise ``ValueError`` unless 0 <= ``warmup`` < ``episode_length`` [s]."""
-    if not 0 <= warmup < episode_length:
-        raise ValueError(f"warmup={warmup} s must be in [0, episode_length={episode_length}) s")
-
-
-def _check_gui() -> None:
-    from mixed_traffic.world.backend import binary
-
-    if not os.environ.get("DISPLAY"):
-        raise ValueError("render_mode='human' needs sumo-gui and a display (DISPLAY is not set); "
-                         "use render_mode='rgb_array' for headless rendering")  # fmt: skip
-    binary("sumo-gui")
 
 
 def parallel_env(**kwargs: Any) -> MixedTrafficEnv:

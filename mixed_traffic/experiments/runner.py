@@ -20,7 +20,8 @@ import numpy as np
 from tqdm import tqdm
 
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.env.parallel import MixedTrafficEnv, check_warmup
+from mixed_traffic.env.checks import check_warmup
+from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.provenance import file_digest, json_safe, record_meta
 from mixed_traffic.schema import CELL_KEYS, LEARNED, METRICS, POLICIES
 from mixed_traffic.world.registry import load_scenario
