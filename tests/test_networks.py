@@ -4,6 +4,7 @@ netconvert): lane permissions (sidewalks, bike lanes, bike-only roads), gzip, a 
 
 from __future__ import annotations
 
+import gzip
 import shutil
 import subprocess
 from pathlib import Path
@@ -188,6 +189,48 @@ def test_a_sumocfg_keeps_what_the_env_does_not_model(tmp_path: Path) -> None:
     env.close()
     assert {"bus0", "bikes.0", "person:walker"} <= seen
     assert not any(v.startswith("av_") for v in ("bus0", "bikes.0"))
+
+
+def test_a_sumocfg_in_sumos_other_forms(tmp_path: Path) -> None:
+    """A gzipped route file with a route distribution, vehicles in an additional file, a
+    begin in h:m:s; a file of trains only gets a named error (SUMO's game examples)."""
+    shutil.copy(load_scenario("straight").net_file, tmp_path / "road.net.xml")
+    with gzip.open(tmp_path / "r.rou.xml.gz", "wt") as f:
+        f.write('<routes><routeDistribution id="mix"><route id="long" edges="warmup meas exit" '
+                'probability="3"/><route id="short" edges="meas exit" probability="1"/>'
+                '</routeDistribution><flow id="f" begin="1:0:0" end="1:1:0" period="1" '
+                'route="mix"/></routes>')  # fmt: skip
+    (tmp_path / "more.add.xml").write_text('<additional><vehicle id="extra" depart="3605" '
+                                           'route="long2"/><route id="long2" edges="warmup meas '
+                                           'exit"/></additional>')  # fmt: skip
+    (tmp_path / "det.add.xml").write_text('<additional><inductionLoop id="l" lane="meas_0" '
+                                          'pos="5" period="10" file="loops.xml"/></additional>')  # fmt: skip
+    cfg = tmp_path / "run.sumocfg"
+    cfg.write_text('<configuration><input><net-file value="road.net.xml"/><route-files '
+                   'value="r.rou.xml.gz"/><additional-files value="more.add.xml,det.add.xml"/>'
+                   '</input><time><begin value="1:0:0"/></time></configuration>')  # fmt: skip
+    sc = load_scenario(str(cfg))
+    assert sc.begin == 3600.0 and len(sc.own_vehicles) == 61
+    firsts = [sc.routes[v.route].edges[0] for v in sc.own_vehicles if v.vid != "extra"]
+    assert 0.6 < firsts.count("warmup") / len(firsts) < 0.9  # drawn 3 : 1
+    assert sc.extra_args == ("--additional-files", str((tmp_path / "det.add.xml").resolve()))
+    env = parallel_env(scenario=str(cfg), penetration=0.0, episode_length=10.0)
+    env.reset(seed=0, options={"allow_no_agents": True})
+    while env.sim_time < 9.9:
+        env.step({})
+    seen = set(env._backend._api.vehicle.getIDList())
+    env.close()
+    assert "extra" in seen  # once: from the episode's route file only
+    rails = tmp_path / "trains.rou.xml"
+    rails.write_text('<routes><vType id="t" vClass="rail" length="52"/><flow id="f" type="t" '
+                     'begin="0" end="10" period="5" from="warmup" to="exit"/></routes>')  # fmt: skip
+    (tmp_path / "t.sumocfg").write_text('<configuration><input><net-file value="road.net.xml"/>'
+                                        '<route-files value="trains.rou.xml"/></input>'
+                                        "</configuration>")  # fmt: skip
+    with pytest.raises(
+        ValueError, match=r"no vehicle on roads the AVs may use \(only vClass 'rail'\)"
+    ):
+        load_scenario(str(tmp_path / "t.sumocfg"))
 
 
 def test_avs_derive_from_a_sumocfg_type_of_another_class(tmp_path: Path) -> None:

@@ -7,6 +7,7 @@ over the whole network. A configuration keeps its own vehicles (``<vehicle>``, `
 
 from __future__ import annotations
 
+import gzip
 import xml.etree.ElementTree as ET
 from collections import Counter, deque
 from pathlib import Path
@@ -42,8 +43,11 @@ def _parse(path: Path, what: str) -> ET.Element:
     if not path.is_file():
         raise ValueError(f"{what} {path} does not exist")
     try:
+        if path.name.endswith(".gz"):
+            with gzip.open(path) as f:
+                return ET.parse(f).getroot()
         return ET.parse(path).getroot()
-    except ET.ParseError as e:
+    except (ET.ParseError, OSError) as e:
         raise ValueError(f"{what} {path} is malformed XML: {e}") from e
 
 
@@ -174,8 +178,19 @@ def _from_sumocfg(path: Path) -> Scenario:
         if f.strip()
     ]
     roots = [(rf, _parse(rf, "route file")) for rf in route_files]
+    # additional files may define vehicles too (SUMO loads them at the start): read them as
+    # route files and keep them out of the additional files SUMO gets
+    additional = [(path.parent / f.strip()).resolve()
+                  for f in _cfg_value(root, "additional-files").split(",") if f.strip()]  # fmt: skip
+    carrying = [(af, r) for af in additional for r in [_parse(af, "additional file")]
+                if any(el.tag in VEHICLES for el in r)]  # fmt: skip
+    roots += carrying
+    kept = [str(af) for af in additional if af not in {af for af, _ in carrying}]
     types = [el for _, r in roots for el in r if el.tag in ("vType", "vTypeDistribution")]
     vclass, size = _av_template(types, [el for _, r in roots for el in r])
+    if vclass in OFF_ROAD:
+        raise ValueError(f"SUMO configuration {path}: its route files define no vehicle on "
+                         f"roads the AVs may use (only vClass {vclass!r})")  # fmt: skip
     net = _Net(net_path, vclass)
     seed = int(_cfg_value(root, "seed") or 0)
     routes: list[Route] = []
@@ -206,6 +221,7 @@ def _from_sumocfg(path: Path) -> Scenario:
         begin=begin or 0.0,
         step_length=_seconds(root, path, "step-length"),
         end=None if end is None else end - (begin or 0.0),
+        extra_args=("--additional-files", ",".join(kept)) if carrying else (),
     )
 
 
@@ -241,9 +257,17 @@ def _seconds(root: ET.Element, path: Path, key: str) -> float | None:
     if not value:
         return None
     try:
-        return float(value)
+        return sumo_time(value)
     except ValueError:
-        raise ValueError(f"SUMO configuration {path}: {key}={value!r} is not in seconds") from None
+        raise ValueError(f"SUMO configuration {path}: {key}={value!r} is not a time") from None
+
+
+def sumo_time(value: str) -> float:
+    """SUMO's time value [s]: seconds, or ``[[d:]h:]m:s`` (``ValueError`` if neither)."""
+    parts = [float(p) for p in value.split(":")]
+    if len(parts) > 4:
+        raise ValueError(value)
+    return sum(p * u for p, u in zip(reversed(parts), (1.0, 60.0, 3600.0, 86400.0)))
 
 
 def _route_index(routes: list[Route], route: Route) -> int:
@@ -252,12 +276,16 @@ def _route_index(routes: list[Route], route: Route) -> int:
     return routes.index(route)
 
 
-def _route_of(el: ET.Element, named: dict[str, tuple[str, ...]], net: _Net, source: Path) -> Route:
-    """The route of a vehicle/trip/flow: a named route, an inline ``<route>``, or from/to."""
+def _route_of(el: ET.Element, named: dict[str, list[tuple[tuple[str, ...], float]]], net: _Net,
+              source: Path, rng: np.random.Generator) -> Route:  # fmt: skip
+    """The route of a vehicle/trip/flow: a named route (a distribution's member drawn by its
+    probability), an inline ``<route>``, or from/to."""
     if el.get("route"):
         if el.get("route") not in named:
             raise ValueError(f"{source}: {el.tag} {el.get('id')!r} uses unknown route")
-        edges = named[el.get("route", "")]
+        choices = named[el.get("route", "")]
+        p = np.array([w for _, w in choices])
+        edges = choices[int(rng.choice(len(choices), p=p / p.sum())) if len(choices) > 1 else 0][0]
     elif el.find("route") is not None:
         edges = tuple(el.find("route").get("edges", "").split())  # type: ignore[union-attr]
     elif el.get("from") and el.get("to"):
@@ -276,6 +304,11 @@ def _route_of(el: ET.Element, named: dict[str, tuple[str, ...]], net: _Net, sour
 
 #: Route-file elements the env passes to SUMO as written (never AVs).
 PASSENGERS = ("person", "personFlow", "container", "containerFlow")
+#: Route-file elements that define vehicles.
+VEHICLES = ("vehicle", "trip", "flow")
+#: Vehicle classes that do not drive on roads: a file of only these has no vehicle to be an AV.
+OFF_ROAD = frozenset({"rail", "rail_urban", "rail_electric", "rail_fast", "tram", "cable_car",
+                      "subway", "ship", "aircraft", "drone", "pedestrian", "wheelchair"})  # fmt: skip
 
 
 def _read_routes(
@@ -292,30 +325,48 @@ def _read_routes(
     [s], XML text), what SUMO runs as written to ``verbatim``: persons and containers, and
     vehicles routed by their stops or on roads the AVs may not use (trains, bikes), with the
     named routes these use (departure -1: before everything)."""
-    named = {r.get("id", ""): tuple(r.get("edges", "").split()) for r in root.findall("route")}
+    named = _named_routes(root)
     used: set[str] = set()
     for el in root:
         vtype = el.get("type", "")
-        if el.tag in PASSENGERS or (el.tag in ("vehicle", "trip", "flow")
-                                    and _as_written(el, named, net, source)):  # fmt: skip
+        if el.tag in PASSENGERS or (el.tag in VEHICLES and _as_written(el, named, net)):
             used.add(el.get("route", ""))
             verbatim.append((_depart(el, source), ET.tostring(el, encoding="unicode")))
         elif el.tag in ("vehicle", "trip"):
-            r = _route_index(routes, _route_of(el, named, net, source))
+            r = _route_index(routes, _route_of(el, named, net, source, rng))
             own.append(OwnVehicle(el.get("id", ""), _depart(el, source), r, vtype))
         elif el.tag == "flow":
-            r = _route_index(routes, _route_of(el, named, net, source))
+            drawn = len(named.get(el.get("route", ""), ())) > 1  # a route per vehicle
+            r = _route_index(routes, _route_of(el, named, net, source, rng))
             for k, t in enumerate(_flow_departures(el, source, rng, flow_end)):
+                if drawn and k:
+                    r = _route_index(routes, _route_of(el, named, net, source, rng))
                 own.append(OwnVehicle(f"{el.get('id')}.{k}", t, r, vtype))
-    verbatim.extend((-1.0, ET.tostring(r, encoding="unicode"))
-                    for r in root.findall("route") if r.get("id") in used)  # fmt: skip
+    verbatim.extend((-1.0, ET.tostring(r, encoding="unicode")) for r in root
+                    if r.tag in ("route", "routeDistribution") and r.get("id") in used)  # fmt: skip
 
 
-def _as_written(el: ET.Element, named: dict[str, tuple[str, ...]], net: _Net, source: Path) -> bool:
+def _named_routes(root: ET.Element) -> dict[str, list[tuple[tuple[str, ...], float]]]:
+    """Route id -> its (edges, probability) choices: one for a ``<route>``, the members of a
+    ``<routeDistribution>`` (given inline or by ``refId``)."""
+    named = {r.get("id", ""): [(tuple(r.get("edges", "").split()), 1.0)]
+             for r in root.findall("route")}  # fmt: skip
+    for dist in root.findall("routeDistribution"):
+        members = []
+        for r in dist.findall("route"):
+            edges = (named[r.get("refId", "")][0][0] if r.get("refId") in named
+                     else tuple(r.get("edges", "").split()))  # fmt: skip
+            members.append((edges, float(r.get("probability", 1.0))))
+        named[dist.get("id", "")] = members
+    return named
+
+
+def _as_written(el: ET.Element, named: dict[str, list[tuple[tuple[str, ...], float]]],
+                net: _Net) -> bool:  # fmt: skip
     """A vehicle the env leaves to SUMO as written: routed only by its stops (no route and no
     from/to), or on an existing road that the AVs may not use."""
     if el.get("route"):
-        edges = named.get(el.get("route", ""), ())
+        edges = tuple(e for r, _ in named.get(el.get("route", ""), ()) for e in r)
     elif el.find("route") is not None:
         edges = tuple(el.find("route").get("edges", "").split())  # type: ignore[union-attr]
     elif el.get("from") and el.get("to"):
@@ -328,7 +379,7 @@ def _as_written(el: ET.Element, named: dict[str, tuple[str, ...]], net: _Net, so
 def _depart(el: ET.Element, source: Path) -> float:
     value = el.get("depart", el.get("begin", "0"))  # a flow's first departure
     try:
-        return float(value)
+        return sumo_time(value)
     except ValueError:
         if value in ("triggered", "containerTriggered", "now", "begin"):
             return 0.0
@@ -339,8 +390,8 @@ def _flow_departures(
     el: ET.Element, source: Path, rng: np.random.Generator, default_end: float
 ) -> list[float]:
     """Departure times of a ``<flow>``, as SUMO defines number / period / vehsPerHour / probability."""
-    begin = float(el.get("begin", 0.0))
-    end = float(el.get("end", default_end))
+    begin = sumo_time(el.get("begin", "0"))
+    end = sumo_time(el.get("end", str(default_end)))
     if el.get("number"):
         n = int(el.get("number", 0))
         period = float(el.get("period") or ((end - begin) / n if n else 1.0))
