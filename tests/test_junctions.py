@@ -69,6 +69,25 @@ def test_merging_vehicles_take_turns_on_sumos_ramp() -> None:
     assert m["collisions"] == 0 and m["terminal_collision"] == 0
 
 
+def test_a_hand_drawn_turn_gets_an_advisory_speed() -> None:
+    """SUMO's ramp example keeps the road's 23.6 m/s on a 44-degree junction turn of 5.3 m:
+    the AVs came in at 8-11 m/s, could not steer round it and left the road (2 off-road
+    events in 90 s of its .sumocfg). The map's advisory speed, the turn speed netconvert
+    would have built, lists the turn in the preview."""
+    hd = load_hdmap(GAME / "ramp" / "ramp.net.xml")
+    turn, road = hd.lane_row[":gneJ6_1_0"], hd.lane_row["gneE18_0"]
+    assert hd.lane_speed[turn] > 23.0
+    assert hd.lane_advisory[turn] == pytest.approx(np.sqrt(5.5 / (0.71 / 5.34)), rel=0.05)
+    assert hd.lane_advisory[road] == hd.lane_speed[road]  # a road lane keeps its limit
+    lanes, pos, via = np.array([[-1, road, -1]]), np.full((1, 3), 10.0), np.array([[-1, turn, -1]])
+    dist, speed = limit_preview(hd, lanes, pos, via, 3, 150.0)
+    assert dist[0, 1, 0] == pytest.approx(hd.lane_length[road] - 10.0)
+    assert speed[0, 1, 0] == pytest.approx(hd.lane_advisory[turn])
+    cfg = EnvConfig(scenario=str(GAME / "ramp.sumocfg"), penetration=1.0, episode_length=60.0)
+    m = run_episode(cfg, "acc-lc", warmup=0.0)["metrics"]  # (most trips end after 60 s)
+    assert m["av_trips"] >= 1 and m["terminal_off_road"] == 0
+
+
 def test_a_lane_shift_is_driven_straight() -> None:
     """SUMO's highway example joins two edges whose centrelines are 4.8 m apart by 4.8 m
     junction lanes that run sideways. Read as a curve the kink sent AVs off the road (17

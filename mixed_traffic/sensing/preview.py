@@ -1,9 +1,11 @@
 """Speed-limit preview along the route: where the limit ahead drops (an HD-map lookup).
 
 The waypoints see ``sensors.waypoints`` metres ahead, too short to slow down for a junction's
-turn speed (netconvert limits a turn's internal lane to the speed its radius allows). The
+turn speed (netconvert limits a turn's internal lane to the speed its radius allows, but a
+hand-drawn junction may keep the road's limit). The limit of a lane here is its advisory
+speed (``HDMap.lane_advisory``: the speed limit, lower where a bend allows less). The
 preview lists, per lane column, the first K points within ``sensors.preview_range`` metres
-where the speed limit drops below every limit before it. Those are the only limits a braking
+where that limit drops below every limit before it. Those are the only limits a braking
 vehicle can be bound by: a later, higher limit is always reached in time if the earlier, lower
 one is, whatever the deceleration. The first hop follows the agent's route (the lane's
 connection to its next route edge), later hops the primary successors, as the waypoints do.
@@ -30,9 +32,10 @@ def drop_table(hd: HDMap, k: int, reach: float) -> tuple[np.ndarray, np.ndarray]
     dist = np.full((L, k), np.inf)
     speed = np.zeros((L, k))
     rows = np.arange(L)
-    dist[:, 0], speed[:, 0] = 0.0, hd.lane_speed
+    limit = hd.lane_advisory
+    dist[:, 0], speed[:, 0] = 0.0, limit
     count = np.ones(L, np.int64)
-    lowest = hd.lane_speed.astype(np.float64)
+    lowest = limit.astype(np.float64)
     prev, d = rows, np.zeros(L)
     for _ in range(MAX_HOPS):
         d = d + hd.lane_length[prev]
@@ -40,9 +43,9 @@ def drop_table(hd: HDMap, k: int, reach: float) -> tuple[np.ndarray, np.ndarray]
         live = (cur >= 0) & (d <= reach) & (count < k)
         if not live.any():
             break
-        drop = live & (hd.lane_speed[np.maximum(cur, 0)] < lowest)
+        drop = live & (limit[np.maximum(cur, 0)] < lowest)
         i = rows[drop]
-        dist[i, count[i]], speed[i, count[i]] = d[i], hd.lane_speed[cur[i]]
+        dist[i, count[i]], speed[i, count[i]] = d[i], limit[cur[i]]
         lowest[i], count[i] = speed[i, count[i]], count[i] + 1
         prev = np.where(live, cur, prev)
         d = np.where(live, d, np.inf)
@@ -67,7 +70,7 @@ def limit_preview(
     d = dist[np.maximum(via, 0)] + left[..., None]  # (A, 3, k)
     s = speed[np.maximum(via, 0)]
     # the via table starts at its own limit; keep what drops below this lane's
-    keep = ok[..., None] & (s < hd.lane_speed[safe][..., None]) & (d <= reach)
+    keep = ok[..., None] & (s < hd.lane_advisory[safe][..., None]) & (d <= reach)
     order = np.argsort(~keep, axis=-1, kind="stable")  # kept first, in distance order
     d = np.where(keep, d, np.inf)
     s = np.where(keep, s, 0.0)

@@ -26,6 +26,9 @@ import sumolib.net
 from mixed_traffic.paths import cache_dir
 
 SPACING = 1.0  # waypoint spacing along the centreline [m]
+#: Lateral acceleration of a junction lane's advisory speed [m/s²]: netconvert's default
+#: ``--junctions.limit-turn-speed``, the turn speed SUMO itself would have built.
+ADVISORY_LAT_ACCEL = 5.5
 #: A junction lane leaving the road's direction by more than this is a lane shift [rad] ...
 SHIFT_ANGLE = np.deg2rad(45.0)
 #: ... where the road's direction changes by less than this across the junction [rad].
@@ -139,6 +142,21 @@ class HDMap:
         for lane, nxt in self.lane_exits.items():
             out.setdefault(int(self.lane_edge[lane]), set()).update(nxt)
         return out
+
+    @cached_property
+    def lane_advisory(self) -> np.ndarray:
+        """(L,) the lane's speed limit [m/s]; for a junction lane whose turn (heading change
+        over its length) allows less than 80 % of it at ``ADVISORY_LAT_ACCEL``, that speed.
+        netconvert limits turns so (its own turns keep their limits: the estimates differ by
+        a few %), but a hand-drawn junction may keep the road's limit. A bend of a road lane
+        lies somewhere along the lane: the waypoints see it."""
+        first = self.wp_offset
+        last = first + np.maximum(self.wp_count - 1, 0)
+        turn = np.abs(_wrap(self.wp_heading[last] - self.wp_heading[first]))
+        kappa = turn / np.maximum(self.lane_length, 0.1)  # mean curvature [1/m]
+        curve = np.sqrt(ADVISORY_LAT_ACCEL / np.maximum(kappa, 1e-6))
+        ignored = (self.lane_edge < 0) & (curve < 0.8 * self.lane_speed)
+        return np.where(ignored, curve, self.lane_speed)
 
     @cached_property
     def edge_free_time(self) -> np.ndarray:
