@@ -71,7 +71,8 @@ def run_one(path: Path, policy: str, penetration: float, seconds: float, seed: i
 
 
 def summary(rows: Sequence[dict[str, Any]]) -> str:
-    """The table: per file its AV trips and terminal events, then the share over all."""
+    """The table: per file its agents, AV trips, terminal events and wall time per simulated
+    second (or its status), then the terminal events per AV trip over all files."""
     lines = [f"{'file':50s} {'agents':>6s} {'trips':>5s} {'terminal':>8s} {'wall/sim':>8s}  events"]
     total = trips = 0
     for r in rows:

@@ -421,7 +421,8 @@ def write_demand(
             ET.SubElement(root, "vehicle", route=f"r{v.route}", **attrs)
         else:
             ET.SubElement(root, "trip", attrs, **{"from": r.origin, "to": r.destination})
-    root.extend(ET.fromstring(text) for _, text in ([pending] if pending else []) + list(written))
+    rest = [pending, *written] if pending is not None else []  # departing after every vehicle
+    root.extend(ET.fromstring(text) for _, text in rest)
     ET.indent(root)
     tmp = path.with_suffix(".tmp")
     ET.ElementTree(root).write(tmp, encoding="utf-8", xml_declaration=True)
