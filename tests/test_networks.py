@@ -233,6 +233,25 @@ def test_a_sumocfg_in_sumos_other_forms(tmp_path: Path) -> None:
         load_scenario(str(tmp_path / "t.sumocfg"))
 
 
+def test_a_route_that_sumo_changes_is_followed_not_a_deviation(tmp_path: Path) -> None:
+    """A rerouter on the destination edge sends every vehicle on (as on SUMO's race track,
+    where all 13 AV trips ended as route deviations): the AVs follow SUMO's new route."""
+    net = _netgenerate(tmp_path / "grid.net.xml")
+    (tmp_path / "r.rou.xml").write_text('<routes><flow id="f" begin="0" end="20" period="4" '
+                                        'from="A0A1" to="A1A2"/></routes>')  # fmt: skip
+    (tmp_path / "rr.add.xml").write_text('<additional><rerouter id="on" edges="A1A2"><interval '
+                                         'begin="0" end="1000"><destProbReroute id="B2C2"/>'
+                                         "</interval></rerouter></additional>")  # fmt: skip
+    cfg = tmp_path / "run.sumocfg"
+    cfg.write_text(f'<configuration><input><net-file value="{net.name}"/><route-files '
+                   'value="r.rou.xml"/><additional-files value="rr.add.xml"/></input>'
+                   "</configuration>")  # fmt: skip
+    config = EnvConfig(scenario=str(cfg), penetration=1.0, episode_length=120.0, seed=0)
+    m = run_episode(config, "acc-lc", warmup=0.0)["metrics"]
+    # (before, all 5 trips that ended in 90 s were route deviations at the old route's end)
+    assert m["av_trips"] >= 3 and m["terminal_route_deviation"] == 0
+
+
 def test_avs_derive_from_a_sumocfg_type_of_another_class(tmp_path: Path) -> None:
     """A file with only racing cars of class vip on vip-only lanes: the AVs are vip cars the
     size of the racing type, and the lanes are theirs (issue 24, part 2)."""

@@ -328,8 +328,7 @@ class MixedTrafficEnv(ParallelEnv):
             return []
         self._controller.add_from_snapshot(snap, new, self._backend)
         for a in new:
-            edges = self._backend.vehicle_route(a)
-            table.set_route(a, np.array([self.hdmap.edge_row.get(e, -1) for e in edges], np.int64))
+            table.set_route(a, self._route_rows(self._backend.vehicle_route(a)))
         self._builder.drop(new)
         if not self.config.fixed_fleet:
             table.agents += new
@@ -363,8 +362,28 @@ class MixedTrafficEnv(ParallelEnv):
 
     def _events(self, snap: TrafficSnapshot, rows: Rows, cmd) -> dict[str, str]:
         """'arrived', a terminal reason, or '' for every agent that acted."""
+        self._follow_sumo_routes(snap, rows)
         return agent_events(self.hdmap, self._memory, self._table, snap, rows, cmd,
                             self._tls_prev, self.config.speed_tolerance)  # fmt: skip
+
+    def _follow_sumo_routes(self, snap: TrafficSnapshot, rows: Rows) -> None:
+        """Re-read the routes SUMO changed (a rerouter, a rerouting device): SUMO keeps a
+        vehicle on its route, so an agent whose stored route lacks its edge at SUMO's route
+        index was given a new one."""
+        table, r = self._table, rows.r
+        edge, ri = snap.edge[r], snap.route_index[r]
+        ok = (ri >= 0) & (ri < table.route_len[rows.slots])
+        width = table.route_table.shape[1]
+        stored = table.route_table[rows.slots, np.clip(ri, 0, width - 1)]
+        stale = np.flatnonzero((edge >= 0) & ~(ok & (stored == edge))).tolist()
+        changed = self._backend.refresh_routes([rows.ids[k] for k in stale]) if stale else []
+        for k, (route, index) in zip(stale, changed):
+            table.set_route(rows.ids[k], self._route_rows(route))
+            snap.route_index[r[k]], snap.route_length[r[k]] = index, len(route)
+
+    def _route_rows(self, edges: Sequence[str]) -> np.ndarray:
+        """(R,) edge rows of a route given by edge ids."""
+        return np.array([self.hdmap.edge_row.get(e, -1) for e in edges], np.int64)
 
     def _rewards(self, snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame,
                  events: dict[str, str]):  # fmt: skip

@@ -290,6 +290,19 @@ class SumoBackend:
         snap.collisions, snap.teleports = collisions, teleports
         return snap
 
+    def refresh_routes(self, vids: Sequence[str]) -> list[tuple[tuple[str, ...], int]]:
+        """SUMO's route and route index now of each of ``vids``, whose routes SUMO changed (a
+        rerouter, a rerouting device); later snapshots resolve route indices on them."""
+        v, out = self._api.vehicle, []
+        for vid in vids:
+            route = tuple(v.getRoute(vid))
+            length, width, is_av, *_ = self._static[vid]
+            rows = {self._edge_row.get(e, -1): i for i, e in reversed(list(enumerate(route)))}
+            self._static[vid] = (length, width, is_av, rows, len(route))
+            self._route_pos[vid] = ri = v.getRouteIndex(vid)
+            out.append((route, ri))
+        return out
+
     def _register(self, vid: str) -> None:
         v = self._api.vehicle
         is_av = vid.startswith("av_")
