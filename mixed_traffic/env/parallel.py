@@ -13,9 +13,10 @@ Agents
     the empty observation (only ``follow`` allowed) and its actions are ignored.
 Observation
     ``Dict(ego (z,5), lanes (3,z,4m), vehicles (3,z,12), lights (3,z,4), limits (3,k,2),
-    give_way (3,), node_mask (3,3), action_mask (3,))``, see ``mixed_traffic.sensing.observation`` for features and scales. Sensors
-    (LiDAR vehicles, camera lights, GNSS/IMU ego) apply the weather preset's noise and
-    misdetection; rewards, terminations and metrics use ground truth.
+    give_way (3,), node_mask (3,3), action_mask (3,))``, see ``mixed_traffic.sensing.
+    observation`` for features and scales. Sensors (LiDAR vehicles, camera lights, GNSS/IMU
+    ego) apply the weather preset's noise and misdetection; rewards, terminations and metrics
+    use ground truth.
 Action
     ``Dict(decision=Discrete(3), params=Box(-1, 1, (3, 2)))``: decision 0 left change, 1 follow,
     2 right change; the chosen row ``(steering, accel_brake)`` is executed: steering ±1 =
