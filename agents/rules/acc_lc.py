@@ -21,9 +21,9 @@ curves ahead), red / yellow lights as a
 stopped leader at the stop line (yellow only if it can stop comfortably; the speeds of the turn
 behind a stop line come from the route's speed-limit preview, ``limits``), a give-way line
 (``give_way``: no yellow phase warns before SUMO closes it) approached at ``junction_speed`` on
-roads under 20 m/s, vehicles of the neighbouring lanes that overlap the ego laterally (cut-ins, or
-the ego straddling during its own change) as leaders too. The virtual stopped vehicle at the end
-of a lane that must be left is a leader like any other. The light state is a majority over the
+roads under 20 m/s, vehicles of the neighbouring lanes that overlap the ego laterally (cut-ins,
+or the ego straddling during its own change) as leaders too. The virtual stopped vehicle at the
+end of a lane that must be left is a leader like any other. The light state is a majority over the
 last three frames (misdetection filter). Cooperation: a vehicle ahead in a neighbouring lane
 whose lateral offset points into our lane by ``signal_min`` (a waiting or starting change) is a
 leader too when we can stop for it braking at most ``yield_decel`` and are farther behind it

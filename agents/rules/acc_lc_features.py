@@ -58,8 +58,7 @@ def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarr
     f["mask"] = np.asarray(ob["action_mask"]) > 0
     _light_features(f, lights, c)
     # an older observation has no give_way key: every line may then be one
-    gw = np.asarray(ob["give_way"])[:, 1] > 0 if "give_way" in ob else np.ones(A, bool)
-    f["give_way"] = gw
+    f["give_way"] = np.asarray(ob["give_way"])[:, 1] > 0 if "give_way" in ob else np.ones(A, bool)
     return f
 
 

@@ -362,7 +362,8 @@ class MixedTrafficEnv(ParallelEnv):
         return out
 
     def _events(self, snap: TrafficSnapshot, rows: Rows, cmd) -> dict[str, str]:
-        """'arrived', a terminal reason, or '' for every agent that acted."""
+        """'arrived', a terminal reason, or '' for every agent that acted, judged on the routes
+        SUMO has now (it may have changed some)."""
         self._follow_sumo_routes(snap, rows)
         return agent_events(self.hdmap, self._memory, self._table, snap, rows, cmd,
                             self._tls_prev, self.config.speed_tolerance)  # fmt: skip

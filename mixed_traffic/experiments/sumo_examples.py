@@ -21,11 +21,12 @@ from typing import Any
 from tqdm import tqdm
 
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.experiments.runner import run_episode
 from mixed_traffic.experiments.safety_matrix import terminal_events
 from mixed_traffic.provenance import check_writable, rewrite_records
 from mixed_traffic.schema import POLICIES
+from mixed_traffic.world.demand import av_count
+from mixed_traffic.world.registry import load_scenario
 
 EXPECTED = {
     "has no lane that passenger cars may use": "no car lane",
@@ -53,9 +54,8 @@ def run_one(path: Path, policy: str, penetration: float, seconds: float, seed: i
     try:
         config = EnvConfig(scenario=str(path), penetration=penetration,
                            episode_length=seconds, seed=seed)  # fmt: skip
-        env = MixedTrafficEnv(config)
-        agents = len(env.possible_agents)
-        env.close()
+        scenario = load_scenario(config.scenario)
+        agents = av_count(scenario, scenario.configure(config))
         record = run_episode(config, policy, warmup=0.0)
     except Exception as e:  # every file gets a row; the exit status tells
         status = next((s for k, s in EXPECTED.items() if k in str(e)), "error")

@@ -80,10 +80,11 @@ def give_way(
     hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray, lane: np.ndarray, gate: np.ndarray,
     state: np.ndarray, dist: np.ndarray,
 ) -> np.ndarray:  # fmt: skip
-    """(A,) bool where it marked: mark in place the stop line at the end of each agent's current lane where it must give
+    """Mark in place the stop line at the end of each agent's current lane where it must give
     way (``gate`` (A,): RED while SUMO's junction model holds the link closed, GREEN while it is
     open, NO_LIGHT elsewhere) unless a nearer signal is seen, and over a permissive green at
-    the line while the link is closed: right of way as SUMO rules it."""
+    the line while the link is closed: right of way as SUMO rules it. Returns (A,) bool: where
+    it marked a line."""
     ok = (gate != NO_LIGHT) & (lane >= 0)
     to_end = hd.lane_length[np.maximum(lane, 0)] - snap.lane_pos[rows]
     held = (gate == RED) & (to_end <= dist[:, CURRENT] + 0.5)

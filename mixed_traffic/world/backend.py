@@ -297,18 +297,21 @@ class SumoBackend:
         for vid in vids:
             route = tuple(v.getRoute(vid))
             length, width, is_av, *_ = self._static[vid]
-            rows = {self._edge_row.get(e, -1): i for i, e in reversed(list(enumerate(route)))}
-            self._static[vid] = (length, width, is_av, rows, len(route))
+            self._static[vid] = (length, width, is_av, self._route_positions(route), len(route))
             self._route_pos[vid] = ri = v.getRouteIndex(vid)
             out.append((route, ri))
         return out
+
+    def _route_positions(self, route: Sequence[str]) -> dict[int, int]:
+        """Edge row -> its first index in ``route`` (how snapshots resolve route indices)."""
+        return {self._edge_row.get(e, -1): i for i, e in reversed(list(enumerate(route)))}
 
     def _register(self, vid: str) -> None:
         v = self._api.vehicle
         is_av = vid.startswith("av_")
         route = v.getRoute(vid)
-        rows = {self._edge_row.get(e, -1): i for i, e in reversed(list(enumerate(route)))}
-        self._static[vid] = (v.getLength(vid), v.getWidth(vid), is_av, rows, len(route))
+        self._static[vid] = (v.getLength(vid), v.getWidth(vid), is_av,
+                             self._route_positions(route), len(route))  # fmt: skip
         self._route_pos[vid] = 0
         self._edge_last[vid] = -2
         if is_av:

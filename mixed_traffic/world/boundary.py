@@ -52,9 +52,7 @@ class PeriodicBoundary:
 
     def step(self, snap: TrafficSnapshot, backend: SumoBackend) -> None:
         """After a step: replace vehicles that arrived or collided, and hold the exit heads."""
-        crashed = [v for c in snap.collisions for v in (c.collider, c.victim)]
-        # SUMO lists a vehicle removed by a collision in the arrived list too: replace it once
-        self.replace(backend, list(dict.fromkeys([*snap.arrived, *crashed])))
+        self.replace(backend, snap.left)
         if self.virtual_leader and self.exit_edge:
             self._hold_heads(snap, backend)
 

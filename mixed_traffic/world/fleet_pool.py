@@ -109,8 +109,7 @@ class FleetPool:
     def step(self, snap: TrafficSnapshot, backend: SumoBackend) -> None:
         """After a SUMO step: free the agents that arrived or collided, then send the trips
         that are due to free agents."""
-        crashed = [v for c in snap.collisions for v in (c.collider, c.victim)]
-        self.replace(backend, [*snap.arrived, *crashed])
+        self.replace(backend, snap.left)
         self._dispatch(backend, self.begin + snap.time)
 
     def replace(self, backend: SumoBackend, gone: list[str]) -> None:

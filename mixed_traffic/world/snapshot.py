@@ -79,6 +79,13 @@ class TrafficSnapshot:
         return len(self.ids)
 
     @property
+    def left(self) -> list[str]:
+        """Vehicles that left the road in the last step, each once: arrived, or removed by a
+        collision (a vehicle may be in several)."""
+        crashed = (v for c in self.collisions for v in (c.collider, c.victim))
+        return list(dict.fromkeys([*self.arrived, *crashed]))
+
+    @property
     def route_progress(self) -> np.ndarray:
         """(N,) fraction of the route's edges completed, in [0, 1]."""
         return self.route_index / np.maximum(self.route_length - 1, 1)

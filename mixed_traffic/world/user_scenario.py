@@ -185,7 +185,8 @@ def _from_sumocfg(path: Path) -> Scenario:
     carrying = [(af, r) for af in additional for r in [_parse(af, "additional file")]
                 if any(el.tag in VEHICLES for el in r)]  # fmt: skip
     roots += carrying
-    kept = [str(af) for af in additional if af not in {af for af, _ in carrying}]
+    carried = {af for af, _ in carrying}
+    kept = [str(af) for af in additional if af not in carried]
     types = [el for _, r in roots for el in r if el.tag in ("vType", "vTypeDistribution")]
     vclass, size = _av_template(types, [el for _, r in roots for el in r])
     if vclass in OFF_ROAD:
