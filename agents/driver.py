@@ -84,7 +84,7 @@ class Driver:
         """``policy`` may be None for teacher-only driving; ``teacher`` defaults to ACC-LC."""
         self.policy, self.cfg = policy, cfg
         self.k = steps_per_decision(cfg.decision_interval, step_length)
-        self.teacher = teacher if teacher is not None else AccLcPolicy()
+        self.teacher = teacher if teacher is not None else AccLcPolicy(dt=step_length)
         steer = cfg.steer_delta if cfg.steer_control else 0.0  # HEAD: ACC-LC steers
         self.delta = np.array([steer, cfg.accel_delta], np.float32)
         self.rss = RssConfig()

@@ -10,6 +10,7 @@ policy, so ACC-LC does not import this module) and are re-exported here.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Protocol
 
@@ -92,7 +93,7 @@ class AutoPolicy:
         self.checkpoint = path.resolve()
         self.name = name or ("auto" if safety else "auto-raw")
         self.driver = load_driver(path, dt, z=z, m=m)
-        self.safety = SafetyModule() if safety else None
+        self.safety = SafetyModule(rule=self.driver.teacher) if safety else None
 
     def act(
         self, obs: dict[str, np.ndarray], agents: Sequence[str] | None = None
@@ -113,9 +114,10 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
         return RandomPolicy(seed)
     if name in ("acc-lc", "acc-lc-conservative"):
         from agents.rules.acc_lc import AccLcPolicy
-        from agents.rules.acc_lc_config import conservative
+        from agents.rules.acc_lc_config import AccLcConfig, conservative
 
-        return AccLcPolicy(conservative() if name == "acc-lc-conservative" else None)
+        base = conservative() if name == "acc-lc-conservative" else AccLcConfig()
+        return AccLcPolicy(replace(base, dt=dt))
     if name in ("auto", "auto-raw"):
         return AutoPolicy(checkpoint, z=z, m=m, safety=name == "auto", dt=dt)
     if name in STUDY_POLICIES:  # trained by mixed_traffic.study, behind the safety module

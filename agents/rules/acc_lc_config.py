@@ -26,6 +26,9 @@ class AccLcConfig:
     max_steer_deg: float = VehicleConfig.max_steer_deg
     max_accel: float = VehicleConfig.max_accel
     max_decel: float = VehicleConfig.max_decel
+    dt: float = 0.1
+    """Time between observation frames, the env's step length [s] (a .sumocfg brings its own:
+    SUMO's examples run at 0.05-0.5 s)."""
     # longitudinal: IIDM with a constant time gap T (commercial ACC: 1-2 s, independent of
     # speed); emergency braking only where stopping behind the leader's stopping point needs
     # more than ``emergency_decel`` (blended in over ``emergency_span``)

@@ -44,7 +44,7 @@ def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarr
     veh = np.asarray(ob["vehicles"], np.float64)  # (A, 3, z, 12)
     lights = np.asarray(ob["lights"], np.float64)  # (A, 3, z, 4)
     A = ego.shape[0]
-    f, dh, valid = _ego_features(ego)
+    f, dh, valid = _ego_features(ego, c.dt)
     m = lanes.shape[-1] // 4
     wp = lanes[:, :, -1].reshape(A, 3, m, 4) * WAYPOINT_SCALE
     f["wp_speed"] = wp[..., 3]  # (A, 3, m)
@@ -52,7 +52,7 @@ def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarr
     _preview_features(f, ob, c)
     scale = np.array([c.lidar_range, SPEED_SCALE, np.pi, 10.0, 5.0, 2.0])
     _neighbour_features(f, veh, scale, A)
-    _history_features(f, veh, scale, dh, valid)
+    _history_features(f, veh, scale, dh, valid, c.dt)
     nm = np.asarray(ob["node_mask"])
     f["exists"] = nm[:, :, 0] > 0
     f["mask"] = np.asarray(ob["action_mask"]) > 0
@@ -72,9 +72,11 @@ def _preview_features(f: dict[str, np.ndarray], ob: Mapping[str, np.ndarray], c:
     f["pv_speed"] = np.where(seen, lm[..., 1] * SPEED_SCALE, np.inf)
 
 
-def _ego_features(ego: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
-    """Ego features of the latest frame and ``vlat_hist``; also the offset history ``dh`` [m]
-    (A, z) and the ``valid`` frames (A, z) that the neighbour history needs."""
+def _ego_features(
+    ego: np.ndarray, dt: float
+) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """Ego features of the latest frame and ``vlat_hist`` (frames ``dt`` [s] apart); also the
+    offset history ``dh`` [m] (A, z) and the ``valid`` frames (A, z) the neighbours need."""
     e = ego[:, -1] * EGO_SCALE
     f = {"v": np.maximum(e[:, 0], 0.0), "h": e[:, 1], "len": e[:, 2], "wid": e[:, 3]}
     f["d"] = e[:, 4]
@@ -84,7 +86,7 @@ def _ego_features(ego: np.ndarray) -> tuple[dict[str, np.ndarray], np.ndarray, n
     k = max(0, ego.shape[1] - 3)
     diffs = np.diff(dh[:, k:], axis=1)
     ok = valid[:, k + 1 :] & valid[:, k:-1] & (np.abs(diffs) < 1.5)
-    f["vlat_hist"] = np.where(ok, diffs, 0.0).sum(1) / np.maximum(ok.sum(1), 1) / 0.1
+    f["vlat_hist"] = np.where(ok, diffs, 0.0).sum(1) / np.maximum(ok.sum(1), 1) / dt
     return f, dh, valid
 
 
@@ -105,15 +107,22 @@ def _neighbour_features(
 
 
 def _history_features(
-    f: dict[str, np.ndarray], veh: np.ndarray, scale: np.ndarray, dh: np.ndarray, valid: np.ndarray
+    f: dict[str, np.ndarray],
+    veh: np.ndarray,
+    scale: np.ndarray,
+    dh: np.ndarray,
+    valid: np.ndarray,
+    dt: float,
 ) -> None:
-    """Front vehicles of the last K frames (into ``f``; object permanence: a leader hidden
-    behind a nearer vehicle of the same lane, or gone into a junction lane the ego does not
-    follow, is extrapolated from its last sighting), only since the last lane switch."""
+    """Front vehicles of the frames no older than 0.8 s (``dt`` [s] apart; at most 5) into
+    ``f``. Object permanence: a leader hidden behind a nearer vehicle of the same
+    lane, or gone into a junction lane the ego does not follow, is extrapolated from its last
+    sighting, only since the last lane switch (older sightings, extrapolated seconds ahead,
+    made the ego keep its distance from leaders long gone)."""
     A = dh.shape[0]
-    K = min(5, veh.shape[2])
+    K = min(veh.shape[2], 1 + int(0.8 / dt + 1e-9))
     hv = veh[:, :, -K:, :6] * scale  # (A, 3, K, 6)
-    age = (K - 1 - np.arange(K)) * 0.1
+    age = (K - 1 - np.arange(K)) * dt
     hp = hv[..., 4] > 0
     jump = np.abs(np.diff(dh[:, -K:], axis=1)) >= 1.5  # (A, K-1)
     since = np.flip(np.cumsum(np.flip(jump, 1), axis=1), 1) == 0  # no switch after k

@@ -45,7 +45,10 @@ def steer(
     # 9 m) to zero and the ego lags a whole lane behind its lane
     ff = np.arctan(c.wheelbase * lane_curvature(f))
     lim = np.arctan(c.wheelbase * c.lat_accel / vs**2)
-    fb = np.clip(c.heading_gain * (chi - h) * np.minimum(1.0, 8.0 / vs), -lim, lim)
+    # a step of dt corrects at most half the course error (the command is held for the step:
+    # at SUMO's 0.5 s steps the full gain overshoots and the ego weaves)
+    gain = np.minimum(c.heading_gain * np.minimum(1.0, 8.0 / vs), 0.5 * c.wheelbase / (vs * c.dt))
+    fb = np.clip(gain * (chi - h), -lim, lim)
     steer = ff + fb
     return np.clip(steer / np.deg2rad(c.max_steer_deg), -1.0, 1.0)
 

@@ -89,7 +89,7 @@ class _SternPolicy:
     def __init__(self, config: SternConfig | None = None, vehicle: VehicleConfig | None = None):
         self.c = config or SternConfig()
         self.vehicle = vehicle or VehicleConfig()
-        self.rule = AccLcPolicy()
+        self.rule = AccLcPolicy(dt=self.c.dt)
         self.memory = _SpeedMemory(max(1, round(self.c.window / self.c.dt)))
 
     def act(self, obs: Mapping[str, np.ndarray], agents: Sequence[str] | None = None):
