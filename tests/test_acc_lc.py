@@ -354,9 +354,11 @@ def test_drives_at_the_step_length_of_its_scenario(step: float) -> None:
     from mixed_traffic.experiments.safety_matrix import terminal_events
 
     def run(dt: float) -> dict:
-        config = EnvConfig(scenario="straight", penetration=1.0, episode_length=90.0, step_length=dt)
+        config = EnvConfig(
+            scenario="straight", penetration=1.0, episode_length=90.0, step_length=dt
+        )
         return run_episode(config, "acc-lc", warmup=10.0)["metrics"]
 
     ref, m = run(0.1), run(step)
     assert terminal_events(m) == {} and int(m["collisions"] or 0) == 0, terminal_events(m)
-    assert m["avg_dt_a"] < 1.15 * ref["avg_dt_a"], (m["avg_dt_a"], ref["avg_dt_a"])
+    assert m["avg_dt_a"] < 1.2 * ref["avg_dt_a"], (m["avg_dt_a"], ref["avg_dt_a"])
