@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -344,21 +346,23 @@ def test_speed_cap_holds_the_limit_curves_and_a_red_light() -> None:
     assert speed_cap(f, AccLcConfig())[2] == pytest.approx((3.3**2 - 10.0**2) / (2 * 19.0))
 
 
+@functools.cache
+def _all_acc_lc_on_straight(step: float) -> dict:
+    """Metrics of 90 s of ``straight`` with all AVs under ACC-LC at ``step`` [s]."""
+    from mixed_traffic.experiments.runner import run_episode
+
+    config = EnvConfig(scenario="straight", penetration=1.0, episode_length=90.0, step_length=step)
+    return run_episode(config, "acc-lc", warmup=10.0)["metrics"]
+
+
 @pytest.mark.parametrize("step", [0.2, 0.5])
 def test_drives_at_the_step_length_of_its_scenario(step: float) -> None:
     """SUMO's own .sumocfg files run at 0.05-0.5 s steps (A10KW: 0.5 s). ACC-LC read its
     observation history as 0.1 s apart: at 0.5 s its lateral speed was 5x too high and the AVs
     weaved (A10KW: 40 terminal events in 119 AV trips), and leaders seen 2 s ago counted as
     close (straight, all AVs: AvgDT-A 120 s/km against 75 s/km at 0.1 s)."""
-    from mixed_traffic.experiments.runner import run_episode
     from mixed_traffic.experiments.safety_matrix import terminal_events
 
-    def run(dt: float) -> dict:
-        config = EnvConfig(
-            scenario="straight", penetration=1.0, episode_length=90.0, step_length=dt
-        )
-        return run_episode(config, "acc-lc", warmup=10.0)["metrics"]
-
-    ref, m = run(0.1), run(step)
+    ref, m = _all_acc_lc_on_straight(0.1), _all_acc_lc_on_straight(step)
     assert terminal_events(m) == {} and int(m["collisions"] or 0) == 0, terminal_events(m)
     assert m["avg_dt_a"] < 1.2 * ref["avg_dt_a"], (m["avg_dt_a"], ref["avg_dt_a"])
