@@ -103,6 +103,7 @@ def test_agents_enter_leave_and_report_terms() -> None:
         seen, events = set(first), {}
         while e.agents:
             obs, rew, term, trunc, info = e.step(_follow(e))
+            _assert_batch_is_stacked(e, obs)
             seen |= set(e.agents)
             if e.agents:  # memory stays flat: finished agents leave no observation or history
                 assert set(e._last_obs) <= set(e.agents) >= set(e._builder._slot)
@@ -126,6 +127,17 @@ def test_agents_enter_leave_and_report_terms() -> None:
         e.close()
 
 
+def _assert_batch_is_stacked(e: MixedTrafficEnv, obs: dict) -> None:
+    """``observation_batch`` equals the step's per-agent observations stacked (in the live
+    agents' order and reversed; agents that finished or entered this step included)."""
+    for order in (e.agents, e.agents[::-1]):
+        batch = e.observation_batch(order)
+        for key, x in batch.items():
+            ref = np.stack([obs[a][key] for a in order]) if order else x
+            assert x.dtype == ref.dtype and np.array_equal(x, ref), key
+            assert len(x) == len(order)
+
+
 def test_fixed_fleet_keeps_a_constant_agent_set() -> None:
     e = parallel_env(fixed_fleet=True, **SHORT)
     try:
@@ -138,6 +150,7 @@ def test_fixed_fleet_keeps_a_constant_agent_set() -> None:
                 break
             assert e.agents == agents
             assert set(obs) == set(agents) and not any(term.values())
+            _assert_batch_is_stacked(e, obs)
     finally:
         e.close()
 

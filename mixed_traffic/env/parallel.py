@@ -72,7 +72,9 @@ from mixed_traffic.env.av_metrics import AVMetrics, AVStep
 from mixed_traffic.env.checks import check_gui, check_reset_args, check_warmup
 from mixed_traffic.env.control import BicycleController
 from mixed_traffic.env.flow_metrics import FlowRecorder
+from mixed_traffic.env.obs_batch import StepBatches
 from mixed_traffic.env.reward import agent_rewards
+from mixed_traffic.env.sumo_sync import follow_sumo_routes, give_way_gates
 from mixed_traffic.env.termination import agent_events
 from mixed_traffic.env.truth import (
     FrontView,
@@ -83,10 +85,8 @@ from mixed_traffic.env.truth import (
 )
 from mixed_traffic.paths import scratch_dir
 from mixed_traffic.schema import METRICS
-from mixed_traffic.sensing.camera import GREEN, NO_LIGHT, RED, permissive
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import ttc
-from mixed_traffic.sensing.lane_graph import lane_graph
 from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
 from mixed_traffic.sensing.perception import Perception
 from mixed_traffic.world.backend import SumoBackend
@@ -166,6 +166,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._memory = StepMemory()
         self._step_truth: tuple[Rows, PerceptionFrame] | None = None
         self._last_obs: dict[str, dict] = {}
+        self._batches = StepBatches()  # the step's observation arrays (observation_batch)
         self._renderer: Any = None
         self._phase = "new"  # new -> running -> ended (time limit) | closed
         self._replaced: set[str] = set()  # agents whose decision the mask forbade this step
@@ -289,8 +290,8 @@ class MixedTrafficEnv(ParallelEnv):
     def _allowed(self, decision: np.ndarray) -> np.ndarray:
         """Decisions the masks of the last observations forbid, replaced (``allowed_decisions``)
         and remembered for this step's infos."""
-        masks = [self._last_obs.get(a, self._empty_obs)["action_mask"] for a in self.agents]
-        decision, replaced = allowed_decisions(decision, np.reshape(masks, (-1, 3)))
+        masks = self.observation_batch()["action_mask"]
+        decision, replaced = allowed_decisions(decision, masks.reshape(-1, 3))
         self._replaced = set(compress(self.agents, replaced.tolist()))
         return decision
 
@@ -308,6 +309,7 @@ class MixedTrafficEnv(ParallelEnv):
     def _advance(self) -> TrafficSnapshot:
         """One SUMO step; the boundary replaces vehicles that left; flow metrics."""
         snap = self._backend.step()
+        self._batches.clear()
         self._boundary.step(snap, self._backend)
         self._flow.update(snap)
         ids = self._perception.tls_ids
@@ -339,49 +341,16 @@ class MixedTrafficEnv(ParallelEnv):
         r = rows.r
         nxt = self._table.next_edge(rows.slots, snap.route_index[r])
         tls = [self._tls[t] for t in self._perception.tls_ids]
-        gates = self._gates(snap, rows, nxt, tls)
+        gates = give_way_gates(self.hdmap, self._backend, snap, rows, nxt, tls,
+                               self.config.sensors.camera_range)  # fmt: skip
         return self._perception.sense(snap, r, nxt, tls, self._noise_rng, gates)
-
-    def _gates(self, snap: TrafficSnapshot, rows: Rows, nxt: np.ndarray, tls: list[str]
-               ) -> np.ndarray:  # fmt: skip
-        """(A,) camera code of the give-way line ahead (``camera.give_way``) of agents within
-        camera range of a junction where their lane yields, or whose signal shows a
-        permissive green (g: yield to the foes) or is off (o); SUMO is asked only for those
-        whether their next link is open."""
-        hd, lane = self.hdmap, snap.lane[rows.r]
-        out = np.full(len(lane), NO_LIGHT, dtype=np.int8)
-        safe = np.maximum(lane, 0)
-        yields = hd.lane_yields[safe] | permissive(lane_graph(hd), lane, nxt, tls)
-        if not yields.any():  # nothing to ask SUMO
-            return out
-        to_end = hd.lane_length[safe] - snap.lane_pos[rows.r]
-        near = (lane >= 0) & yields & (to_end <= self.config.sensors.camera_range)
-        if near.any():
-            idx = np.flatnonzero(near)
-            out[idx] = np.where(self._backend.must_yield([rows.ids[i] for i in idx]), RED, GREEN)
-        return out
 
     def _events(self, snap: TrafficSnapshot, rows: Rows, cmd) -> dict[str, str]:
         """'arrived', a terminal reason, or '' for every agent that acted, judged on the routes
         SUMO has now (it may have changed some)."""
-        self._follow_sumo_routes(snap, rows)
+        follow_sumo_routes(self._table, self._backend, snap, rows, self._route_rows)
         return agent_events(self.hdmap, self._memory, self._table, snap, rows, cmd,
                             self._tls_prev, self.config.speed_tolerance)  # fmt: skip
-
-    def _follow_sumo_routes(self, snap: TrafficSnapshot, rows: Rows) -> None:
-        """Re-read the routes SUMO changed (a rerouter, a rerouting device): SUMO keeps a
-        vehicle on its route, so an agent whose stored route lacks its edge at SUMO's route
-        index was given a new one."""
-        table, r = self._table, rows.r
-        edge, ri = snap.edge[r], snap.route_index[r]
-        ok = (ri >= 0) & (ri < table.route_len[rows.slots])
-        width = table.route_table.shape[1]
-        stored = table.route_table[rows.slots, np.clip(ri, 0, width - 1)]
-        stale = np.flatnonzero((edge >= 0) & ~(ok & (stored == edge))).tolist()
-        changed = self._backend.refresh_routes([rows.ids[k] for k in stale]) if stale else []
-        for k, (route, index) in zip(stale, changed):
-            table.set_route(rows.ids[k], self._route_rows(route))
-            snap.route_index[r[k]], snap.route_length[r[k]] = index, len(route)
 
     def _route_rows(self, edges: Sequence[str]) -> np.ndarray:
         """(R,) edge rows of a route given by edge ids."""
@@ -435,7 +404,10 @@ class MixedTrafficEnv(ParallelEnv):
     def _observe(self, snap, rows: Rows, sensed: PerceptionFrame) -> dict[str, dict]:
         ids = rows.ids
         routes = list(map(self._table.routes.__getitem__, ids))
-        obs = self._builder.build(snap, ids, rows.r, sensed, routes) if ids else {}
+        if not ids:
+            return {}
+        obs = self._builder.build(snap, ids, rows.r, sensed, routes)
+        self._batches.add(ids, self._builder.last_batch)
         self._last_obs.update(obs)
         return obs
 
@@ -526,6 +498,14 @@ class MixedTrafficEnv(ParallelEnv):
         at = table.by_slot(step_rows.slots, np.arange(n_step))
         at[rows.slots] = n_step + np.arange(len(rows.ids))  # entering: their new route wins
         self._remember(snap, all_rows, gather(step_truth, truth, at[all_rows.slots]))
+
+    def observation_batch(self, agents: Sequence[str] | None = None) -> dict[str, np.ndarray]:
+        """``{key: (A, ...)}`` the observations of ``agents`` (default: the live agents) as the
+        last reset or step returned them, stacked in that order: for batched policies. Taken
+        from the arrays the step built for all agents at once, so it saves stacking the
+        per-agent dicts; equal to stacking them."""
+        agents = list(self.agents if agents is None else agents)
+        return self._batches.gather(agents, lambda a: self._last_obs.get(a, self._empty_obs))
 
     # ------------------------------------------------------------------ metrics, render, close
     def episode_metrics(self) -> dict[str, float | None]:

@@ -139,7 +139,7 @@ def _make_policy(name: str, config: EnvConfig, checkpoint: str | Path | None) ->
 
 def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tuple[float, int]:
     """Step ``env`` to its time limit under ``agent``; (inference time [s], decisions)."""
-    from agents.policies import stack_obs, to_actions
+    from agents.policies import to_actions
 
     config = env.config
     infer, decisions = 0.0, 0
@@ -150,7 +150,7 @@ def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tu
         agents = list(env.agents)
         actions: dict[str, Any] = {}
         if agents:
-            batch = stack_obs(obs, agents)
+            batch = env.observation_batch(agents)
             t = time.perf_counter()
             decision, params = agent.act(batch, agents)
             infer += time.perf_counter() - t

@@ -152,6 +152,7 @@ class ObservationBuilder:
         self.config = config
         self.hdmap = hdmap
         self.graph = lane_graph(hdmap)
+        self.last_batch: dict[str, np.ndarray] = {}
         self.z = config.sensors.history
         self.m = config.sensors.waypoints
         s = config.sensors
@@ -226,7 +227,9 @@ class ObservationBuilder:
             sensed: the sensed ``PerceptionFrame`` for the same rows.
             routes: per agent, the edge rows of its route.
         Returns:
-            ``{agent_id: {key: array}}`` per the module table; arrays are fresh copies.
+            ``{agent_id: {key: array}}`` per the module table; arrays are fresh copies. The
+            per-agent arrays are views of ``last_batch`` (``{key: (A, ...)}``, rows in the
+            order of ``agent_ids``).
         """
         rows = np.asarray(rows, dtype=np.int64)
         A = len(rows)
@@ -260,6 +263,9 @@ class ObservationBuilder:
         h_veh = _push(self._veh, slots, veh, axis=2)
         h_lights = _push(self._lights, slots, lights, axis=2)
         act = act.astype(np.int8)
+        self.last_batch = {"ego": h_ego, "lanes": h_lanes, "vehicles": h_veh, "lights": h_lights,
+                           "limits": limits, "give_way": gw, "node_mask": node,
+                           "action_mask": act}  # fmt: skip
         # list(array) makes the per-agent views in C; a dict literal per agent is the cheapest
         return {
             a: {"ego": e, "lanes": ln, "vehicles": v, "lights": li, "limits": lm,

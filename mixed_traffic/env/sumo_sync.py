@@ -1,0 +1,58 @@
+"""What a step asks SUMO beyond the snapshot: whether the agents near a yielding junction may
+go (give-way lines), and the routes SUMO changed (rerouters, rerouting devices)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from mixed_traffic.env.agent_table import AgentTable, Rows
+from mixed_traffic.sensing.camera import GREEN, NO_LIGHT, RED, permissive
+from mixed_traffic.sensing.lane_graph import lane_graph
+from mixed_traffic.world.backend import SumoBackend
+from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.snapshot import TrafficSnapshot
+
+
+def give_way_gates(
+    hd: HDMap, backend: SumoBackend, snap: TrafficSnapshot, rows: Rows, nxt: np.ndarray,
+    tls: list[str], camera_range: float,
+) -> np.ndarray:  # fmt: skip
+    """(A,) camera code of the give-way line ahead (``camera.give_way``) of agents within
+    ``camera_range`` [m] of a junction where their lane yields, or whose signal shows a
+    permissive green (g: yield to the foes) or is off (o); SUMO is asked only for those
+    whether their next link is open. ``nxt`` (A,): the next route edge; ``tls``: the signal
+    states."""
+    lane = snap.lane[rows.r]
+    out = np.full(len(lane), NO_LIGHT, dtype=np.int8)
+    safe = np.maximum(lane, 0)
+    yields = hd.lane_yields[safe] | permissive(lane_graph(hd), lane, nxt, tls)
+    if not yields.any():  # nothing to ask SUMO
+        return out
+    to_end = hd.lane_length[safe] - snap.lane_pos[rows.r]
+    near = (lane >= 0) & yields & (to_end <= camera_range)
+    if near.any():
+        idx = np.flatnonzero(near)
+        out[idx] = np.where(backend.must_yield([rows.ids[i] for i in idx]), RED, GREEN)
+    return out
+
+
+def follow_sumo_routes(
+    table: AgentTable, backend: SumoBackend, snap: TrafficSnapshot, rows: Rows,
+    route_rows: Callable[[Sequence[str]], np.ndarray],
+) -> None:  # fmt: skip
+    """Re-read the routes SUMO changed (a rerouter, a rerouting device): SUMO keeps a vehicle
+    on its route, so an agent whose stored route lacks its edge at SUMO's route index was
+    given a new one. The table and ``snap`` get the new route (edge rows by ``route_rows``)
+    and index."""
+    r = rows.r
+    edge, ri = snap.edge[r], snap.route_index[r]
+    ok = (ri >= 0) & (ri < table.route_len[rows.slots])
+    width = table.route_table.shape[1]
+    stored = table.route_table[rows.slots, np.clip(ri, 0, width - 1)]
+    stale = np.flatnonzero((edge >= 0) & ~(ok & (stored == edge))).tolist()
+    changed = backend.refresh_routes([rows.ids[k] for k in stale]) if stale else []
+    for k, (route, index) in zip(stale, changed):
+        table.set_route(rows.ids[k], route_rows(route))
+        snap.route_index[r[k]], snap.route_length[r[k]] = index, len(route)
