@@ -74,7 +74,7 @@ from mixed_traffic.env.control import BicycleController
 from mixed_traffic.env.flow_metrics import FlowRecorder
 from mixed_traffic.env.obs_batch import StepBatches
 from mixed_traffic.env.reward import agent_rewards
-from mixed_traffic.env.sumo_sync import follow_sumo_routes, give_way_gates
+from mixed_traffic.env.sumo_sync import fan_choices, follow_sumo_routes, give_way_gates
 from mixed_traffic.env.termination import agent_events
 from mixed_traffic.env.truth import (
     FrontView,
@@ -341,9 +341,10 @@ class MixedTrafficEnv(ParallelEnv):
         r = rows.r
         nxt = self._table.next_edge(rows.slots, snap.route_index[r])
         tls = [self._tls[t] for t in self._perception.tls_ids]
-        gates = give_way_gates(self.hdmap, self._backend, snap, rows, nxt, tls,
-                               self.config.sensors.camera_range)  # fmt: skip
-        return self._perception.sense(snap, r, nxt, tls, self._noise_rng, gates)
+        s = self.config.sensors
+        gates = give_way_gates(self.hdmap, self._backend, snap, rows, nxt, tls, s.camera_range)
+        via = fan_choices(self.hdmap, self._backend, snap, rows, s.lidar_range)
+        return self._perception.sense(snap, r, nxt, tls, self._noise_rng, gates, via)
 
     def _events(self, snap: TrafficSnapshot, rows: Rows, cmd) -> dict[str, str]:
         """'arrived', a terminal reason, or '' for every agent that acted, judged on the routes

@@ -1,5 +1,6 @@
 """What a step asks SUMO beyond the snapshot: whether the agents near a yielding junction may
-go (give-way lines), and the routes SUMO changed (rerouters, rerouting devices)."""
+go (give-way lines), which lane SUMO takes where a lane fans out, and the routes SUMO changed
+(rerouters, rerouting devices)."""
 
 from __future__ import annotations
 
@@ -35,6 +36,25 @@ def give_way_gates(
     if near.any():
         idx = np.flatnonzero(near)
         out[idx] = np.where(backend.must_yield([rows.ids[i] for i in idx]), RED, GREEN)
+    return out
+
+
+def fan_choices(
+    hd: HDMap, backend: SumoBackend, snap: TrafficSnapshot, rows: Rows, reach: float
+) -> np.ndarray | None:
+    """(A,) lane row each agent enters at the end of its lane where that lane fans out onto
+    several lanes of the next edge (``HDMap.lane_fans``) and ends within ``reach`` [m]: SUMO
+    picks one by its best lanes and their occupancy, not the map's first; -1 elsewhere. None
+    when no agent is at such a lane (SUMO is asked only for those)."""
+    lane = snap.lane[rows.r]
+    safe = np.maximum(lane, 0)
+    near = hd.lane_length[safe] - snap.lane_pos[rows.r] <= reach
+    ask = np.flatnonzero((lane >= 0) & hd.lane_fans[safe] & near)
+    if not len(ask):
+        return None
+    out = np.full(len(lane), -1, dtype=np.int64)
+    vias = backend.next_vias([rows.ids[i] for i in ask])
+    out[ask] = [hd.lane_row.get(v, -1) for v in vias]
     return out
 
 

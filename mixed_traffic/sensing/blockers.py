@@ -23,17 +23,20 @@ SWEEP_MARGIN = 0.5
 
 def path_lanes(
     hdmap: HDMap, lane: np.ndarray, pos: np.ndarray, max_range: float,
-    next_edge: np.ndarray | None,
+    next_edge: np.ndarray | None, via: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
     """(A, H) lanes of each ego's path ahead from ``lane`` at ``pos`` (then the successors
     ``find_neighbours`` follows, while they start within ``max_range``), -1 padded; and (A, H)
-    the distance from the ego's front bumper to each lane's start [m] (+inf where padded)."""
+    the distance from the ego's front bumper to each lane's start [m] (+inf where padded).
+    ``via``: (A,) lane the current lane leads into as SUMO chose it at a fan (-1: the map's connection to ``next_edge``)."""
     g = lane_graph(hdmap)
     cur = np.asarray(lane, dtype=np.int64)
     csafe = np.maximum(cur, 0)
     succ = hdmap.lane_next[csafe].astype(np.int64)
     if next_edge is not None:
-        via = g.connection(csafe, np.asarray(next_edge))
+        conn = g.connection(csafe, np.asarray(next_edge))
+        succ = np.where(conn >= 0, conn, succ)
+    if via is not None:
         succ = np.where(via >= 0, via, succ)
     succ = np.where(cur >= 0, succ, -1)
     ssafe = np.maximum(succ, 0)
@@ -55,6 +58,7 @@ def path_blockers(
     max_range: float,
     next_edge: np.ndarray | None = None,
     limit: np.ndarray | None = None,
+    via: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The nearest vehicle across each agent's path ahead, on a lane the path does not follow.
 
@@ -84,7 +88,7 @@ def path_blockers(
     sub = _near_a_junction(snap, hdmap, rows, cand[0], max_range, limit)
     if len(sub) == 0:
         return none
-    pairs = _pairs(snap, hdmap, rows, sub, cand, max_range, next_edge, limit)
+    pairs = _pairs(snap, hdmap, rows, sub, cand, max_range, next_edge, limit, via)
     if pairs is None:
         return none
     hit = _hits(snap, hdmap, pairs)
@@ -144,7 +148,8 @@ class _Pairs(NamedTuple):
 
 def _pairs(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, sub: np.ndarray,
            cand: tuple[np.ndarray, np.ndarray, np.ndarray], max_range: float,
-           next_edge: np.ndarray | None, limit: np.ndarray | None) -> _Pairs | None:  # fmt: skip
+           next_edge: np.ndarray | None, limit: np.ndarray | None,
+           via: np.ndarray | None = None) -> _Pairs | None:  # fmt: skip
     """Pairs of an agent in ``sub`` and a candidate on a junction its path crosses (not on a
     lane of the path, not itself), and the window of its path around that junction: the
     junction's lanes, +- the body's reach."""
@@ -152,7 +157,8 @@ def _pairs(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, sub: np.ndarra
     cand, cl, cj = cand
     cur = snap.lane.astype(np.int64)[rows]
     nxt = None if next_edge is None else np.asarray(next_edge)[sub]
-    hops, start = path_lanes(hdmap, cur[sub], snap.lane_pos[rows[sub]], max_range, nxt)
+    vsub = None if via is None else np.asarray(via)[sub]
+    hops, start = path_lanes(hdmap, cur[sub], snap.lane_pos[rows[sub]], max_range, nxt, vsub)
     hj = np.where(hops >= 0, g.junction[np.maximum(hops, 0)], -1)  # (a, H)
     match = (hj[:, :, None] == cj[None, None, :]) & (hj >= 0)[:, :, None]  # (a, H, C)
     pair = match.any(axis=1)

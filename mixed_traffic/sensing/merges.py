@@ -49,6 +49,7 @@ def merge_leaders(
     rows: np.ndarray,
     max_range: float,
     next_edge: np.ndarray | None = None,
+    via: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The nearest vehicle ahead of each agent that merges into its path at a junction.
 
@@ -75,7 +76,7 @@ def merge_leaders(
     order = np.argsort(c_exit, kind="stable")
     cand, c_exit, c_rem = cand[order], c_exit[order], c_rem[order]
     cur = vlane[rows]
-    hops, start = path_lanes(hdmap, cur, snap.lane_pos[rows], max_range, next_edge)
+    hops, start = path_lanes(hdmap, cur, snap.lane_pos[rows], max_range, next_edge, via)
     hsafe = np.maximum(hops, 0)
     h_exit = np.where(hops >= 0, exit_lane[hsafe], -1)  # (A, H)
     # the merge point, measured from the agent's front along its path; one per exit lane

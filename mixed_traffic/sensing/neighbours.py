@@ -41,6 +41,8 @@ class Neighbours:
     path. None = no such test."""
     path_geometry: np.ndarray | None = None
     """(A, 4) ``PATH_GEOMETRY`` of that vehicle where ``on_path`` (0 elsewhere)."""
+    via: np.ndarray | None = None
+    """(A,) lane the current lane leads into as SUMO chose it at a fan (-1: the map's connection to ``next_edge``); None = not asked."""
 
     @property
     def front(self) -> np.ndarray:
@@ -95,6 +97,7 @@ def find_neighbours(
     rows: np.ndarray,
     max_range: float,
     next_edge: np.ndarray | None = None,
+    via: np.ndarray | None = None,
 ) -> Neighbours:
     """Ground-truth front/rear vehicles in the left, current and right lane of each agent.
 
@@ -108,6 +111,7 @@ def find_neighbours(
         max_range: vehicles farther than this along the lane are not reported [m].
         next_edge: optional (A,) next route edge row per agent (-1 = none); used for the first
             hop ahead (route-aware successor); else the primary successor is followed.
+        via: (A,) lane the current lane leads into as SUMO chose it at a fan (-1: the map's connection to ``next_edge``).
     Returns:
         ``Neighbours`` with (A, 3) lanes and (A, 3, 2) vehicles and distances.
     """
@@ -131,8 +135,10 @@ def find_neighbours(
         succ = hdmap.lane_next[lsafe].astype(np.int64)
         if next_edge is not None:
             A = len(rows)
-            via = g.connection(lsafe, np.broadcast_to(np.asarray(next_edge)[:, None], (A, 3)))
-            succ = np.where(via >= 0, via, succ)
+            conn = g.connection(lsafe, np.broadcast_to(np.asarray(next_edge)[:, None], (A, 3)))
+            succ = np.where(conn >= 0, conn, succ)
+        if via is not None:
+            succ[:, CURRENT] = np.where(via >= 0, via, succ[:, CURRENT])
         offset = np.where(has, lane_len[lsafe] - pos, np.inf)  # distance to the lane end
         front, fdist = _ahead(srt, hdmap, rows, succ, offset, front, fdist, max_range)
         back = np.where(has, pos, np.inf)  # distance from the lane start
@@ -144,8 +150,8 @@ def find_neighbours(
     vehicle = np.stack([np.where(f_in, front, -1), np.where(r_in, rear, -1)], axis=2)
     distance = np.stack([np.where(f_in, fdist, np.inf), np.where(r_in, rdist, -np.inf)], axis=2)
     on_path, geom = _in_the_way(snap, hdmap, rows, lanes, i, pos, srt, vehicle, distance,
-                                max_range, next_edge)  # fmt: skip
-    return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom)
+                                max_range, next_edge, via)  # fmt: skip
+    return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom, via)
 
 
 def _same_lane(srt: _Sorted, rows: np.ndarray, cur: np.ndarray, lsafe: np.ndarray,
@@ -212,7 +218,8 @@ def _behind(srt: _Sorted, hdmap: HDMap, pred: np.ndarray, rows: np.ndarray, prev
 
 def _in_the_way(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np.ndarray,
                 i: np.ndarray, pos: np.ndarray, srt: _Sorted, vehicle: np.ndarray,
-                distance: np.ndarray, max_range: float, next_edge: np.ndarray | None):  # fmt: skip
+                distance: np.ndarray, max_range: float, next_edge: np.ndarray | None,
+                via: np.ndarray | None = None):  # fmt: skip
     """A vehicle in the way on another lane, nearer than the lane's leader: across the path
     ahead (a junction lane), or straddling in from a neighbour lane. It replaces the current
     lane's front vehicle in ``vehicle`` / ``distance`` (in place); returns ``on_path`` (A,)
@@ -222,8 +229,8 @@ def _in_the_way(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np
     lead_gap = distance[:, CURRENT, 0] - np.where(lead >= 0, snap.length[np.maximum(lead, 0)], 0.0)
     on_path, geom = np.zeros(A, bool), np.zeros((A, len(PATH_GEOMETRY)))
     for other, gap, other_geom in (
-        path_blockers(snap, hdmap, rows, max_range, next_edge, lead_gap),
-        merge_leaders(snap, hdmap, rows, max_range, next_edge),
+        path_blockers(snap, hdmap, rows, max_range, next_edge, lead_gap, via),
+        merge_leaders(snap, hdmap, rows, max_range, next_edge, via),
         _straddlers(snap, hdmap, rows, lanes, i, pos, srt, max_range),
     ):
         take = (other >= 0) & (gap < lead_gap)

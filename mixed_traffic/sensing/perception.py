@@ -107,6 +107,7 @@ class Perception:
         tls_states: Sequence[str],
         rng: np.random.Generator,
         gates: np.ndarray | None = None,
+        via: np.ndarray | None = None,
     ) -> tuple[PerceptionFrame, PerceptionFrame]:
         """Ground truth and sensed frames for the agents at snapshot ``rows`` (A,).
 
@@ -117,6 +118,8 @@ class Perception:
             gates: (A,) int8 camera code of the stop line where the agent's lane gives way at an
                 unsignalised junction: RED while SUMO holds the link closed, GREEN while open,
                 NO_LIGHT where the lane has none (``camera.give_way``).
+            via: (A,) lane the agent's lane leads into where SUMO chose among several (a lane
+                that fans out, ``HDMap.lane_fans``), -1 elsewhere (the map's connection).
         Returns:
             ``(truth, sensed)``; truth uses the nominal ranges and no noise. ``sensed is truth``
             when ``sensors.noise`` is False.
@@ -125,7 +128,7 @@ class Perception:
         next_edge = np.asarray(next_edge, dtype=np.int64)
         s = self.sensors
         far = max(1.0, s.range_factor)  # the truth keeps at least the nominal ranges
-        nb = find_neighbours(snap, self.hdmap, rows, s.lidar_range * far, next_edge)
+        nb = find_neighbours(snap, self.hdmap, rows, s.lidar_range * far, next_edge, via)
         state, dist = traffic_lights(
             self.graph, self.hdmap, snap, rows, nb.lane, next_edge, tls_states
         )

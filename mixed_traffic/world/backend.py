@@ -516,6 +516,17 @@ class SumoBackend:
             out[i] = bool(nxt) and not nxt[0][2]  # (lane, has priority, is open, has foe, ...)
         return out
 
+    def next_vias(self, vehicle_ids: Sequence[str]) -> list[str]:
+        """The lane each vehicle enters at the end of its current lane, as SUMO chose it (at a
+        lane that fans out onto several lanes of the next edge): its next link's junction
+        lane, else the link's lane; "" without a next link."""
+        links = self._api.vehicle.getNextLinks
+        out = []
+        for vid in vehicle_ids:
+            nxt = links(vid)  # (lane, has priority, is open, has foe, junction lane, ...)
+            out.append((nxt[0][4] or nxt[0][0]) if nxt else "")
+        return out
+
     def tls_links(self, tls_id: str) -> list[list[tuple[str, str, str]]]:
         """For each link index: the (incoming lane, outgoing lane, via lane) triples it controls."""
         return [

@@ -35,8 +35,8 @@ SHIFT_ANGLE = np.deg2rad(45.0)
 SHIFT_STRAIGHT = np.deg2rad(20.0)
 #: Extra cost of a turnaround in ``HDMap.fastest_path`` [s].
 UTURN_PENALTY = 120.0
-_CACHE_VERSION = "hdmap-v7"  # v2: sumolib; v3: lane permissions; v4: yield links; v5: shifts,
-# turnarounds; v6: internal yields; v7: unsignalised links at signals
+_CACHE_VERSION = "hdmap-v8"  # v2: sumolib; v3: lane permissions; v4: yield links; v5: shifts,
+# turnarounds; v6: internal yields; v7: unsignalised links at signals; v8: fans
 YIELD_STATES = frozenset("m=swZ")
 """SUMO link states that give way to foes (minor, equal, stop, all-way stop, zipper)."""
 CAR = "passenger"
@@ -67,6 +67,11 @@ class HDMap:
     """(L,) bool: a connection at the lane's end must give way (SUMO link state m, =, s, w or
     Z: a minor road, an all-way stop, a stop sign, right before left, a zipper merge); for a
     junction lane, at the internal junction where a turn waits for the oncoming stream."""
+    lane_fans: np.ndarray
+    """(L,) bool: the lane reaches a next edge by more than one connection (it fans out onto
+    several of that edge's lanes). SUMO picks one by its best lanes and their occupancy as the
+    vehicle arrives, so the env asks SUMO which (``SumoBackend.next_vias``); ``conn_to`` holds
+    only the first."""
     lane_uturn: np.ndarray
     """(L,) bool: the junction lane of a turnaround (SUMO direction t)."""
     lane_next: np.ndarray
@@ -339,7 +344,9 @@ def build_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
     for e, rows in enumerate(edge_lane_rows):
         edge_lanes[e, : len(rows)] = rows
     lane_car = np.array([lane.allows(vclass) for lane in lanes], dtype=bool)
-    lane_next, conn_to, tls_links = _connections(lanes, lane_ids, lane_edge, edge_row, lane_car)
+    lane_next, conn_to, tls_links, fans = _connections(
+        lanes, lane_ids, lane_edge, edge_row, lane_car
+    )
     uturn = {c.getViaLaneID() for ln in lanes for c in ln.getOutgoing() if c.getDirection() == "t"}
     yields = np.array([any(map(_gives_way, ln.getOutgoing())) for ln in lanes])
     samples = [_sample(np.reshape(ln.getShape3D(), (-1, 3)), ln.getLength()) for ln in lanes]
@@ -354,6 +361,7 @@ def build_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
         lane_speed=np.array([lane.getSpeed() for lane in lanes]),
         lane_car=lane_car,
         lane_yields=yields,
+        lane_fans=fans,
         lane_uturn=np.array([lid in uturn for lid in lane_ids], dtype=bool),
         lane_next=lane_next,
         edge_ids=edge_ids,
@@ -447,12 +455,13 @@ def _connections(
     lanes: list, lane_ids: list[str], lane_edge: list[int], edge_row: dict, car: np.ndarray
 ):
     """``lane_next`` (primary successor: straight on, else the first connection in file
-    order), ``conn_to`` and ``tls_links`` of ``HDMap``; from a car lane only connections that
-    cars may use (SUMO's own permissions of the connection's lanes)."""
+    order), ``conn_to``, ``tls_links`` and ``lane_fans`` of ``HDMap``; from a car lane only
+    connections that cars may use (SUMO's own permissions of the connection's lanes)."""
     lane_row = {lid: i for i, lid in enumerate(lane_ids)}
     lane_next = np.full(len(lanes), -1, dtype=np.int32)
     conn_to: dict[tuple[int, int], int] = {}
     tls_links: dict[tuple[int, int], tuple[str, int]] = {}
+    fans = np.zeros(len(lanes), dtype=bool)
     for src, lane in enumerate(lanes):
         straight = False
         for c in lane.getOutgoing():  # in file order
@@ -465,7 +474,7 @@ def _connections(
                 continue
             to = edge_row.get(c.getTo())
             if lane_edge[src] >= 0 and to is not None and car[src]:
-                conn_to.setdefault((src, to), first)
+                fans[src] |= conn_to.setdefault((src, to), first) != first
                 if c.getTLSID():
                     tls_links[(src, to)] = (c.getTLSID(), c.getTLLinkIndex())
             if c.getDirection() == "s" and not straight:  # straight on: the primary successor
@@ -473,7 +482,7 @@ def _connections(
                 straight = True
             elif lane_next[src] < 0:
                 lane_next[src] = first
-    return lane_next, conn_to, tls_links
+    return lane_next, conn_to, tls_links, fans
 
 
 def _sample(shape: np.ndarray, length: float) -> tuple[np.ndarray, np.ndarray]:
@@ -502,6 +511,7 @@ _ARRAYS = [
     "lane_speed",
     "lane_car",
     "lane_yields",
+    "lane_fans",
     "lane_next",
     "edge_lanes",
     "edge_length",
