@@ -165,3 +165,47 @@ def test_an_unsignalised_link_at_a_signal_gives_way_by_the_junction_table() -> N
     hd = load_hdmap(net)
     assert hd.lane_yields[hd.lane_row["ins_0"]]
     assert not hd.lane_yields[hd.lane_row["wm_0"]]  # signalised: the light rules it
+
+
+def test_at_a_lane_that_fans_out_perception_follows_the_lane_sumo_takes(monkeypatch) -> None:
+    """SUMO's cross example: lane 1fi_0 fans out onto the three lanes of 1si. SUMO picks one by
+    its best lanes and their occupancy; the map's first connection (to 1si_0) was looked along,
+    and an AV at 13.5 m/s hit a car standing on 1si_1 5 m past the junction (t = 173.8 s). Every
+    lane the env was told (``fan_choices``) must be the one the AV then entered, some are not
+    the map's first, and nothing collides."""
+    import mixed_traffic.env.parallel as env_mod
+    from agents.policies import make_policy
+    from mixed_traffic.env.parallel import MixedTrafficEnv
+    from mixed_traffic.env.sumo_sync import fan_choices
+
+    told: dict[str, tuple[int, int]] = {}  # agent -> (lane SUMO takes, the lane it is on)
+
+    def record(hd, backend, snap, rows, reach):
+        out = fan_choices(hd, backend, snap, rows, reach)
+        if out is not None:
+            for k in np.flatnonzero(out >= 0):
+                told[rows.ids[k]] = (int(out[k]), int(snap.lane[rows.r[k]]))
+        return out
+
+    monkeypatch.setattr(env_mod, "fan_choices", record)
+    path = Path(sumo.SUMO_HOME) / "tools" / "game" / "cross.sumocfg"
+    env = MixedTrafficEnv(EnvConfig(scenario=str(path), penetration=1.0, episode_length=180.0))
+    hd, policy = env.hdmap, make_policy("acc-lc", dt=env.config.step_length)
+    assert hd.lane_fans[hd.lane_row["1fi_0"]]
+    entered, not_first = 0, 0
+    try:
+        obs, _ = env.reset(seed=0)
+        while env.agents:
+            snap = env._snap
+            for a, r in snap.index_of().items():
+                if a in told and snap.lane[r] >= 0 and hd.lane_edge[snap.lane[r]] < 0:
+                    via, src = told.pop(a)  # it is on the junction now
+                    assert snap.lane[r] == via, (a, hd.lane_ids[snap.lane[r]], hd.lane_ids[via])
+                    first = hd.conn_to[(src, int(hd.lane_edge[hd.lane_next[via]]))]
+                    entered, not_first = entered + 1, not_first + (via != first)
+            obs, *_ = env.step(policy.actions({a: obs[a] for a in env.agents}))
+        collisions = env.episode_metrics()["collisions"]
+    finally:
+        env.close()
+    assert entered >= 10 and not_first >= 1, (entered, not_first)
+    assert collisions == 0
