@@ -242,7 +242,7 @@ class ObservationBuilder:
         act, mandatory, end_dist = self.action_mask(snap, rows, lanes, nxt, after)
 
         ego = np.clip(sensed.ego / EGO_SCALE, -1.0, 1.0)  # (A, 5)
-        pos, via = self._route_hops(snap, rows, lanes, nxt, sensed.neighbours.via)
+        pos, via = self._route_hops(snap, rows, lanes, nxt)
         wp = self._waypoints(snap, rows, lanes, pos, via)  # (A, 3, 4m)
         limits = self._limits(lanes, pos, via)  # (A, 3, k, 2)
         veh, present = self._vehicles(sensed, lanes, mandatory, end_dist, snap.speed[rows])
@@ -277,13 +277,14 @@ class ObservationBuilder:
 
     # ------------------------------------------------------------------ features
     def _route_hops(
-        self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray, next_edge: np.ndarray,
-        chosen: np.ndarray | None = None,
-    ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray, next_edge: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
         """(A, 3) the ego's position projected onto each lane column [m] (scaled by the lane
         lengths), and the lane each column's route hop enters at its end: its connection to
-        the route's next edge (``hdmap.conn_to``), -1 where it has none; for the current lane
-        SUMO's choice where it fans out (``chosen`` (A,) >= 0)."""
+        the route's next edge (``hdmap.conn_to``), -1 where it has none. Where a lane fans out
+        this stays the map's first connection even when SUMO takes another: SUMO moves the
+        vehicle along the junction lane it takes, and steering along that lane's shift too
+        moved AVs a lane further (A10KW: 27 off-road events in 300 s)."""
         hd = self.hdmap
         cur = np.maximum(lanes[:, CURRENT], 0)
         lsafe = np.maximum(lanes, 0)
@@ -291,8 +292,6 @@ class ObservationBuilder:
         pos = snap.lane_pos[rows][:, None] * ratio
         nxt = np.broadcast_to(np.asarray(next_edge, np.int64)[:, None], lanes.shape)
         via = np.where(lanes >= 0, self.graph.connection(lsafe, nxt), -1)
-        if chosen is not None:
-            via[:, CURRENT] = np.where(chosen >= 0, chosen, via[:, CURRENT])
         return pos, via
 
     def _limits(self, lanes: np.ndarray, pos: np.ndarray, via: np.ndarray) -> np.ndarray:
