@@ -180,8 +180,8 @@ def test_at_a_lane_that_fans_out_perception_follows_the_lane_sumo_takes(monkeypa
 
     told: dict[str, tuple[int, int]] = {}  # agent -> (lane SUMO takes, the lane it is on)
 
-    def record(hd, backend, snap, rows, reach):
-        out = fan_choices(hd, backend, snap, rows, reach)
+    def record(hd, backend, snap, rows, nxt, reach):
+        out = fan_choices(hd, backend, snap, rows, nxt, reach)
         if out is not None:
             for k in np.flatnonzero(out >= 0):
                 told[rows.ids[k]] = (int(out[k]), int(snap.lane[rows.r[k]]))

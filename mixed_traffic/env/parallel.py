@@ -343,7 +343,7 @@ class MixedTrafficEnv(ParallelEnv):
         tls = [self._tls[t] for t in self._perception.tls_ids]
         s = self.config.sensors
         gates = give_way_gates(self.hdmap, self._backend, snap, rows, nxt, tls, s.camera_range)
-        via = fan_choices(self.hdmap, self._backend, snap, rows, s.lidar_range)
+        via = fan_choices(self.hdmap, self._backend, snap, rows, nxt, s.lidar_range)
         return self._perception.sense(snap, r, nxt, tls, self._noise_rng, gates, via)
 
     def _events(self, snap: TrafficSnapshot, rows: Rows, cmd) -> dict[str, str]:

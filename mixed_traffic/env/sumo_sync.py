@@ -40,12 +40,15 @@ def give_way_gates(
 
 
 def fan_choices(
-    hd: HDMap, backend: SumoBackend, snap: TrafficSnapshot, rows: Rows, reach: float
-) -> np.ndarray | None:
+    hd: HDMap, backend: SumoBackend, snap: TrafficSnapshot, rows: Rows, nxt: np.ndarray,
+    reach: float,
+) -> np.ndarray | None:  # fmt: skip
     """(A,) lane row each agent enters at the end of its lane where that lane fans out onto
     several lanes of the next edge (``HDMap.lane_fans``) and ends within ``reach`` [m]: SUMO
-    picks one by its best lanes and their occupancy, not the map's first; -1 elsewhere. None
-    when no agent is at such a lane (SUMO is asked only for those)."""
+    picks one by its best lanes and their occupancy, not the map's first; -1 elsewhere, and
+    where SUMO's next link leaves the route (next route edge ``nxt`` (A,): a lane the agent
+    must still change out of). None when no agent is at such a lane (SUMO is asked only for
+    those)."""
     lane = snap.lane[rows.r]
     safe = np.maximum(lane, 0)
     near = hd.lane_length[safe] - snap.lane_pos[rows.r] <= reach
@@ -54,7 +57,13 @@ def fan_choices(
         return None
     out = np.full(len(lane), -1, dtype=np.int64)
     vias = backend.next_vias([rows.ids[i] for i in ask])
-    out[ask] = [hd.lane_row.get(v, -1) for v in vias]
+    chosen = np.array([hd.lane_row.get(v, -1) for v in vias], dtype=np.int64)
+    land = chosen.copy()
+    for _ in range(3):  # through the junction lanes to the lane it lands on
+        inside = (land >= 0) & (hd.lane_edge[np.maximum(land, 0)] < 0)
+        land = np.where(inside, hd.lane_next[np.maximum(land, 0)], land)
+    on_route = (land >= 0) & (hd.lane_edge[np.maximum(land, 0)] == np.asarray(nxt)[ask])
+    out[ask] = np.where(on_route, chosen, -1)
     return out
 
 
