@@ -69,7 +69,7 @@ from mixed_traffic.env.action import (
 )
 from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
 from mixed_traffic.env.av_metrics import AVMetrics, AVStep
-from mixed_traffic.env.checks import check_gui, check_reset_args, check_warmup
+from mixed_traffic.env.checks import check_gui, check_reset_args, check_warmup, warn_coarse_step
 from mixed_traffic.env.control import BicycleController
 from mixed_traffic.env.flow_metrics import FlowRecorder
 from mixed_traffic.env.obs_batch import StepBatches
@@ -140,6 +140,7 @@ class MixedTrafficEnv(ParallelEnv):
         self.trace = trace
         self.scenario = load_scenario(cfg.scenario)
         self.config = cfg = self.scenario.configure(cfg)
+        warn_coarse_step(cfg.step_length)
         self.hdmap = self.scenario.hdmap
         self.possible_agents = [f"av_{i}" for i in range(av_count(self.scenario, cfg))]
         self._table = AgentTable(self.possible_agents)
