@@ -40,6 +40,4 @@ class StepBatches:
             return {k: np.stack([single(a)[k] for a in agents]) for k in single("")}
         idx = np.fromiter(map(where.__getitem__, agents), np.int64, len(agents))
         keys = self.parts[0][1].keys()
-        if len(self.parts) == 1:
-            return {k: self.parts[0][1][k][idx] for k in keys}
         return {k: np.concatenate([arrays[k] for _, arrays in self.parts])[idx] for k in keys}
