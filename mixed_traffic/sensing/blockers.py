@@ -28,7 +28,8 @@ def path_lanes(
     """(A, H) lanes of each ego's path ahead from ``lane`` at ``pos`` (then the successors
     ``find_neighbours`` follows, while they start within ``max_range``), -1 padded; and (A, H)
     the distance from the ego's front bumper to each lane's start [m] (+inf where padded).
-    ``via``: (A,) lane the current lane leads into as SUMO chose it at a fan (-1: the map's connection to ``next_edge``)."""
+    ``via``: (A,) lane the current lane leads into as SUMO chose it where the lane fans out
+    (-1: the map's connection to ``next_edge``)."""
     g = lane_graph(hdmap)
     cur = np.asarray(lane, dtype=np.int64)
     csafe = np.maximum(cur, 0)

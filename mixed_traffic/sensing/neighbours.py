@@ -41,8 +41,6 @@ class Neighbours:
     path. None = no such test."""
     path_geometry: np.ndarray | None = None
     """(A, 4) ``PATH_GEOMETRY`` of that vehicle where ``on_path`` (0 elsewhere)."""
-    via: np.ndarray | None = None
-    """(A,) lane the current lane leads into as SUMO chose it at a fan (-1: the map's connection to ``next_edge``); None = not asked."""
 
     @property
     def front(self) -> np.ndarray:
@@ -111,7 +109,8 @@ def find_neighbours(
         max_range: vehicles farther than this along the lane are not reported [m].
         next_edge: optional (A,) next route edge row per agent (-1 = none); used for the first
             hop ahead (route-aware successor); else the primary successor is followed.
-        via: (A,) lane the current lane leads into as SUMO chose it at a fan (-1: the map's connection to ``next_edge``).
+        via: (A,) lane the current lane leads into as SUMO chose it where the lane fans out
+            (-1: the map's connection to ``next_edge``).
     Returns:
         ``Neighbours`` with (A, 3) lanes and (A, 3, 2) vehicles and distances.
     """
@@ -151,7 +150,7 @@ def find_neighbours(
     distance = np.stack([np.where(f_in, fdist, np.inf), np.where(r_in, rdist, -np.inf)], axis=2)
     on_path, geom = _in_the_way(snap, hdmap, rows, lanes, i, pos, srt, vehicle, distance,
                                 max_range, next_edge, via)  # fmt: skip
-    return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom, via)
+    return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom)
 
 
 def _same_lane(srt: _Sorted, rows: np.ndarray, cur: np.ndarray, lsafe: np.ndarray,
