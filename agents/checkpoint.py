@@ -16,9 +16,10 @@ from typing import Any
 import torch
 
 from agents.driver import Driver
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy
+from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy, build_nets
 from agents.learning.variants import make_learner
 from agents.nets.lca import LCAConfig
+from agents.nets.networks import Actor, Critic
 from mixed_traffic.provenance import atomic_write
 
 FORMAT = "mixed_traffic.rbpdqn/1"
@@ -102,44 +103,76 @@ def load_checkpoint(
     learner (:func:`_widen`).
     """
     data = read_checkpoint(path)
-    meta = data["meta"]
+    lca, lcfg = _configs(path, data["meta"])
+    want = learner.lca_cfg if learner is not None else _requested(lca, z, m)
+    if widen and learner is not None and want == replace(lca, ego_fusion=True) != lca:
+        data["learner"] = _widen(path, data["learner"], lca, lcfg, learner)
+        lca = want
+    _check_fits(path, lca, want)
+    out = learner if learner is not None else make_learner(lca, lcfg)
+    _load_state(path, out.load_state_dict, data["learner"])
+    return out, data["meta"]
+
+
+def load_nets(
+    path: str | os.PathLike, z: int | None = None, m: int | None = None
+) -> tuple[Actor, Critic, LearnerConfig]:
+    """The (actor, critic) of ``path`` in eval mode and its learner config, for inference only:
+    no target networks and no optimisers (building Adam costs seconds of torch imports)."""
+    data = read_checkpoint(path)
+    lca, lcfg = _configs(path, data["meta"])
+    _check_fits(path, lca, _requested(lca, z, m))
+    actor, critic = build_nets(lca, lcfg)
+    state = data["learner"]
+
+    def fill(sd: dict) -> None:
+        actor.load_state_dict(sd["actor"])
+        critic.load_state_dict(sd["critic"])
+
+    _load_state(path, fill, state)
+    return actor.eval(), critic.eval(), lcfg
+
+
+def _configs(path: str | os.PathLike, meta: dict[str, Any]) -> tuple[LCAConfig, LearnerConfig]:
     try:
-        lca = LCAConfig.from_dict(meta["lca"])
-        lcfg = LearnerConfig(**meta["learner_cfg"])
+        return LCAConfig.from_dict(meta["lca"]), LearnerConfig(**meta["learner_cfg"])
     except (KeyError, TypeError) as exc:
         raise ValueError(f"checkpoint {path}: invalid meta ({exc})") from exc
-    want = LCAConfig(
-        **{**lca.to_dict(), "z": lca.z if z is None else z, "m": lca.m if m is None else m}
+
+
+def _requested(lca: LCAConfig, z: int | None, m: int | None) -> LCAConfig:
+    """``lca`` with the caller's history and waypoint counts (None keeps the stored one)."""
+    return replace(lca, z=lca.z if z is None else z, m=lca.m if m is None else m)
+
+
+def _check_fits(path: str | os.PathLike, lca: LCAConfig, want: LCAConfig) -> None:
+    """ValueError listing every shape and flag where the stored ``lca`` differs from ``want``."""
+    if want == lca:
+        return
+    shapes = [
+        f"{k}: checkpoint {tuple(a)} vs requested {tuple(want.obs_shapes()[k])}"
+        for k, a in lca.obs_shapes().items()
+        if tuple(a) != tuple(want.obs_shapes()[k])
+    ]
+    flags = [
+        f"{k}: checkpoint {v} vs requested {getattr(want, k)}"
+        for k, v in lca.to_dict().items()
+        if k not in ("z", "m", "d") and v != getattr(want, k)
+    ]
+    raise ValueError(
+        f"checkpoint {path}: observation/model config mismatch "
+        f"(checkpoint z={lca.z}, m={lca.m}, d={lca.d}; requested z={want.z}, m={want.m}, "
+        f"d={want.d})" + "".join(f"; {x}" for x in shapes + flags)
     )
-    if learner is not None:
-        want = learner.lca_cfg
-        if widen and not lca.ego_fusion and want == replace(lca, ego_fusion=True):
-            data["learner"] = _widen(path, data["learner"], lca, lcfg, learner)
-            lca = want
-    if want != lca:
-        shapes = [
-            f"{k}: checkpoint {tuple(a)} vs requested {tuple(want.obs_shapes()[k])}"
-            for k, a in lca.obs_shapes().items()
-            if tuple(a) != tuple(want.obs_shapes()[k])
-        ]
-        flags = [
-            f"{k}: checkpoint {v} vs requested {getattr(want, k)}"
-            for k, v in lca.to_dict().items()
-            if k not in ("z", "m", "d") and v != getattr(want, k)
-        ]
-        raise ValueError(
-            f"checkpoint {path}: observation/model config mismatch "
-            f"(checkpoint z={lca.z}, m={lca.m}, d={lca.d}; requested z={want.z}, m={want.m}, "
-            f"d={want.d})" + "".join(f"; {x}" for x in shapes + flags)
-        )
-    out = learner if learner is not None else make_learner(lca, lcfg)
+
+
+def _load_state(path: str | os.PathLike, load: Any, state: dict) -> None:
     try:
-        out.load_state_dict(data["learner"])
+        load(state)
     except (KeyError, RuntimeError, ValueError) as exc:
         raise ValueError(
             f"checkpoint {path}: state does not fit the model ({_reason(exc)})"
         ) from exc
-    return out, meta
 
 
 def _widen(
@@ -182,7 +215,8 @@ def load_policy(
     path: str | os.PathLike, z: int | None = None, m: int | None = None, **policy_kw: Any
 ) -> Policy:
     """Checkpoint → batched inference :class:`Policy` (eval mode); kwargs go to ``Policy``."""
-    return _policy(load_checkpoint(path, z=z, m=m)[0], **policy_kw)
+    actor, critic, _ = load_nets(path, z=z, m=m)
+    return Policy(actor, critic, **policy_kw)
 
 
 def load_driver(
@@ -190,9 +224,5 @@ def load_driver(
 ) -> Driver:
     """Checkpoint → its :class:`agents.driver.Driver` (one thread, the checkpoint's form and
     decision interval) for an env stepping ``dt`` [s]."""
-    learner, _ = load_checkpoint(path, z=z, m=m)
-    return Driver(_policy(learner, threads=1), learner.cfg, dt)
-
-
-def _policy(learner: RBPDQN, **policy_kw: Any) -> Policy:
-    return Policy(learner.actor.eval(), learner.critic.eval(), **policy_kw)
+    actor, critic, cfg = load_nets(path, z=z, m=m)
+    return Driver(Policy(actor, critic, threads=1), cfg, dt)

@@ -343,8 +343,8 @@ def _records_of_this_code(path: Path) -> list[dict]:
 
 
 def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm) -> None:
-    """At most ``workers`` cells at a time, each in its own spawned process."""
-    ctx = mp.get_context("spawn")
+    """At most ``workers`` cells at a time, each in its own process."""
+    ctx = _cell_context(learned=any(c.policy in LEARNED for c in todo))
     queue: mp.Queue = ctx.Queue()
     running: dict[int, tuple[mp.Process, Cell, float]] = {}
     pending = list(todo)
@@ -355,6 +355,19 @@ def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar
             proc.start()
             running[proc.pid] = (proc, cell, time.time())
         _collect(queue, running, records_path, bar, sweep)
+
+
+def _cell_context(learned: bool) -> mp.context.BaseContext:
+    """Fork cells from a server that has imported the runner (and torch with the learned
+    policies) once: a fresh interpreter per cell paid 1-4 s of imports. The server itself
+    starts no simulation and no torch thread, so each cell is still a clean process.
+    Spawn where the platform has no forkserver."""
+    if "forkserver" not in mp.get_all_start_methods():
+        return mp.get_context("spawn")
+    ctx = mp.get_context("forkserver")
+    torch = ["agents.policies", "agents.checkpoint"] if learned else []
+    ctx.set_forkserver_preload(["mixed_traffic.experiments.runner", "libsumo", *torch])
+    return ctx
 
 
 def _collect(

@@ -64,10 +64,17 @@ def _kill_one_cell_and_rerun(out: Path, extra: list[str], workers_of, patience: 
     assert len(records) == 3 and sum(r["status"] == "ok" for r in records) == 2
 
 
-def _spawned_workers(proc: subprocess.Popen) -> list[int]:
-    """The sweep's worker processes (the spawn start method also starts a resource tracker)."""
-    return [c for c in _children(proc.pid)
-            if b"spawn_main" in _cmdline(c) and b"resource_tracker" not in _cmdline(c)]  # fmt: skip
+def _cell_workers(proc: subprocess.Popen) -> list[int]:
+    """The sweep's cell processes: children of its fork server (or spawned children; both
+    start methods also start a resource tracker)."""
+    out = []
+    for c in _children(proc.pid):
+        line = _cmdline(c)
+        if b"forkserver" in line:
+            out += _children(c)
+        elif b"spawn_main" in line and b"resource_tracker" not in line:
+            out.append(c)
+    return out
 
 
 def _ray_task_pids(name: bytes) -> list[int]:
@@ -76,7 +83,7 @@ def _ray_task_pids(name: bytes) -> list[int]:
 
 
 def test_a_killed_sweep_worker_is_a_failed_cell_that_the_next_run_retries(tmp_path: Path) -> None:
-    _kill_one_cell_and_rerun(tmp_path / "res", ["--episode-length", "30"], _spawned_workers,
+    _kill_one_cell_and_rerun(tmp_path / "res", ["--episode-length", "30"], _cell_workers,
                              patience=60, pause=1.0,
                              error="worker process died with exit code -9")  # fmt: skip
 
