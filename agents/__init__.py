@@ -12,8 +12,8 @@ imported explicitly (torch is heavy):
 - ``agents.rules``: ``acc_lc`` (the ACC-LC baseline, ``AccLcPolicy``; ``plan`` exposes its
   checks), ``safety`` (``SafetyModule`` behind the learned policy), ``obs_batch``.
 - ``agents.policies``: policies by name (``auto``, ``auto-raw``, ``acc-lc``, ``random``, ...).
-- ``agents.checkpoint``: ``save_checkpoint`` / ``load_checkpoint`` / ``load_policy`` /
-  ``load_driver``.
+- ``agents.checkpoint``: ``save_checkpoint`` / ``load_checkpoint`` / ``load_nets`` /
+  ``load_policy`` / ``load_driver``.
 - ``agents.bench_inference``: ``avg_inference_us`` (AvgIT per decision).
 
 Policies see the env only through its public interface: ``mixed_traffic.env.api`` and
