@@ -49,12 +49,32 @@ def _curve_steps(out: Path) -> list[int]:
         return [int(r["env_steps"]) for r in csv.DictReader(f)]
 
 
+def _await_commit(out: Path, beyond: int, proc: subprocess.Popen, patience: float = 300) -> None:
+    """Wait until ``out`` holds a commit of more than ``beyond`` env steps (or ``proc`` ends,
+    or ``patience`` s pass): on a slow machine a fixed delay never reached the first one."""
+    deadline = time.time() + patience
+    while time.time() < deadline and proc.poll() is None:
+        try:
+            folder = committed(out)
+            if folder is not None:
+                state = json.loads((folder / "state.json").read_text())
+                if state["counters"]["env_steps"] > beyond:
+                    return
+        except (OSError, ValueError):  # a commit replaced while read
+            pass
+        time.sleep(0.2)
+
+
 def test_four_kills_at_random_moments_each_resume_cleanly(tmp_path: Path) -> None:
+    """Legs 0 and 1 die 2-9 s after they start (often before any commit: the resume then
+    starts afresh); legs 2 and 3 at a random moment within 3 s after their next commit."""
     rng = np.random.default_rng(25)
     out, committed_steps = tmp_path / "run", []
     for leg in range(4):
         proc = _train(out, resume=leg > 0)
-        time.sleep(rng.uniform(2.0, 9.0))
+        if leg >= 2:
+            _await_commit(out, max(committed_steps, default=0), proc)
+        time.sleep(rng.uniform(2.0, 9.0) if leg < 2 else rng.uniform(0.0, 3.0))
         assert proc.poll() is None, f"leg {leg} ended before its kill: {proc.stderr.read()[-800:]}"
         proc.kill()
         proc.wait()
