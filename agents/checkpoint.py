@@ -123,13 +123,12 @@ def load_nets(
     lca, lcfg = _configs(path, data["meta"])
     _check_fits(path, lca, _requested(lca, z, m))
     actor, critic = build_nets(lca, lcfg)
-    state = data["learner"]
 
     def fill(sd: dict) -> None:
         actor.load_state_dict(sd["actor"])
         critic.load_state_dict(sd["critic"])
 
-    _load_state(path, fill, state)
+    _load_state(path, fill, data["learner"])
     return actor.eval(), critic.eval(), lcfg
 
 

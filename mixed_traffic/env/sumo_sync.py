@@ -11,6 +11,7 @@ import numpy as np
 from mixed_traffic.env.agent_table import AgentTable, Rows
 from mixed_traffic.sensing.camera import GREEN, NO_LIGHT, RED, permissive
 from mixed_traffic.sensing.lane_graph import lane_graph
+from mixed_traffic.sensing.merges import exit_table
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
@@ -58,10 +59,9 @@ def fan_choices(
     out = np.full(len(lane), -1, dtype=np.int64)
     vias = backend.next_vias([rows.ids[i] for i in ask])
     chosen = np.array([hd.lane_row.get(v, -1) for v in vias], dtype=np.int64)
-    land = chosen.copy()
-    for _ in range(3):  # through the junction lanes to the lane it lands on
-        inside = (land >= 0) & (hd.lane_edge[np.maximum(land, 0)] < 0)
-        land = np.where(inside, hd.lane_next[np.maximum(land, 0)], land)
+    csafe = np.maximum(chosen, 0)
+    exit_lane, _ = exit_table(hd)  # through the junction lanes to the lane it lands on
+    land = np.where((chosen < 0) | (hd.lane_edge[csafe] >= 0), chosen, exit_lane[csafe])
     on_route = (land >= 0) & (hd.lane_edge[np.maximum(land, 0)] == np.asarray(nxt)[ask])
     out[ask] = np.where(on_route, chosen, -1)
     return out
