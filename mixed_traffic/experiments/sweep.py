@@ -360,13 +360,14 @@ def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar
 def _cell_context(learned: bool) -> mp.context.BaseContext:
     """Fork cells from a server that has imported the runner (and torch with the learned
     policies) once: a fresh interpreter per cell paid 1-4 s of imports. The server itself
-    starts no simulation and no torch thread, so each cell is still a clean process.
-    Spawn where the platform has no forkserver."""
+    starts no simulation and no torch thread, so each cell is still a clean process; the
+    backend loads libsumo in the cell, when its simulation starts. Spawn where the platform
+    has no forkserver."""
     if "forkserver" not in mp.get_all_start_methods():
         return mp.get_context("spawn")
     ctx = mp.get_context("forkserver")
     torch = ["agents.policies", "agents.checkpoint"] if learned else []
-    ctx.set_forkserver_preload(["mixed_traffic.experiments.runner", "libsumo", *torch])
+    ctx.set_forkserver_preload(["mixed_traffic.experiments.runner", *torch])
     return ctx
 
 
