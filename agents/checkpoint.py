@@ -210,6 +210,20 @@ def _zero_pad(t: torch.Tensor, shape: torch.Size, row_mean: bool = False) -> tor
     return out
 
 
+def with_hold_gate(learner: RBPDQN) -> RBPDQN:
+    """``learner`` with a hold gate added, closed (score 0: the same policy), or ``learner``
+    itself if it has one (``LearnerConfig.hold_gate``)."""
+    if learner.cfg.hold_gate:
+        return learner
+    out = make_learner(learner.lca_cfg, replace(learner.cfg, hold_gate=True))
+    sd = learner.state_dict()
+    for net in ("actor", "actor_targ"):  # the gate's zeros, every other tensor as it was
+        sd[net] = {**getattr(out, net).state_dict(), **sd[net]}
+    out.load_state_dict(sd)
+    out.steps = learner.steps
+    return out
+
+
 def load_policy(
     path: str | os.PathLike, z: int | None = None, m: int | None = None, **policy_kw: Any
 ) -> Policy:

@@ -19,6 +19,9 @@ Two forms (``LearnerConfig.residual``):
   low-level controller that tracks the held command: it keeps the lane centre, keeps the gap
   and only shifts towards a changed lane while its gap checks accept it.
   The decision is the critic's masked argmax of Q + ``teacher_bonus`` on ACC-LC's decision.
+  With a hold gate (``hold_gate``) that is open at a decision, the follow row executes ACC-LC's
+  acceleration a minus clip(a, ±``hold_band``) instead, until the next decision: the ego holds
+  its speed and answers only what exceeds the band (the governors still bound it).
 
 Modes of :meth:`Driver.act`: ``greedy`` (evaluation), ``explore`` (Gaussian noise on u and
 ε-random decisions; needs an rng) and ``teacher`` (ACC-LC drives: u = 0 in the residual form,
@@ -35,7 +38,7 @@ import numpy as np
 from agents.learning.rbpdqn import LearnerConfig, Policy
 from agents.nets.networks import FOLLOW
 from agents.rules.acc_lc import AccLcPlan, AccLcPolicy
-from agents.rules.acc_lc_longitudinal import to_ab
+from agents.rules.acc_lc_longitudinal import from_ab, to_ab
 from agents.rules.rss import RssConfig
 from mixed_traffic.env.api import EGO_SCALE
 
@@ -55,6 +58,8 @@ class Command(NamedTuple):
     """(A,) bool: the agent decided at this step (a transition starts)."""
     u: np.ndarray
     """(A, 3, 2) float32 network output being held (the stored action of a transition)."""
+    hold: np.ndarray
+    """(A,) bool: the hold gate is open (the follow row holds speed)."""
     teacher_decision: np.ndarray
     """(A,) int64 ACC-LC's decision (FOLLOW where ACC-LC was not evaluated)."""
     teacher_params: np.ndarray
@@ -90,7 +95,7 @@ class Driver:
         self.rss = RssConfig()
         self.plan: AccLcPlan | None = None
         """ACC-LC's plan of the last :meth:`act` (None where ACC-LC was not evaluated)."""
-        # per agent: [steps left, held decision, held u (3, 2)]
+        # per agent: [steps left, held decision, held u (3, 2), hold gate open]
         self._held: dict[str, list] = {}
 
     def act(self, obs: Mapping[str, np.ndarray], agents: Sequence[str], mode: str = "greedy",
@@ -111,8 +116,9 @@ class Driver:
         due = np.array([self._held.get(a, (0,))[0] <= 0 for a in agents], bool)
         if due.any():
             self._decide(obs, agents, np.flatnonzero(due), t_dec, t_par, mode, rng)
-        decision, u = self._hold(agents, obs, mask, t_dec)
-        return Command(decision, self._execute(u, t_par, cap), due, u, t_dec, t_par)
+        decision, u, hold = self._hold(agents, obs, mask, t_dec)
+        params = self._execute(u, t_par, cap, hold)
+        return Command(decision, params, due, u, hold, t_dec, t_par)
 
     # ------------------------------------------------------------------ steps of act()
     def _forget(self, agents: list[str]) -> None:
@@ -139,6 +145,7 @@ class Driver:
                 rng: np.random.Generator | None) -> None:  # fmt: skip
         """New decisions and u of the agents at ``idx``, held for k steps from now."""
         residual = self.cfg.residual
+        hold = np.zeros(len(idx), bool)
         if mode == "teacher":
             dec = t_dec[idx]
             u = np.zeros((len(idx), 3, 2), np.float32) if residual else t_par[idx]
@@ -150,16 +157,18 @@ class Driver:
                 bonus = np.zeros((len(idx), 3), np.float32)
                 bonus[np.arange(len(idx)), t_dec[idx]] = self.cfg.teacher_bonus
             sub = {k: np.asarray(v)[idx] for k, v in obs.items()}
-            dec, u = self.policy.act(sub, mode == "explore", rng, bonus)
+            dec, u, hold = self.policy.choose(sub, mode == "explore", rng, bonus)
+        hold &= residual
         for j, i in enumerate(idx.tolist()):
-            self._held[agents[i]] = [self.k, int(dec[j]), u[j]]
+            self._held[agents[i]] = [self.k, int(dec[j]), u[j], bool(hold[j])]
 
     def _hold(self, agents: list[str], obs: Mapping[str, np.ndarray], mask: np.ndarray,
-              t_dec: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-        """(decision (A,), u (A, 3, 2)) held by every agent; counts the step down."""
+              t_dec: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+        """(decision (A,), u (A, 3, 2), hold (A,)) held by every agent; counts the step down."""
         n = len(agents)
         held = [self._held[a] for a in agents]
         decision = np.fromiter((h[1] for h in held), np.int64, n)
+        hold = np.fromiter((h[3] for h in held), bool, n)
         u = np.stack([h[2] for h in held]) if n else np.zeros((0, 3, 2), np.float32)
         switched = lane_switched(np.asarray(obs["ego"])) & (decision != FOLLOW)
         fallback = t_dec if self.cfg.residual else np.full(n, FOLLOW, np.int64)
@@ -169,14 +178,20 @@ class Driver:
         for h, d in zip(held, decision.tolist()):
             h[0] -= 1
             h[1] = d
-        return decision, u.astype(np.float32)
+        return decision, u.astype(np.float32), hold
 
-    def _execute(self, u: np.ndarray, t_par: np.ndarray, cap: np.ndarray) -> np.ndarray:
-        """(A, 3, 2) executed parameters of the held u; the accel_brake correction lifts no
-        row above ``cap`` (A, 3) unless ACC-LC's own is higher."""
+    def _execute(self, u: np.ndarray, t_par: np.ndarray, cap: np.ndarray,
+                 hold: np.ndarray) -> np.ndarray:  # fmt: skip
+        """(A, 3, 2) executed parameters of the held u, with the follow row of ``hold`` (A,)
+        agents holding speed; the accel_brake correction lifts no row above ``cap`` (A, 3)
+        unless ACC-LC's own is higher."""
         if not self.cfg.residual:
             return u
         out = np.clip(t_par + self.delta * u, -1.0, 1.0)
+        if hold.any():
+            c, band = self.teacher.c, self.cfg.hold_band
+            a = from_ab(t_par[hold, FOLLOW, 1], c)
+            out[hold, FOLLOW, 1] = to_ab(a - np.clip(a, -band, band), c)
         ceiling = np.maximum(t_par[:, :, 1], cap)
         out[:, :, 1] = np.minimum(out[:, :, 1], ceiling)
         return out.astype(np.float32)

@@ -121,7 +121,8 @@ def test_fused_matches_reference(b: int, ego_fusion: bool, multi_pass: bool) -> 
     with torch.no_grad():
         p_ref = actor(obs)
         q_ref = critic(obs, p_ref)
-    p, q = FusedActorCritic(actor, critic)(obs)
+    p, q, hold = FusedActorCritic(actor, critic)(obs)
+    assert hold is None
     torch.testing.assert_close(p, p_ref, atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(q, q_ref, atol=1e-5, rtol=1e-4)
 
@@ -156,7 +157,7 @@ def test_policy_sync_after_update() -> None:
     obs = _obs(6, cfg)
     learner.update(_batch(16, cfg))
     pol.sync()
-    q, p = pol.q_and_params(obs)
+    q, p, _ = pol.q_and_params(obs)
     with torch.no_grad():
         torch.testing.assert_close(p, learner.actor(obs), atol=1e-5, rtol=1e-4)
         torch.testing.assert_close(q, learner.critic(obs, p), atol=1e-5, rtol=1e-4)
@@ -433,7 +434,7 @@ def test_fused_varying_batch_sizes() -> None:
     fused = FusedActorCritic(actor, critic)
     for b in (3, 9, 3, 20, 1, 5, 9, 2):  # more sizes than the buffer cache holds
         obs = _obs(b, cfg, seed=b)
-        _p, q = fused(obs)
+        _p, q, _ = fused(obs)
         with torch.no_grad():
             torch.testing.assert_close(q, critic(obs, actor(obs)), atol=1e-5, rtol=1e-4)
     assert len(fused._abuf) <= 4 and len(fused.nodes_gru._buf) <= 4

@@ -4,9 +4,10 @@ Why: a shared policy's gain is a *fleet* effect. When half the AVs drive more ea
 others gain as much as they do (docs/results.md, "the credit problem"), so a per-agent critic
 cannot see it. Here the shared actor is judged by what the whole traffic does in an episode.
 
-Method (Salimans et al. 2017, antithetic ES with Adam): θ are the accel_brake rows of the
-actor's last layer (3 × (d + 1) numbers; steering's 0.3° bound makes its fleet effect smaller
-than the noise). Per iteration, ``pairs`` noise vectors ε are drawn; θ + σε and θ − σε drive
+Method (Salimans et al. 2017, antithetic ES with Adam): θ are either the accel_brake rows of
+the actor's last layer (target ``accel``: 3 × (d + 1) numbers; steering's 0.3° bound makes its
+fleet effect smaller than the noise) or the hold gate (target ``gate``: d + 1 numbers, see
+``agents.nets.networks.Actor``). Per iteration, ``pairs`` noise vectors ε are drawn; θ + σε and θ − σε drive
 the AVs of one sampled episode config each (same config and seed for both: common random
 numbers). An episode's score is ln(mean speed of all vehicles in the measurement segment)
 minus ``unsafe_penalty`` per collision or AV terminal event; the pair's difference d is
@@ -29,6 +30,8 @@ from mixed_traffic.schema import TERMINAL_REASONS
 
 ACCEL = 1
 """Index of accel_brake among a decision's parameters."""
+TARGETS = ("accel", "gate")
+"""What the search moves: the actor's accel_brake outputs or its hold gate."""
 
 
 @dataclass(frozen=True)
@@ -62,17 +65,26 @@ def accel_rows(actor: torch.nn.Module) -> list[int]:
     return list(range(ACCEL, out, N_PARAMS))
 
 
-def get_theta(actor: torch.nn.Module) -> np.ndarray:
-    """θ (3·(d + 1),) float64: the accel rows' weights then their biases."""
-    layer, rows = actor.head[-1], accel_rows(actor)
+def _searched(actor: torch.nn.Module, target: str) -> tuple[torch.nn.Linear, list[int]]:
+    """(layer, its output rows) that ``target`` searches."""
+    if target == "gate":
+        if actor.gate is None:
+            raise ValueError("the actor has no hold gate (LearnerConfig.hold_gate=False)")
+        return actor.gate, [0]
+    return actor.head[-1], accel_rows(actor)
+
+
+def get_theta(actor: torch.nn.Module, target: str = "accel") -> np.ndarray:
+    """θ (rows·(d + 1),) float64: the searched rows' weights then their biases."""
+    layer, rows = _searched(actor, target)
     w = layer.weight.detach()[rows].double().numpy().ravel()
     b = layer.bias.detach()[rows].double().numpy()
     return np.concatenate([w, b])
 
 
-def set_theta(actor: torch.nn.Module, theta: np.ndarray) -> None:
-    """Write θ (as from :func:`get_theta`) into the actor's last layer."""
-    layer, rows = actor.head[-1], accel_rows(actor)
+def set_theta(actor: torch.nn.Module, theta: np.ndarray, target: str = "accel") -> None:
+    """Write θ (as from :func:`get_theta`) into the actor."""
+    layer, rows = _searched(actor, target)
     n_w = len(rows) * layer.in_features
     if theta.shape != (n_w + len(rows),) or not np.isfinite(theta).all():
         raise ValueError(f"theta must be {n_w + len(rows)} finite numbers, got {theta.shape}")

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import copy
 from dataclasses import asdict, dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -113,6 +114,14 @@ class LearnerConfig:
     and accel only, ACC-LC's lane keeping steers)."""
     phase_updates: int = 500
     """Q-PAMDP: updates per phase of its alternation (critic only, then actor only)."""
+    hold_gate: bool = False
+    """Residual form: the actor has a hold gate (``Actor.gate``). Where its score is > 0 at a
+    decision, the follow row holds speed for that decision: it executes a − clip(a, ±hold_band)
+    for ACC-LC's acceleration a, so it answers only what exceeds the band (a speed-holding
+    dead band, as wave-damping controllers do; docs/agent.md). The fleet search sets the
+    gate (``--target gate``); False = no gate, as checkpoints before it."""
+    hold_band: float = 1.5
+    """Half-width of the hold gate's dead band [m/s²]."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
@@ -122,7 +131,7 @@ def build_nets(lca: LCAConfig, cfg: LearnerConfig) -> tuple[Actor, Critic]:
     """The (actor, critic) pair of ``cfg.algorithm``: P-DDPG's actor also scores the decisions
     and its critic values the whole action; the others are the paper's networks."""
     joint = cfg.algorithm == "p-ddpg"
-    return Actor(lca, scores=joint), Critic(lca, multi_pass=cfg.multi_pass and not joint,
+    return Actor(lca, scores=joint, gate=cfg.hold_gate), Critic(lca, multi_pass=cfg.multi_pass and not joint,
                                             joint=joint)  # fmt: skip
 
 
@@ -158,7 +167,7 @@ class RBPDQN:
             self.critic.zero_output()
         self.actor_targ = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_targ = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=self.cfg.lr, fused=True)
+        self.actor_opt = torch.optim.Adam(self.actor.gradient_parameters(), lr=self.cfg.lr, fused=True)
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.lr, fused=True)
         self.steps = 0
         self.compile = compile
@@ -348,18 +357,20 @@ class Policy:
     @torch.inference_mode()
     def q_and_params(
         self, obs: dict[str, Tensor], noise: Tensor | None = None
-    ) -> tuple[Tensor, Tensor]:
-        """→ (q (A, 3), params (A, 3, 2)): the actor's output plus ``noise`` (A, 3, 2) if
-        given, clipped to [-1, 1], and the critic's Q of exactly those params."""
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """→ (q (A, 3), params (A, 3, 2), hold score (A,) or None without a gate): the
+        actor's output plus ``noise`` (A, 3, 2) if given, clipped to [-1, 1], and the
+        critic's Q of exactly those params."""
         if self._fused is not None:
-            params, q = self._fused(obs, noise=noise)
-            return q, params
+            params, q, hold = self._fused(obs, noise=noise)
+            return q, params, hold
         params = self.actor(obs)
         if self.actor.scores:  # P-DDPG: the actor's scores rank the decisions
             scores, params = params[..., 2], params[..., :2].contiguous()
         if noise is not None:
             params = (params + noise).clamp_(-1.0, 1.0)
-        return (scores if self.actor.scores else self.critic(obs, params)), params
+        q = scores if self.actor.scores else self.critic(obs, params)
+        return q, params, self.actor.hold_score(obs)
 
     def act(
         self,
@@ -368,13 +379,25 @@ class Policy:
         rng: np.random.Generator | None = None,
         bonus: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
-        """obs numpy (A, ...) → (decision (A,) int64, params (A, 3, 2) float32 in [-1, 1]).
+        """obs numpy (A, ...) → (decision (A,) int64, params (A, 3, 2) float32 in [-1, 1]);
+        :meth:`choose` without the hold gate's answer."""
+        choice = self.choose(obs, explore, rng, bonus)
+        return choice.decision, choice.params
+
+    def choose(
+        self,
+        obs: dict[str, np.ndarray],
+        explore: bool,
+        rng: np.random.Generator | None = None,
+        bonus: np.ndarray | None = None,
+    ) -> Choice:
+        """obs numpy (A, ...) → :class:`Choice`.
 
         ``bonus`` (A, 3), if given, is added to Q before the masked argmax. Exploration:
         Gaussian noise (std ``noise_std``, times ``steer_noise_factor`` for the steering
         column) on all params, clipped to [-1, 1], and the critic scores the *noisy* params
         (they are what gets executed and stored); then with probability ``epsilon`` a uniformly
-        random unmasked decision replaces the argmax.
+        random unmasked decision replaces the argmax. The gate is never explored.
         """
         t = obs_to_torch(obs)
         mask = t["action_mask"] > 0.5
@@ -384,13 +407,25 @@ class Policy:
                 raise ValueError("explore=True needs an rng")
             std = self.noise_std * np.array([self.steer_noise_factor, 1.0], np.float32)
             noise = gaussian(rng, len(mask), std)
-        q, params = self.q_and_params(t, noise)
+        q, params, score = self.q_and_params(t, noise)
         if bonus is not None:
             q = q + torch.from_numpy(np.asarray(bonus, np.float32))
         dec = select(q, mask).numpy().copy()
         if explore:
             dec = explore_decisions(dec, mask.numpy(), self.epsilon, rng)
-        return dec, params.numpy().copy()
+        hold = np.zeros(len(dec), bool) if score is None else (score > 0).numpy()
+        return Choice(dec, params.numpy().copy(), hold)
+
+
+class Choice(NamedTuple):
+    """What :meth:`Policy.choose` decided for A agents."""
+
+    decision: np.ndarray
+    """(A,) int64 decision."""
+    params: np.ndarray
+    """(A, 3, 2) float32 parameters in [-1, 1]."""
+    hold: np.ndarray
+    """(A,) bool: the hold gate is open (always False without a gate)."""
 
 
 def gaussian(rng: np.random.Generator, n: int, std: np.ndarray) -> Tensor:

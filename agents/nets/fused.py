@@ -121,7 +121,8 @@ def _stack_t(ws: list[Tensor]) -> Tensor:
 class FusedActorCritic:
     """Inference-only fused forward of an (actor, critic) pair.
 
-    ``__call__(obs) -> (params (B, 3, 2), q (B, 3))`` with q = critic(obs, actor(obs)).
+    ``__call__(obs) -> (params (B, 3, 2), q (B, 3), hold (B,) | None)`` with
+    q = critic(obs, actor(obs)) and hold = actor.hold_score(obs).
     """
 
     def __init__(self, actor: Actor, critic: Critic) -> None:
@@ -160,6 +161,8 @@ class FusedActorCritic:
         self.we_t = _stack_t([m.fuse[0].weight[:, N_LANES * d :] for m in lcas])  # (2, D|0, D)
         self.bf = torch.stack([m.fuse[0].bias for m in lcas])[:, None, :]
         self.actor_head = [t.detach().clone() for t in self.actor.head.parameters()]
+        gate = self.actor.gate
+        self.gate = None if gate is None else [t.detach().clone() for t in gate.parameters()]
         self.critic_w10 = [t.detach().clone() for t in self.critic.act_embed.parameters()]
         self.critic_head = [t.detach().clone() for t in self.critic.head.parameters()]
 
@@ -177,8 +180,8 @@ class FusedActorCritic:
     @torch.inference_mode()
     def __call__(
         self, obs: dict[str, Tensor], noise: Tensor | None = None
-    ) -> tuple[Tensor, Tensor]:
-        """obs (B, ...) → (params (B, 3, 2), q (B, 3)).
+    ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """obs (B, ...) → (params (B, 3, 2), q (B, 3), hold score (B,) or None).
 
         ``noise`` (B, 3, 2), if given, is added to the actor output and clipped to [-1, 1]
         before the critic, so q scores the executed (noisy) params.
@@ -214,7 +217,8 @@ class FusedActorCritic:
             params = (params + noise.view(b, -1)).clamp_(-1.0, 1.0)
         assert params.shape[1] == ACTION_DIM
         params = params.view(b, N_DECISIONS, N_PARAMS)
-        return params, self._critic_head(e_s[1], params)
+        hold = None if self.gate is None else torch.addmm(self.gate[1], hid, self.gate[0].t())[:, 0]
+        return params, self._critic_head(e_s[1], params), hold
 
     def _critic_head(self, e_s: Tensor, params: Tensor) -> Tensor:
         """Q (B, 3) from the critic's state embedding (B, D) and params (B, 3, 2)."""

@@ -45,9 +45,13 @@ class _ZeroOutput:
 
 class Actor(_ZeroOutput, nn.Module):
     """Encoder → MLP → tanh. obs dict (B, ...) → params (B, 3, 2) in [-1, 1]; with ``scores``
-    (P-DDPG) (B, 3, 3): each decision's parameters and then its score."""
+    (P-DDPG) (B, 3, 3): each decision's parameters and then its score.
 
-    def __init__(self, cfg: LCAConfig, scores: bool = False) -> None:
+    ``gate``: a hold gate, one linear score of the MLP's hidden features (B,), zero at the
+    start; where it is > 0 the driver holds speed (``LearnerConfig.hold_gate``). Gradient
+    training leaves it alone (it is not in the optimiser); the fleet search sets it."""
+
+    def __init__(self, cfg: LCAConfig, scores: bool = False, gate: bool = False) -> None:
         super().__init__()
         d = cfg.d
         self.lca = make_encoder(cfg)
@@ -56,10 +60,27 @@ class Actor(_ZeroOutput, nn.Module):
         self.head = nn.Sequential(
             nn.Linear(d, d), nn.ReLU(), nn.Linear(d, N_DECISIONS * self.width)
         )  # W9
+        self.gate = nn.Linear(d, 1) if gate else None
+        if self.gate is not None:
+            nn.init.zeros_(self.gate.weight)
+            nn.init.zeros_(self.gate.bias)
 
     def forward(self, obs: dict[str, Tensor]) -> Tensor:
-        out = fast_tanh(self.head(self.lca(obs)))
+        out = fast_tanh(self.head[2](self.hidden(obs)))
         return out.view(-1, N_DECISIONS, self.width)
+
+    def hidden(self, obs: dict[str, Tensor]) -> Tensor:
+        """The MLP's hidden features (B, D) (after its ReLU)."""
+        return self.head[1](self.head[0](self.lca(obs)))
+
+    def hold_score(self, obs: dict[str, Tensor]) -> Tensor | None:
+        """(B,) the hold gate's score (hold where > 0), or None without a gate."""
+        return None if self.gate is None else self.gate(self.hidden(obs)).squeeze(-1)
+
+    def gradient_parameters(self) -> list[nn.Parameter]:
+        """Every parameter but the gate's (the gate is searched, not trained by gradient)."""
+        gate = set() if self.gate is None else set(self.gate.parameters())
+        return [p for p in self.parameters() if p not in gate]
 
 
 class Critic(_ZeroOutput, nn.Module):

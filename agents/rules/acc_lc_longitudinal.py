@@ -322,3 +322,8 @@ def wait_accel(f: Features, c: AccLcConfig, side: int, acc_cur: np.ndarray) -> n
 def to_ab(acc: np.ndarray, c: AccLcConfig) -> np.ndarray:
     """Physical acceleration [m/s²] (A,) -> the normalised accel_brake in [-1, 1]."""
     return np.clip(np.where(acc > 0, acc / c.max_accel, acc / c.max_decel), -1.0, 1.0)
+
+
+def from_ab(ab: np.ndarray, c: AccLcConfig) -> np.ndarray:
+    """Normalised accel_brake in [-1, 1] (A,) -> the physical acceleration [m/s²]."""
+    return np.where(ab > 0, ab * c.max_accel, ab * c.max_decel)

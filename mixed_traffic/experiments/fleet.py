@@ -84,6 +84,9 @@ class FleetConfig:
     rss_governor: bool = True
     """Residual checkpoints: drive with the RSS governor (``LearnerConfig.rss_governor``),
     whatever the --init checkpoint says; False keeps the checkpoint's setting."""
+    target: str = "accel"
+    """What the search moves: ``accel`` (the actor's accel_brake outputs) or ``gate`` (its
+    hold gate, added closed to a checkpoint without one; ``LearnerConfig.hold_gate``)."""
     search: Any = field(default_factory=_search_config)
     """The evolution-strategies step (``agents.learning.fleet_search.SearchConfig``)."""
     progress: bool = True
@@ -113,6 +116,8 @@ class FleetConfig:
         if not 0 <= self.warmup < self.episode_length:
             raise ValueError(f"warmup {self.warmup} s must be in [0, episode_length "
                              f"{self.episode_length}) s")  # fmt: skip
+        if self.target not in ("accel", "gate"):
+            raise ValueError(f"target={self.target!r}: choose accel or gate")
         if self.init is not None:
             check_checkpoint(self.init)
 
@@ -153,7 +158,7 @@ class FleetSearch:
     """Resumable ES run in ``cfg.out``."""
 
     def __init__(self, cfg: FleetConfig) -> None:
-        from agents.checkpoint import load_checkpoint
+        from agents.checkpoint import load_checkpoint, with_hold_gate
         from agents.learning.config import feasible_densities
         from agents.learning.curves import trim_curves
         from agents.learning.fleet_search import Adam, get_theta
@@ -179,7 +184,9 @@ class FleetSearch:
         if self.learner.cfg.residual:
             on = {k: True for k in ("speed_governor", "rss_governor") if getattr(cfg, k)}
             self.learner.cfg = replace(self.learner.cfg, **on)
-        theta = get_theta(self.learner.actor)
+        if cfg.target == "gate":
+            self.learner = with_hold_gate(self.learner)
+        theta = get_theta(self.learner.actor, cfg.target)
         self.state = state or {"iteration": 0, "episodes": 0, "minutes": 0.0,
                                "theta": theta.tolist(), "adam": None}  # fmt: skip
         self.theta = np.array(self.state["theta"])
@@ -249,7 +256,8 @@ class FleetSearch:
         with np.errstate(invalid="ignore"):
             d = scores[0 : 2 * s.pairs : 2] - scores[1 : 2 * s.pairs : 2]
         self.theta = self.adam.step(self.theta, es_gradient(eps, d, s.sigma, s.clip))
-        bias, finite = self.theta[-3:], d[np.isfinite(d)]
+        bias = self.theta[-3:] if cfg.target == "accel" else [math.nan, self.theta[-1], math.nan]
+        finite = d[np.isfinite(d)]
         row = {
             "iteration": it + 1, "minutes": 0.0, "episodes": self.state["episodes"] + len(jobs),
             "mean_d": float(np.abs(finite).mean()) if len(finite) else math.nan,
@@ -265,7 +273,7 @@ class FleetSearch:
         from agents.checkpoint import save_checkpoint
         from agents.learning.fleet_search import set_theta
 
-        set_theta(self.learner.actor, theta)
+        set_theta(self.learner.actor, theta, self.cfg.target)
         return str(save_checkpoint(self.out / "candidates" / f"{name}.pt", self.learner, self.meta))
 
     def _commit(self, row: dict) -> None:
@@ -277,7 +285,7 @@ class FleetSearch:
         row["minutes"] = round(self.state["minutes"], 2)
         self.state.update(iteration=row["iteration"], episodes=row["episodes"],
                           theta=self.theta.tolist(), adam=self.adam.state())  # fmt: skip
-        set_theta(self.learner.actor, self.theta)
+        set_theta(self.learner.actor, self.theta, self.cfg.target)
         meta = {**self.meta, "fleet_search": {"iteration": row["iteration"],
                 "episodes": row["episodes"], "config": _jsonable(self.cfg),
                 "git_revision": git_revision()}}  # fmt: skip
