@@ -97,6 +97,13 @@ class Driver:
         """ACC-LC's plan of the last :meth:`act` (None where ACC-LC was not evaluated)."""
         # per agent: [steps left, held decision, held u (3, 2), hold gate open]
         self._held: dict[str, list] = {}
+        self._steps = self._holds = 0  # agent-steps driven, and of them with the gate open
+
+    @property
+    def hold_share(self) -> float | None:
+        """Share of the agent-steps driven so far with the hold gate open [%] (None before
+        any)."""
+        return 100.0 * self._holds / self._steps if self._steps else None
 
     def act(self, obs: Mapping[str, np.ndarray], agents: Sequence[str], mode: str = "greedy",
             rng: np.random.Generator | None = None, labels: bool = False) -> Command:  # fmt: skip
@@ -117,6 +124,8 @@ class Driver:
         if due.any():
             self._decide(obs, agents, np.flatnonzero(due), t_dec, t_par, mode, rng)
         decision, u, hold = self._hold(agents, obs, mask, t_dec)
+        self._steps += n
+        self._holds += int(hold.sum())
         params = self._execute(u, t_par, cap, hold)
         return Command(decision, params, due, u, hold, t_dec, t_par)
 

@@ -57,6 +57,7 @@ def test_zero_residual_drives_as_acc_lc_and_decides_every_interval(interval: flo
     finally:
         env.close()
     assert changes > 0  # the merge makes ACC-LC change lanes
+    assert driver.hold_share == 0.0  # no gate: never held
     assert set(gaps) == {steps_per_decision(interval, 0.1) - 1}
 
 
@@ -67,10 +68,69 @@ def test_the_governor_caps_only_the_correction_that_lifts_the_acceleration() -> 
     t_par[:, :, 1] = [[0.2, 0.2, 0.2], [0.5, 0.5, 0.5], [0.2, 0.2, 0.2]]
     u = np.zeros((3, 3, 2), np.float32)
     u[:2, :, 1], u[2, :, 1] = 1.0, -1.0
-    out = driver._execute(u, t_par, cap=np.full((3, 3), 0.3))
+    out = driver._execute(u, t_par, cap=np.full((3, 3), 0.3), hold=np.zeros(3, bool))
     np.testing.assert_allclose(out[0, :, 1], 0.3)  # 0.45 capped at the governor's 0.3
     np.testing.assert_allclose(out[1, :, 1], 0.5)  # ACC-LC's own 0.5 is above the cap: kept
     np.testing.assert_allclose(out[2, :, 1], -0.05)  # braking corrections are free
+
+
+def test_an_open_hold_gate_answers_only_what_exceeds_the_band() -> None:
+    """Follow row under an open gate: ACC-LC's a − clip(a, ±1.5 m/s²) (+1 = +3, −1 = −6 m/s²);
+    other rows and closed agents keep the residual; the governor's cap still bounds it."""
+    cfg = LearnerConfig(residual=True, hold_gate=True, hold_band=1.5, accel_delta=0.25)
+    driver = Driver(None, cfg, 0.1)
+    t_par = np.zeros((4, 3, 2), np.float32)
+    t_par[:, :, 1] = np.array([1.0 / 3, 0.75, -0.5, -1.0 / 6])[:, None]  # 1, 2.25, -3, -1 m/s²
+    u = np.full((4, 3, 2), 0.4, np.float32)
+    hold = np.array([True, True, True, False])
+    out = driver._execute(u, t_par, cap=np.ones((4, 3)), hold=hold)
+    np.testing.assert_allclose(out[:, 1, 1], [0.0, 0.25, -0.25, -1.0 / 6 + 0.1], atol=1e-6)
+    np.testing.assert_allclose(out[:, [0, 2], 1], t_par[:, [0, 2], 1] + 0.1, atol=1e-6)
+    capped = driver._execute(u, t_par, cap=np.full((4, 3), 0.1), hold=hold)
+    assert capped[1, 1, 1] == pytest.approx(0.25)  # ACC-LC's own 0.75 is above the cap: kept
+    assert capped[2, 1, 1] == pytest.approx(-0.25)  # braking is not capped
+
+
+def test_a_closed_gate_is_the_same_policy_and_is_not_trained(tmp_path) -> None:
+    """with_hold_gate adds a gate that changes nothing until it is set, survives a checkpoint
+    round trip and stays out of the actor's optimiser; the fused path scores it as the
+    reference does."""
+    import torch
+
+    from agents.bench_inference import random_obs
+    from agents.checkpoint import load_checkpoint, save_checkpoint, with_hold_gate
+    from agents.learning.fleet_search import get_theta, set_theta
+
+    lca = LCAConfig(z=5, m=10)
+    learner = RBPDQN(lca, LearnerConfig(residual=True))
+    theta = get_theta(learner.actor)
+    set_theta(learner.actor, theta + 0.1)
+    gated = with_hold_gate(learner)
+    assert gated.cfg.hold_gate and learner.actor.gate is None
+    obs = random_obs(9, lca, np.random.default_rng(0))
+    before = Policy(learner.actor, learner.critic).choose(obs, explore=False)
+    after = Policy(gated.actor, gated.critic).choose(obs, explore=False)
+    np.testing.assert_array_equal(after.params, before.params)
+    assert not after.hold.any() and not before.hold.any()
+    gate = set(gated.actor.gate.parameters())
+    assert not gate.intersection(p for g in gated.actor_opt.param_groups for p in g["params"])
+    g = get_theta(gated.actor, "gate")
+    assert not g.any()
+    t = {k: torch.from_numpy(v) for k, v in obs.items()}
+    g = np.append(np.linspace(-1, 1, len(g) - 1), 0.0)
+    set_theta(gated.actor, g, "gate")
+    with torch.no_grad():
+        g[-1] = -float(gated.actor.hold_score(t).median())  # open for some agents only
+    set_theta(gated.actor, g, "gate")
+    loaded, _ = load_checkpoint(save_checkpoint(tmp_path / "g.pt", gated))
+    np.testing.assert_allclose(get_theta(loaded.actor, "gate"), g, atol=1e-6)
+    fused = Policy(loaded.actor, loaded.critic).q_and_params(t)[2]
+    with torch.no_grad():
+        ref = loaded.actor.hold_score(t)
+    torch.testing.assert_close(fused, ref, atol=1e-5, rtol=1e-4)
+    assert 0 < int((ref > 0).sum()) < 9
+    with pytest.raises(ValueError, match="no hold gate"):
+        get_theta(learner.actor, "gate")
 
 
 def test_an_eager_residual_speeds_without_the_governor_and_not_with_it(tmp_path) -> None:

@@ -113,6 +113,24 @@ def test_fleet_config_refuses_bad_input(tmp_path: Path) -> None:
         FleetSearch(FleetConfig(out=tmp_path / "empty"))
     with pytest.raises(SystemExit):
         main(["--out", str(tmp_path / "x"), "--minutes", "0"])
+    with pytest.raises(ValueError, match="target"):
+        FleetConfig(target="steer")
+
+
+def test_a_gate_search_adds_a_closed_gate_and_moves_only_it(tmp_path: Path) -> None:
+    """--target gate on a checkpoint without a gate: θ is the gate (d + 1 numbers, all 0, so
+    every candidate starts from the checkpoint's own policy) and a candidate changes the gate
+    only."""
+    learner = _learner()
+    init = save_checkpoint(tmp_path / "init.pt", learner)
+    search = FleetSearch(FleetConfig(init=init, out=tmp_path / "run", iterations=1, target="gate"))
+    d = search.learner.actor.gate.in_features
+    assert search.theta.shape == (d + 1,) and not search.theta.any()
+    path = search._candidate("c", np.ones(d + 1))
+    cand, _ = load_checkpoint(path)
+    assert cand.cfg.hold_gate
+    np.testing.assert_allclose(get_theta(cand.actor, "gate"), np.ones(d + 1))
+    np.testing.assert_array_equal(get_theta(cand.actor), get_theta(learner.actor))
 
 
 def test_a_run_moves_theta_commits_and_resumes(tmp_path: Path) -> None:

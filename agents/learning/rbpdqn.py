@@ -167,7 +167,9 @@ class RBPDQN:
             self.critic.zero_output()
         self.actor_targ = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_targ = copy.deepcopy(self.critic).requires_grad_(False)
-        self.actor_opt = torch.optim.Adam(self.actor.gradient_parameters(), lr=self.cfg.lr, fused=True)
+        self.actor_opt = torch.optim.Adam(
+            self.actor.gradient_parameters(), lr=self.cfg.lr, fused=True
+        )
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.lr, fused=True)
         self.steps = 0
         self.compile = compile

@@ -105,6 +105,8 @@ def run_episode(
     if getattr(agent, "safety", None) is not None:
         metrics["sm_share"] = agent.safety.share
         diagnostics.update(agent.safety.shares)
+    if getattr(agent, "driver", None) is not None:
+        diagnostics["hold_share"] = agent.driver.hold_share
     record = {
         "cell": cell_of(config, policy),
         "status": "ok",
