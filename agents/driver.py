@@ -20,8 +20,9 @@ Two forms (``LearnerConfig.residual``):
   and only shifts towards a changed lane while its gap checks accept it.
   The decision is the critic's masked argmax of Q + ``teacher_bonus`` on ACC-LC's decision.
   With a hold gate (``hold_gate``) that is open at a decision, the follow row executes ACC-LC's
-  acceleration a minus clip(a, ±``hold_band``) instead, until the next decision: the ego holds
-  its speed and answers only what exceeds the band (the governors still bound it).
+  acceleration a minus clip(a, −``hold_brake``, ``hold_accel``) instead, until the next
+  decision: the ego holds its speed and answers only what exceeds the band (the governors
+  still bound it).
 
 Modes of :meth:`Driver.act`: ``greedy`` (evaluation), ``explore`` (Gaussian noise on u and
 ε-random decisions; needs an rng) and ``teacher`` (ACC-LC drives: u = 0 in the residual form,
@@ -198,9 +199,9 @@ class Driver:
             return u
         out = np.clip(t_par + self.delta * u, -1.0, 1.0)
         if hold.any():
-            c, band = self.teacher.c, self.cfg.hold_band
+            c, cfg = self.teacher.c, self.cfg
             a = from_ab(t_par[hold, FOLLOW, 1], c)
-            out[hold, FOLLOW, 1] = to_ab(a - np.clip(a, -band, band), c)
+            out[hold, FOLLOW, 1] = to_ab(a - np.clip(a, -cfg.hold_brake, cfg.hold_accel), c)
         ceiling = np.maximum(t_par[:, :, 1], cap)
         out[:, :, 1] = np.minimum(out[:, :, 1], ceiling)
         return out.astype(np.float32)

@@ -75,19 +75,20 @@ def test_the_governor_caps_only_the_correction_that_lifts_the_acceleration() -> 
 
 
 def test_an_open_hold_gate_answers_only_what_exceeds_the_band() -> None:
-    """Follow row under an open gate: ACC-LC's a − clip(a, ±1.5 m/s²) (+1 = +3, −1 = −6 m/s²);
-    other rows and closed agents keep the residual; the governor's cap still bounds it."""
-    cfg = LearnerConfig(residual=True, hold_gate=True, hold_band=1.5, accel_delta=0.25)
+    """Follow row under an open gate: ACC-LC's a − clip(a, −1.5, 1.25 m/s²) (+1 = +3, −1 = −6
+    m/s²); other rows and closed agents keep the residual; the governor's cap still bounds it."""
+    cfg = LearnerConfig(residual=True, hold_gate=True, hold_brake=1.5, hold_accel=1.25,
+                        accel_delta=0.25)  # fmt: skip
     driver = Driver(None, cfg, 0.1)
     t_par = np.zeros((4, 3, 2), np.float32)
     t_par[:, :, 1] = np.array([1.0 / 3, 0.75, -0.5, -1.0 / 6])[:, None]  # 1, 2.25, -3, -1 m/s²
     u = np.full((4, 3, 2), 0.4, np.float32)
     hold = np.array([True, True, True, False])
     out = driver._execute(u, t_par, cap=np.ones((4, 3)), hold=hold)
-    np.testing.assert_allclose(out[:, 1, 1], [0.0, 0.25, -0.25, -1.0 / 6 + 0.1], atol=1e-6)
+    np.testing.assert_allclose(out[:, 1, 1], [0.0, 1.0 / 3, -0.25, -1.0 / 6 + 0.1], atol=1e-6)
     np.testing.assert_allclose(out[:, [0, 2], 1], t_par[:, [0, 2], 1] + 0.1, atol=1e-6)
     capped = driver._execute(u, t_par, cap=np.full((4, 3), 0.1), hold=hold)
-    assert capped[1, 1, 1] == pytest.approx(0.25)  # ACC-LC's own 0.75 is above the cap: kept
+    assert capped[1, 1, 1] == pytest.approx(1.0 / 3)  # ACC-LC's own 0.75 is above the cap
     assert capped[2, 1, 1] == pytest.approx(-0.25)  # braking is not capped
 
 

@@ -116,12 +116,15 @@ class LearnerConfig:
     """Q-PAMDP: updates per phase of its alternation (critic only, then actor only)."""
     hold_gate: bool = False
     """Residual form: the actor has a hold gate (``Actor.gate``). Where its score is > 0 at a
-    decision, the follow row holds speed for that decision: it executes a − clip(a, ±hold_band)
-    for ACC-LC's acceleration a, so it answers only what exceeds the band (a speed-holding
-    dead band, as wave-damping controllers do; docs/agent.md). The fleet search sets the
-    gate (``--target gate``); False = no gate, as checkpoints before it."""
-    hold_band: float = 1.5
-    """Half-width of the hold gate's dead band [m/s²]."""
+    decision, the follow row holds speed until the next one: it executes
+    a − clip(a, −hold_brake, hold_accel) for ACC-LC's acceleration a, so it answers only what
+    exceeds that dead band (docs/agent.md, "Hold gate"). The fleet search sets the gate
+    (``--target gate``); False = no gate, as checkpoints before it."""
+    hold_brake: float = 1.5
+    """Braking the hold gate's dead band absorbs [m/s²]."""
+    hold_accel: float = 1.25
+    """Acceleration the hold gate's dead band absorbs [m/s²]. Below ACC-LC's largest (its IDM
+    a = 1.5 m/s²), or a held AV that has slowed could never speed up again."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
