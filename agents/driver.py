@@ -191,14 +191,14 @@ class Driver:
         return decision, u.astype(np.float32), hold
 
     def _execute(self, u: np.ndarray, t_par: np.ndarray, cap: np.ndarray,
-                 hold: np.ndarray) -> np.ndarray:  # fmt: skip
+                 hold: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
         """(A, 3, 2) executed parameters of the held u, with the follow row of ``hold`` (A,)
-        agents holding speed; the accel_brake correction lifts no row above ``cap`` (A, 3)
+        agents (None: none) holding speed; the accel_brake correction lifts no row above ``cap`` (A, 3)
         unless ACC-LC's own is higher."""
         if not self.cfg.residual:
             return u
         out = np.clip(t_par + self.delta * u, -1.0, 1.0)
-        if hold.any():
+        if hold is not None and hold.any():
             c, cfg = self.teacher.c, self.cfg
             a = from_ab(t_par[hold, FOLLOW, 1], c)
             out[hold, FOLLOW, 1] = to_ab(a - np.clip(a, -cfg.hold_brake, cfg.hold_accel), c)

@@ -68,7 +68,7 @@ def test_the_governor_caps_only_the_correction_that_lifts_the_acceleration() -> 
     t_par[:, :, 1] = [[0.2, 0.2, 0.2], [0.5, 0.5, 0.5], [0.2, 0.2, 0.2]]
     u = np.zeros((3, 3, 2), np.float32)
     u[:2, :, 1], u[2, :, 1] = 1.0, -1.0
-    out = driver._execute(u, t_par, cap=np.full((3, 3), 0.3), hold=np.zeros(3, bool))
+    out = driver._execute(u, t_par, cap=np.full((3, 3), 0.3))
     np.testing.assert_allclose(out[0, :, 1], 0.3)  # 0.45 capped at the governor's 0.3
     np.testing.assert_allclose(out[1, :, 1], 0.5)  # ACC-LC's own 0.5 is above the cap: kept
     np.testing.assert_allclose(out[2, :, 1], -0.05)  # braking corrections are free
