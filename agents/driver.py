@@ -192,9 +192,9 @@ class Driver:
 
     def _execute(self, u: np.ndarray, t_par: np.ndarray, cap: np.ndarray,
                  hold: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
-        """(A, 3, 2) executed parameters of the held u, with the follow row of ``hold`` (A,)
-        agents (None: none) holding speed; the accel_brake correction lifts no row above ``cap`` (A, 3)
-        unless ACC-LC's own is higher."""
+        """(A, 3, 2) executed parameters of the held u, the follow row of ``hold`` (A,) agents
+        (None: none) holding speed; the accel_brake correction lifts no row above ``cap``
+        (A, 3) unless ACC-LC's own is higher."""
         if not self.cfg.residual:
             return u
         out = np.clip(t_par + self.delta * u, -1.0, 1.0)

@@ -134,8 +134,8 @@ def build_nets(lca: LCAConfig, cfg: LearnerConfig) -> tuple[Actor, Critic]:
     """The (actor, critic) pair of ``cfg.algorithm``: P-DDPG's actor also scores the decisions
     and its critic values the whole action; the others are the paper's networks."""
     joint = cfg.algorithm == "p-ddpg"
-    return Actor(lca, scores=joint, gate=cfg.hold_gate), Critic(lca, multi_pass=cfg.multi_pass and not joint,
-                                            joint=joint)  # fmt: skip
+    actor = Actor(lca, scores=joint, gate=cfg.hold_gate)
+    return actor, Critic(lca, multi_pass=cfg.multi_pass and not joint, joint=joint)
 
 
 def _soft_update(target: nn.Module, source: nn.Module, tau: float) -> None:
