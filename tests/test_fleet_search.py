@@ -51,6 +51,8 @@ def test_theta_is_the_accel_rows_of_the_last_layer() -> None:
         set_theta(actor, new[:-1])
     with pytest.raises(ValueError, match="theta must be"):
         set_theta(actor, np.full_like(new, np.nan))
+    with pytest.raises(ValueError, match="target='steer'"):
+        get_theta(actor, "steer")
 
 
 def test_antithetic_gradient_points_up_a_linear_score() -> None:

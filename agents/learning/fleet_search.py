@@ -7,13 +7,13 @@ cannot see it. Here the shared actor is judged by what the whole traffic does in
 Method (Salimans et al. 2017, antithetic ES with Adam): θ are either the accel_brake rows of
 the actor's last layer (target ``accel``: 3 × (d + 1) numbers; steering's 0.3° bound makes its
 fleet effect smaller than the noise) or the hold gate (target ``gate``: d + 1 numbers, see
-``agents.nets.networks.Actor``). Per iteration, ``pairs`` noise vectors ε are drawn; θ + σε and θ − σε drive
-the AVs of one sampled episode config each (same config and seed for both: common random
-numbers). An episode's score is ln(mean speed of all vehicles in the measurement segment)
-minus ``unsafe_penalty`` per collision or AV terminal event; the pair's difference d is
-divided by the iteration's RMS of d, clipped, and the gradient estimate Σ dε / (n σ) moves θ
-through Adam. All of this is pure numpy; :mod:`mixed_traffic.experiments.fleet` runs the
-episodes.
+``agents.nets.networks.Actor``). Per iteration, ``pairs`` noise vectors ε are drawn; θ + σε
+and θ − σε drive the AVs of one sampled episode config each (same config and seed for both:
+common random numbers). An episode's score is ln(mean speed of all vehicles in the
+measurement segment) minus ``unsafe_penalty`` per collision or AV terminal event; the pair's
+difference d is divided by the iteration's RMS of d, clipped, and the gradient estimate
+Σ dε / (n σ) moves θ through Adam. All of this is pure numpy;
+:mod:`mixed_traffic.experiments.fleet` runs the episodes.
 """
 
 from __future__ import annotations
@@ -67,6 +67,8 @@ def accel_rows(actor: torch.nn.Module) -> list[int]:
 
 def _searched(actor: torch.nn.Module, target: str) -> tuple[torch.nn.Linear, list[int]]:
     """(layer, its output rows) that ``target`` searches."""
+    if target not in TARGETS:
+        raise ValueError(f"target={target!r}: choose from {TARGETS}")
     if target == "gate":
         if actor.gate is None:
             raise ValueError("the actor has no hold gate (LearnerConfig.hold_gate=False)")

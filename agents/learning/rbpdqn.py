@@ -369,13 +369,13 @@ class Policy:
         if self._fused is not None:
             params, q, hold = self._fused(obs, noise=noise)
             return q, params, hold
-        params = self.actor(obs)
+        params, hold = self.actor.with_hold(obs)
         if self.actor.scores:  # P-DDPG: the actor's scores rank the decisions
             scores, params = params[..., 2], params[..., :2].contiguous()
         if noise is not None:
             params = (params + noise).clamp_(-1.0, 1.0)
         q = scores if self.actor.scores else self.critic(obs, params)
-        return q, params, self.actor.hold_score(obs)
+        return q, params, hold
 
     def act(
         self,

@@ -66,16 +66,18 @@ class Actor(_ZeroOutput, nn.Module):
             nn.init.zeros_(self.gate.bias)
 
     def forward(self, obs: dict[str, Tensor]) -> Tensor:
-        out = fast_tanh(self.head[2](self.hidden(obs)))
-        return out.view(-1, N_DECISIONS, self.width)
+        return self.with_hold(obs)[0]
 
-    def hidden(self, obs: dict[str, Tensor]) -> Tensor:
-        """The MLP's hidden features (B, D) (after its ReLU)."""
-        return self.head[1](self.head[0](self.lca(obs)))
+    def with_hold(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor | None]:
+        """(the forward's output, the hold gate's score (B,) or None without a gate) from one
+        pass of the encoder and the MLP; hold where the score is > 0."""
+        hid = self.head[1](self.head[0](self.lca(obs)))
+        out = fast_tanh(self.head[2](hid)).view(-1, N_DECISIONS, self.width)
+        return out, None if self.gate is None else self.gate(hid).squeeze(-1)
 
     def hold_score(self, obs: dict[str, Tensor]) -> Tensor | None:
         """(B,) the hold gate's score (hold where > 0), or None without a gate."""
-        return None if self.gate is None else self.gate(self.hidden(obs)).squeeze(-1)
+        return self.with_hold(obs)[1]
 
     def gradient_parameters(self) -> list[nn.Parameter]:
         """Every parameter but the gate's (the gate is searched, not trained by gradient)."""
