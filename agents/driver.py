@@ -19,10 +19,10 @@ Two forms (``LearnerConfig.residual``):
   low-level controller that tracks the held command: it keeps the lane centre, keeps the gap
   and only shifts towards a changed lane while its gap checks accept it.
   The decision is the critic's masked argmax of Q + ``teacher_bonus`` on ACC-LC's decision.
-  With a hold gate (``hold_gate``) that is open at a decision, the follow row executes ACC-LC's
-  acceleration a minus clip(a, −``hold_brake``, ``hold_accel``) instead, until the next
-  decision: the ego holds its speed and answers only what exceeds the band (the governors
-  still bound it).
+  With a hold gate (``hold_gate``) that is open at a decision, the follow row holds speed
+  until the next decision (:func:`held_accel`): it tracks a reference speed, the exponential
+  mean over ``hold_tau`` of its leader's speed (kept for every agent on every step), and
+  brakes only for what ACC-LC brakes beyond ``hold_brake``; the governors still bound it.
 
 Modes of :meth:`Driver.act`: ``greedy`` (evaluation), ``explore`` (Gaussian noise on u and
 ε-random decisions; needs an rng) and ``teacher`` (ACC-LC drives: u = 0 in the residual form,
@@ -39,6 +39,7 @@ import numpy as np
 from agents.learning.rbpdqn import LearnerConfig, Policy
 from agents.nets.networks import FOLLOW
 from agents.rules.acc_lc import AccLcPlan, AccLcPolicy
+from agents.rules.acc_lc_config import LANE_C
 from agents.rules.acc_lc_longitudinal import from_ab, to_ab
 from agents.rules.rss import RssConfig
 from mixed_traffic.env.api import EGO_SCALE
@@ -72,6 +73,23 @@ def steps_per_decision(interval: float, step_length: float) -> int:
     return max(1, round(interval / step_length))
 
 
+def track_leader(ref: np.ndarray, v: np.ndarray, v_lead: np.ndarray, lead: np.ndarray,
+                 alpha: float) -> np.ndarray:  # fmt: skip
+    """(A,) reference speeds [m/s] one step on: ``ref`` (NaN: new agent, starts at its own
+    speed ``v``) moves by ``alpha`` (step / τ) towards the leader's speed ``v_lead`` where a
+    leader is seen (``lead``), and stays where none is."""
+    ref = np.where(np.isnan(ref), v, ref)
+    return np.where(lead, ref + alpha * (v_lead - ref), ref)
+
+
+def held_accel(a: np.ndarray, v: np.ndarray, ref: np.ndarray, lead: np.ndarray, gain: float,
+               brake: float) -> np.ndarray:  # fmt: skip
+    """(A,) acceleration [m/s²] of a held follow row: ``gain`` (ref − v) towards the reference
+    speed, but never above ACC-LC's a + ``brake`` (ACC-LC's braking beyond ``brake`` passes);
+    ACC-LC's a where no leader is seen."""
+    return np.where(lead, np.minimum(gain * (ref - v), a + brake), a)
+
+
 def lane_switched(ego: np.ndarray) -> np.ndarray:
     """(A,) bool: the ego's lateral offset jumped between the last two frames of ``ego``
     (A, z, 5) (a lane switch), False with a single frame or an unobserved previous one."""
@@ -98,6 +116,8 @@ class Driver:
         """ACC-LC's plan of the last :meth:`act` (None where ACC-LC was not evaluated)."""
         # per agent: [steps left, held decision, held u (3, 2), hold gate open]
         self._held: dict[str, list] = {}
+        self._ref: dict[str, float] = {}  # per agent: the hold's reference speed [m/s]
+        self._alpha = min(1.0, step_length / cfg.hold_tau)
         self._steps = self._holds = 0  # agent-steps driven, and of them with the gate open
 
     @property
@@ -127,7 +147,8 @@ class Driver:
         decision, u, hold = self._hold(agents, obs, mask, t_dec)
         self._steps += n
         self._holds += int(hold.sum())
-        params = self._execute(u, t_par, cap, hold)
+        held = self._held_ab(agents, t_par, hold) if self.cfg.hold_gate else None
+        params = self._execute(u, t_par, cap, held)
         return Command(decision, params, due, u, hold, t_dec, t_par)
 
     # ------------------------------------------------------------------ steps of act()
@@ -149,6 +170,22 @@ class Driver:
         if self.cfg.residual and self.cfg.rss_governor:
             cap = np.minimum(cap, to_ab(plan.rss_caps(self.rss), c))
         return plan.decision.astype(np.int64), plan.params.astype(np.float32), cap
+
+    def _held_ab(self, agents: list[str], t_par: np.ndarray, hold: np.ndarray) -> np.ndarray:
+        """(A,) the follow row's accel_brake of the agents that hold, NaN for the others;
+        moves every agent's reference speed one step on."""
+        f = self.plan.features if self.plan is not None else None
+        if f is None or not len(agents):
+            return np.full(len(agents), np.nan)
+        lead = f["present"][:, LANE_C, 0]
+        v_lead = f["v"] + np.where(lead, f["vrel"][:, LANE_C, 0], 0.0)
+        ref = np.fromiter((self._ref.get(a, np.nan) for a in agents), float, len(agents))
+        ref = track_leader(ref, f["v"], v_lead, lead, self._alpha)
+        self._ref = dict(zip(agents, ref.tolist()))  # also forgets the agents that are gone
+        c, cfg = self.teacher.c, self.cfg
+        a = held_accel(from_ab(t_par[:, FOLLOW, 1], c), f["v"], ref, lead, cfg.hold_gain,
+                       cfg.hold_brake)  # fmt: skip
+        return np.where(hold, to_ab(a, c), np.nan)
 
     def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,
                 t_dec: np.ndarray, t_par: np.ndarray, mode: str,
@@ -191,17 +228,15 @@ class Driver:
         return decision, u.astype(np.float32), hold
 
     def _execute(self, u: np.ndarray, t_par: np.ndarray, cap: np.ndarray,
-                 hold: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
-        """(A, 3, 2) executed parameters of the held u, the follow row of ``hold`` (A,) agents
-        (None: none) holding speed; the accel_brake correction lifts no row above ``cap``
-        (A, 3) unless ACC-LC's own is higher."""
+                 held: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        """(A, 3, 2) executed parameters of the held u; ``held`` (A,) replaces the follow row's
+        accel_brake where it is not NaN (None: nowhere); the accel_brake lifts no row above
+        ``cap`` (A, 3) unless ACC-LC's own is higher."""
         if not self.cfg.residual:
             return u
         out = np.clip(t_par + self.delta * u, -1.0, 1.0)
-        if hold is not None and hold.any():
-            c, cfg = self.teacher.c, self.cfg
-            a = from_ab(t_par[hold, FOLLOW, 1], c)
-            out[hold, FOLLOW, 1] = to_ab(a - np.clip(a, -cfg.hold_brake, cfg.hold_accel), c)
+        if held is not None:
+            out[:, FOLLOW, 1] = np.where(np.isnan(held), out[:, FOLLOW, 1], held)
         ceiling = np.maximum(t_par[:, :, 1], cap)
         out[:, :, 1] = np.minimum(out[:, :, 1], ceiling)
         return out.astype(np.float32)

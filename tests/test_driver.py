@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from agents.driver import Driver, lane_switched, steps_per_decision
+from agents.driver import Driver, held_accel, lane_switched, steps_per_decision, track_leader
 from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy
 from agents.nets.lca import LCAConfig
 from agents.policies import stack_obs, to_actions
@@ -74,22 +74,34 @@ def test_the_governor_caps_only_the_correction_that_lifts_the_acceleration() -> 
     np.testing.assert_allclose(out[2, :, 1], -0.05)  # braking corrections are free
 
 
-def test_an_open_hold_gate_answers_only_what_exceeds_the_band() -> None:
-    """Follow row under an open gate: ACC-LC's a − clip(a, −1.5, 1.25 m/s²) (+1 = +3, −1 = −6
-    m/s²); other rows and closed agents keep the residual; the governor's cap still bounds it."""
-    cfg = LearnerConfig(residual=True, hold_gate=True, hold_brake=1.5, hold_accel=1.25,
-                        accel_delta=0.25)  # fmt: skip
+def test_the_hold_law_tracks_the_leaders_mean_speed_and_passes_hard_braking() -> None:
+    """Pure: the reference starts at the ego's speed, moves by alpha towards the leader's and
+    stays without a leader; a held AV accelerates at gain (ref − v) but never above ACC-LC's
+    a + brake, and drives ACC-LC's a without a leader."""
+    v = np.array([3.0, 3.0, 5.0, 2.0])
+    ref = track_leader(np.array([np.nan, 4.0, 4.0, 4.0]), v, np.array([5.0, 2.0, 9.0, 1.0]),
+                       np.array([True, True, True, False]), alpha=0.25)  # fmt: skip
+    np.testing.assert_allclose(ref, [3.5, 3.5, 5.25, 4.0])
+    a = np.array([1.0, -1.0, -3.0, 0.7])  # ACC-LC's [m/s²]
+    out = held_accel(a, v, ref, np.array([True, True, True, False]), gain=0.5, brake=1.5)
+    # 0.25 (tracking); 0.25 ≤ −1 + 1.5; −3 + 1.5 (braking beyond 1.5 passes); no leader: a
+    np.testing.assert_allclose(out, [0.25, 0.25, -1.5, 0.7])
+
+
+def test_held_rows_replace_the_follow_row_and_stay_under_the_governor() -> None:
+    """``held`` replaces the follow row's accel_brake where it is not NaN; other rows and
+    other agents keep the residual; the governor's cap still bounds a held row."""
+    cfg = LearnerConfig(residual=True, hold_gate=True, accel_delta=0.25)
     driver = Driver(None, cfg, 0.1)
-    t_par = np.zeros((4, 3, 2), np.float32)
-    t_par[:, :, 1] = np.array([1.0 / 3, 0.75, -0.5, -1.0 / 6])[:, None]  # 1, 2.25, -3, -1 m/s²
-    u = np.full((4, 3, 2), 0.4, np.float32)
-    hold = np.array([True, True, True, False])
-    out = driver._execute(u, t_par, cap=np.ones((4, 3)), hold=hold)
-    np.testing.assert_allclose(out[:, 1, 1], [0.0, 1.0 / 3, -0.25, -1.0 / 6 + 0.1], atol=1e-6)
-    np.testing.assert_allclose(out[:, [0, 2], 1], t_par[:, [0, 2], 1] + 0.1, atol=1e-6)
-    capped = driver._execute(u, t_par, cap=np.full((4, 3), 0.1), hold=hold)
-    assert capped[1, 1, 1] == pytest.approx(1.0 / 3)  # ACC-LC's own 0.75 is above the cap
-    assert capped[2, 1, 1] == pytest.approx(-0.25)  # braking is not capped
+    t_par = np.zeros((3, 3, 2), np.float32)
+    t_par[:, :, 1] = 0.2
+    u = np.full((3, 3, 2), 0.4, np.float32)
+    held = np.array([0.5, -0.6, np.nan])
+    out = driver._execute(u, t_par, cap=np.ones((3, 3)), held=held)
+    np.testing.assert_allclose(out[:, 1, 1], [0.5, -0.6, 0.3], atol=1e-6)
+    np.testing.assert_allclose(out[:, [0, 2], 1], 0.3, atol=1e-6)
+    capped = driver._execute(u, t_par, cap=np.full((3, 3), 0.1), held=held)
+    np.testing.assert_allclose(capped[:, 1, 1], [0.2, -0.6, 0.2], atol=1e-6)  # ACC-LC's 0.2
 
 
 def test_a_closed_gate_is_the_same_policy_and_is_not_trained(tmp_path) -> None:

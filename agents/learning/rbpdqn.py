@@ -116,15 +116,18 @@ class LearnerConfig:
     """Q-PAMDP: updates per phase of its alternation (critic only, then actor only)."""
     hold_gate: bool = False
     """Residual form: the actor has a hold gate (``Actor.gate``). Where its score is > 0 at a
-    decision, the follow row holds speed until the next one: it executes
-    a − clip(a, −hold_brake, hold_accel) for ACC-LC's acceleration a, so it answers only what
-    exceeds that dead band (docs/agent.md, "Hold gate"). The fleet search sets the gate
+    decision, the follow row holds speed until the next one: it tracks a reference speed that
+    follows the leader's speed slowly (``hold_tau``) and brakes only for what ACC-LC brakes
+    beyond ``hold_brake`` (docs/agent.md, "Hold gate"). The fleet search sets the gate
     (``--target gate``); False = no gate, as checkpoints before it."""
     hold_brake: float = 1.5
-    """Braking the hold gate's dead band absorbs [m/s²]."""
-    hold_accel: float = 1.25
-    """Acceleration the hold gate's dead band absorbs [m/s²]. Below ACC-LC's largest (its IDM
-    a = 1.5 m/s²), or a held AV that has slowed could never speed up again."""
+    """Braking of ACC-LC's a held AV ignores: it brakes at a + hold_brake where that is below
+    its tracking [m/s²]."""
+    hold_tau: float = 40.0
+    """Time constant of the held reference speed, an exponential mean of the leader's speed
+    [s]; longer than a stop-and-go wave's period (about 30 s on the 260 m ring)."""
+    hold_gain: float = 0.5
+    """Gain of the held AV's speed tracking: acceleration per m/s below the reference [1/s]."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
