@@ -23,6 +23,7 @@ Two forms (``LearnerConfig.residual``):
   until the next decision (:func:`held_accel`): it tracks a reference speed, the exponential
   mean over ``hold_tau`` of its leader's speed (kept for every agent on every step), and
   brakes only for what ACC-LC brakes beyond ``hold_brake``; the governors still bound it.
+  Without a leader, or with a signal or give-way line in view, ACC-LC drives.
 
 Modes of :meth:`Driver.act`: ``greedy`` (evaluation), ``explore`` (Gaussian noise on u and
 ε-random decisions; needs an rng) and ``teacher`` (ACC-LC drives: u = 0 in the residual form,
@@ -86,7 +87,7 @@ def held_accel(a: np.ndarray, v: np.ndarray, ref: np.ndarray, lead: np.ndarray, 
                brake: float) -> np.ndarray:  # fmt: skip
     """(A,) acceleration [m/s²] of a held follow row: ``gain`` (ref − v) towards the reference
     speed, but never above ACC-LC's a + ``brake`` (ACC-LC's braking beyond ``brake`` passes);
-    ACC-LC's a where no leader is seen."""
+    ACC-LC's a where ``lead`` is False (no leader seen, or a signal in view)."""
     return np.where(lead, np.minimum(gain * (ref - v), a + brake), a)
 
 
@@ -181,10 +182,14 @@ class Driver:
         v_lead = f["v"] + np.where(lead, f["vrel"][:, LANE_C, 0], 0.0)
         ref = np.fromiter((self._ref.get(a, np.nan) for a in agents), float, len(agents))
         ref = track_leader(ref, f["v"], v_lead, lead, self._alpha)
+        # a signal or give-way line in view: ACC-LC stops for it, and the hold restarts from
+        # the leader's speed beyond it (a held AV ran a red light, and lagged at green)
+        signal = np.isfinite(f["light_dist"][:, LANE_C])
+        ref = np.where(signal & lead, v_lead, ref)
         self._ref = dict(zip(agents, ref.tolist()))  # also forgets the agents that are gone
         c, cfg = self.teacher.c, self.cfg
-        a = held_accel(from_ab(t_par[:, FOLLOW, 1], c), f["v"], ref, lead, cfg.hold_gain,
-                       cfg.hold_brake)  # fmt: skip
+        a = held_accel(from_ab(t_par[:, FOLLOW, 1], c), f["v"], ref, lead & ~signal,
+                       cfg.hold_gain, cfg.hold_brake)  # fmt: skip
         return np.where(hold, to_ab(a, c), np.nan)
 
     def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,

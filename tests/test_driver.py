@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -171,3 +173,47 @@ def test_an_eager_residual_speeds_without_the_governor_and_not_with_it(tmp_path)
         speeding[governor] = m["terminal_speed_limit"]
         assert m["collisions"] == 0
     assert speeding[False] > 0 and speeding[True] == 0
+
+
+@pytest.fixture(scope="module")
+def open_gate(tmp_path_factory) -> Path:
+    """The shipped AUTO with its hold gate forced open (bias only: it holds in every state)."""
+    from agents.checkpoint import load_checkpoint, save_checkpoint, with_hold_gate
+    from agents.learning.fleet_search import get_theta, set_theta
+    from agents.policies import SHIPPED_CHECKPOINT
+
+    learner, meta = load_checkpoint(SHIPPED_CHECKPOINT)
+    gated = with_hold_gate(learner)
+    g = get_theta(gated.actor, "gate")
+    g[-1] = 1.0
+    set_theta(gated.actor, g, "gate")
+    return save_checkpoint(tmp_path_factory.mktemp("gate") / "open.pt", gated, meta)
+
+
+def test_one_held_av_halves_the_rings_speed_spread(open_gate: Path) -> None:
+    """One held AV on the 260 m ring (22 vehicles) at least halves the all-human speed std
+    (Stern et al. 2018), and it holds the whole time."""
+    from mixed_traffic.config import EnvConfig
+    from mixed_traffic.experiments.runner import run_episode
+
+    config = EnvConfig(scenario="ring", density=85.0, penetration=0.05, seed=0,
+                       episode_length=150.0)  # fmt: skip
+    human = run_episode(config, "idm", 60.0)["metrics"]
+    held = run_episode(config, "auto", 60.0, checkpoint=open_gate)
+    assert held["diagnostics"]["hold_share"] == 100.0
+    assert held["metrics"]["collisions"] == 0
+    assert held["metrics"]["speed_std"] <= 0.5 * human["speed_std"]
+
+
+def test_held_avs_do_not_ratchet_the_flow_down_in_rain(open_gate: Path) -> None:
+    """Half the vehicles held on ring-270m in rain keep at least 85 % of ACC-LC's mean speed
+    (the dead band of a hold of their own speed kept a third: a braked AV never sped up)."""
+    from mixed_traffic.config import EnvConfig
+    from mixed_traffic.experiments.runner import run_episode
+
+    config = EnvConfig(scenario="ring-270m", density=85.0, penetration=0.5, seed=0,
+                       weather="rain", episode_length=150.0)  # fmt: skip
+    acc = run_episode(config, "acc-lc", 60.0)["metrics"]
+    held = run_episode(config, "auto", 60.0, checkpoint=open_gate)["metrics"]
+    assert held["collisions"] == 0
+    assert held["mean_speed"] >= 0.85 * acc["mean_speed"]
