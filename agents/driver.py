@@ -38,7 +38,7 @@ from typing import NamedTuple
 import numpy as np
 
 from agents.learning.rbpdqn import LearnerConfig, Policy
-from agents.nets.networks import FOLLOW
+from agents.nets.networks import FOLLOW, LEAD_SPREAD
 from agents.rules.acc_lc import AccLcPlan, AccLcPolicy
 from agents.rules.acc_lc_config import LANE_C
 from agents.rules.acc_lc_longitudinal import from_ab, to_ab
@@ -74,13 +74,17 @@ def steps_per_decision(interval: float, step_length: float) -> int:
     return max(1, round(interval / step_length))
 
 
-def track_leader(ref: np.ndarray, v: np.ndarray, v_lead: np.ndarray, lead: np.ndarray,
-                 alpha: float) -> np.ndarray:  # fmt: skip
-    """(A,) reference speeds [m/s] one step on: ``ref`` (NaN: new agent, starts at its own
-    speed ``v``) moves by ``alpha`` (step / τ) towards the leader's speed ``v_lead`` where a
-    leader is seen (``lead``), and stays where none is."""
-    ref = np.where(np.isnan(ref), v, ref)
-    return np.where(lead, ref + alpha * (v_lead - ref), ref)
+def track_leader(ref: np.ndarray, var: np.ndarray, v: np.ndarray, v_lead: np.ndarray,
+                 lead: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(A,) reference speeds [m/s] and the leader's speed variance about them [m²/s²] one step
+    on. ``ref`` (NaN: a new agent, which starts at its own speed ``v`` and variance 0) moves by
+    ``alpha`` (step / τ) towards the leader's speed ``v_lead`` where a leader is seen
+    (``lead``), the variance towards the squared deviation; both stay where none is."""
+    new = np.isnan(ref)
+    ref, var = np.where(new, v, ref), np.where(new, 0.0, var)
+    ref = np.where(lead, ref + alpha * (v_lead - ref), ref)
+    var = np.where(lead, var + alpha * ((v_lead - ref) ** 2 - var), var)
+    return ref, var
 
 
 def held_accel(a: np.ndarray, v: np.ndarray, ref: np.ndarray, lead: np.ndarray, gain: float,
@@ -117,7 +121,8 @@ class Driver:
         """ACC-LC's plan of the last :meth:`act` (None where ACC-LC was not evaluated)."""
         # per agent: [steps left, held decision, held u (3, 2), hold gate open]
         self._held: dict[str, list] = {}
-        self._ref: dict[str, float] = {}  # per agent: the hold's reference speed [m/s]
+        # per agent: the hold's reference speed [m/s] and the leader's variance about it
+        self._ref: dict[str, tuple[float, float]] = {}
         self._alpha = min(1.0, step_length / cfg.hold_tau)
         self._steps = self._holds = 0  # agent-steps driven, and of them with the gate open
 
@@ -142,13 +147,15 @@ class Driver:
         with_teacher = self.cfg.residual or labels or mode == "teacher"
         self.plan = None
         t_dec, t_par, cap = self._teacher(obs, n) if with_teacher else _no_teacher(n)
+        track = self._track(agents) if self.cfg.hold_gate and self.plan is not None else None
         due = np.array([self._held.get(a, (0,))[0] <= 0 for a in agents], bool)
         if due.any():
-            self._decide(obs, agents, np.flatnonzero(due), t_dec, t_par, mode, rng)
+            spread = None if track is None else track[2]
+            self._decide(obs, agents, np.flatnonzero(due), t_dec, t_par, mode, rng, spread)
         decision, u, hold = self._hold(agents, obs, mask, t_dec)
         self._steps += n
         self._holds += int(hold.sum())
-        held = self._held_ab(agents, t_par, hold) if self.cfg.hold_gate else None
+        held = None if track is None else self._held_ab(t_par, hold, *track[:2])
         params = self._execute(u, t_par, cap, held)
         return Command(decision, params, due, u, hold, t_dec, t_par)
 
@@ -172,30 +179,38 @@ class Driver:
             cap = np.minimum(cap, to_ab(plan.rss_caps(self.rss), c))
         return plan.decision.astype(np.int64), plan.params.astype(np.float32), cap
 
-    def _held_ab(self, agents: list[str], t_par: np.ndarray, hold: np.ndarray) -> np.ndarray:
-        """(A,) the follow row's accel_brake of the agents that hold, NaN for the others;
-        moves every agent's reference speed one step on."""
-        f = self.plan.features if self.plan is not None else None
-        if f is None or not len(agents):
-            return np.full(len(agents), np.nan)
+    def _track(self, agents: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Moves every agent's reference speed one step on → (reference (A,) [m/s], where the
+        hold may act (A,) bool: a leader seen and no signal in view, the leader's relative
+        speed spread (A,) [-], the gate's ``LEAD_SPREAD``)."""
+        f = self.plan.features
         lead = f["present"][:, LANE_C, 0]
         v_lead = f["v"] + np.where(lead, f["vrel"][:, LANE_C, 0], 0.0)
-        ref = np.fromiter((self._ref.get(a, np.nan) for a in agents), float, len(agents))
-        ref = track_leader(ref, f["v"], v_lead, lead, self._alpha)
+        old = np.array([self._ref.get(a, (np.nan, 0.0)) for a in agents]).reshape(-1, 2)
+        ref, var = track_leader(old[:, 0], old[:, 1], f["v"], v_lead, lead, self._alpha)
         # a signal or give-way line in view: ACC-LC stops for it, and the hold restarts from
         # the leader's speed beyond it (a held AV ran a red light, and lagged at green)
         signal = np.isfinite(f["light_dist"][:, LANE_C])
         ref = np.where(signal & lead, v_lead, ref)
-        self._ref = dict(zip(agents, ref.tolist()))  # also forgets the agents that are gone
+        self._ref = dict(zip(agents, zip(ref.tolist(), var.tolist())))  # forgets the gone
+        spread = np.sqrt(var) / np.maximum(ref, 1.0)
+        return ref, lead & ~signal, spread.astype(np.float32)
+
+    def _held_ab(self, t_par: np.ndarray, hold: np.ndarray, ref: np.ndarray,
+                 free: np.ndarray) -> np.ndarray:  # fmt: skip
+        """(A,) the follow row's accel_brake of the agents that ``hold``, NaN for the others
+        (``ref`` and ``free`` from :meth:`_track`)."""
         c, cfg = self.teacher.c, self.cfg
-        a = held_accel(from_ab(t_par[:, FOLLOW, 1], c), f["v"], ref, lead & ~signal,
+        a = held_accel(from_ab(t_par[:, FOLLOW, 1], c), self.plan.features["v"], ref, free,
                        cfg.hold_gain, cfg.hold_brake)  # fmt: skip
         return np.where(hold, to_ab(a, c), np.nan)
 
     def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,
                 t_dec: np.ndarray, t_par: np.ndarray, mode: str,
-                rng: np.random.Generator | None) -> None:  # fmt: skip
-        """New decisions and u of the agents at ``idx``, held for k steps from now."""
+                rng: np.random.Generator | None,
+                spread: np.ndarray | None = None) -> None:  # fmt: skip
+        """New decisions and u of the agents at ``idx``, held for k steps from now
+        (``spread`` (A,): the hold gate's ``LEAD_SPREAD``)."""
         residual = self.cfg.residual
         hold = np.zeros(len(idx), bool)
         if mode == "teacher":
@@ -209,6 +224,8 @@ class Driver:
                 bonus = np.zeros((len(idx), 3), np.float32)
                 bonus[np.arange(len(idx)), t_dec[idx]] = self.cfg.teacher_bonus
             sub = {k: np.asarray(v)[idx] for k, v in obs.items()}
+            if spread is not None:
+                sub[LEAD_SPREAD] = spread[idx]
             dec, u, hold = self.policy.choose(sub, mode == "explore", rng, bonus)
         hold &= residual
         for j, i in enumerate(idx.tolist()):

@@ -10,6 +10,7 @@ import pytest
 from agents.driver import Driver, held_accel, lane_switched, steps_per_decision, track_leader
 from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy
 from agents.nets.lca import LCAConfig
+from agents.nets.networks import LEAD_SPREAD
 from agents.policies import stack_obs, to_actions
 from mixed_traffic.env import parallel_env
 from mixed_traffic.env.api import EGO_SCALE
@@ -78,12 +79,17 @@ def test_the_governor_caps_only_the_correction_that_lifts_the_acceleration() -> 
 
 def test_the_hold_law_tracks_the_leaders_mean_speed_and_passes_hard_braking() -> None:
     """Pure: the reference starts at the ego's speed, moves by alpha towards the leader's and
-    stays without a leader; a held AV accelerates at gain (ref − v) but never above ACC-LC's
+    stays without a leader, and so does the leader's variance about it; a held AV accelerates at gain (ref − v) but never above ACC-LC's
     a + brake, and drives ACC-LC's a without a leader."""
     v = np.array([3.0, 3.0, 5.0, 2.0])
-    ref = track_leader(np.array([np.nan, 4.0, 4.0, 4.0]), v, np.array([5.0, 2.0, 9.0, 1.0]),
-                       np.array([True, True, True, False]), alpha=0.25)  # fmt: skip
+    ref, var = track_leader(np.array([np.nan, 4.0, 4.0, 4.0]), np.ones(4), v,
+                            np.array([5.0, 2.0, 9.0, 1.0]), np.array([True, True, True, False]),
+                            alpha=0.25)  # fmt: skip
     np.testing.assert_allclose(ref, [3.5, 3.5, 5.25, 4.0])
+    # the variance about the new reference: a new agent starts at 0; no leader: unchanged
+    np.testing.assert_allclose(
+        var, [0.25 * 1.5**2, 1 + 0.25 * (1.5**2 - 1), 1 + 0.25 * (3.75**2 - 1), 1]
+    )
     a = np.array([1.0, -1.0, -3.0, 0.7])  # ACC-LC's [m/s²]
     out = held_accel(a, v, ref, np.array([True, True, True, False]), gain=0.5, brake=1.5)
     # 0.25 (tracking); 0.25 ≤ −1 + 1.5; −3 + 1.5 (braking beyond 1.5 passes); no leader: a
@@ -137,6 +143,7 @@ def test_a_closed_gate_is_the_same_policy_and_is_not_trained(tmp_path) -> None:
     with torch.no_grad():
         g[-1] = -float(gated.actor.hold_score(t).median())  # open for some agents only
     set_theta(gated.actor, g, "gate")
+    g_spread = g[-2]
     loaded, _ = load_checkpoint(save_checkpoint(tmp_path / "g.pt", gated))
     np.testing.assert_allclose(get_theta(loaded.actor, "gate"), g, atol=1e-6)
     fused = Policy(loaded.actor, loaded.critic).q_and_params(t)[2]
@@ -144,6 +151,21 @@ def test_a_closed_gate_is_the_same_policy_and_is_not_trained(tmp_path) -> None:
         ref = loaded.actor.hold_score(t)
     torch.testing.assert_close(fused, ref, atol=1e-5, rtol=1e-4)
     assert 0 < int((ref > 0).sum()) < 9
+    # the leader's speed spread is the gate's last input: a positive weight opens it
+    t[LEAD_SPREAD] = torch.linspace(0.0, 2.0, 9)
+    before = loaded.actor.hold_score(t)
+    g[-2] = 1.0
+    set_theta(loaded.actor, g, "gate")
+    policy = Policy(loaded.actor, loaded.critic)
+    fused = policy.q_and_params(t)[2]
+    with torch.no_grad():
+        ref = loaded.actor.hold_score(t)
+    torch.testing.assert_close(fused, ref, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(
+        ref - before, t[LEAD_SPREAD] * (1.0 - g_spread), atol=1e-5, rtol=1e-4
+    )
+    chosen = policy.choose({**obs, LEAD_SPREAD: t[LEAD_SPREAD].numpy()}, explore=False)
+    np.testing.assert_array_equal(chosen.hold, (ref > 0).numpy())
     with pytest.raises(ValueError, match="no hold gate"):
         get_theta(learner.actor, "gate")
 

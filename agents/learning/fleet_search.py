@@ -6,7 +6,7 @@ cannot see it. Here the shared actor is judged by what the whole traffic does in
 
 Method (Salimans et al. 2017, antithetic ES with Adam): θ are either the accel_brake rows of
 the actor's last layer (target ``accel``: 3 × (d + 1) numbers; steering's 0.3° bound makes its
-fleet effect smaller than the noise) or the hold gate (target ``gate``: d + 1 numbers, see
+fleet effect smaller than the noise) or the hold gate (target ``gate``: d + 2 numbers, see
 ``agents.nets.networks.Actor``). Per iteration, ``pairs`` noise vectors ε are drawn; θ + σε
 and θ − σε drive the AVs of one sampled episode config each (same config and seed for both:
 common random numbers). An episode's score is ln(mean speed of all vehicles in the

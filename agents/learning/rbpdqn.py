@@ -39,7 +39,7 @@ from torch import Tensor, nn
 
 from agents.nets.fused import FusedActorCritic
 from agents.nets.lca import LCAConfig
-from agents.nets.networks import FOLLOW, Actor, Critic, masked_q, select
+from agents.nets.networks import FOLLOW, LEAD_SPREAD, Actor, Critic, masked_q, select
 
 
 @dataclass(frozen=True)
@@ -322,8 +322,10 @@ STEER_NOISE_FACTOR = 0.05
 
 
 def obs_to_torch(obs: dict[str, np.ndarray]) -> dict[str, Tensor]:
-    """numpy (A, ...) → float32 tensors, zero-copy when already float32 and contiguous."""
-    return {k: torch.from_numpy(np.ascontiguousarray(obs[k], dtype=np.float32)) for k in OBS_KEYS}
+    """numpy (A, ...) → float32 tensors, zero-copy when already float32 and contiguous (the
+    network's keys, and the hold gate's ``LEAD_SPREAD`` where given)."""
+    keys = (*OBS_KEYS, LEAD_SPREAD) if LEAD_SPREAD in obs else OBS_KEYS
+    return {k: torch.from_numpy(np.ascontiguousarray(obs[k], dtype=np.float32)) for k in keys}
 
 
 class Policy:

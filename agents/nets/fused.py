@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from agents.nets.lca import LCA, N_LANES, N_NODE_TYPES, HistoryGRU
-from agents.nets.networks import ACTION_DIM, N_DECISIONS, N_PARAMS, Actor, Critic
+from agents.nets.networks import ACTION_DIM, N_DECISIONS, N_PARAMS, Actor, Critic, gate_input
 
 _MAX_CACHED_SIZES = 4
 """Buffer sets kept per distinct batch size (agent counts vary per step); oldest evicted."""
@@ -217,7 +217,9 @@ class FusedActorCritic:
             params = (params + noise.view(b, -1)).clamp_(-1.0, 1.0)
         assert params.shape[1] == ACTION_DIM
         params = params.view(b, N_DECISIONS, N_PARAMS)
-        hold = None if self.gate is None else torch.addmm(self.gate[1], hid, self.gate[0].t())[:, 0]
+        hold = None
+        if self.gate is not None:
+            hold = torch.addmm(self.gate[1], gate_input(hid, obs), self.gate[0].t())[:, 0]
         return params, self._critic_head(e_s[1], params), hold
 
     def _critic_head(self, e_s: Tensor, params: Tensor) -> Tensor:

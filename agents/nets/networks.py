@@ -43,13 +43,28 @@ class _ZeroOutput:
             self.head[-1].bias.zero_()
 
 
+LEAD_SPREAD = "lead_spread"
+"""Optional observation key (B,) that only the hold gate reads: the spread of the leader's
+speed about its mean over the last minute or so, relative to that mean [-] (large in
+stop-and-go waves, small behind a steady leader). The driver tracks it (``agents.driver``);
+absent, it is 0."""
+
+
+def gate_input(hid: Tensor, obs: dict[str, Tensor]) -> Tensor:
+    """(B, d + 1): the hidden features (B, d) and ``obs[LEAD_SPREAD]`` (0 where absent)."""
+    spread = obs.get(LEAD_SPREAD)
+    spread = hid.new_zeros(len(hid)) if spread is None else spread.to(hid.dtype)
+    return torch.cat([hid, spread[:, None]], dim=1)
+
+
 class Actor(_ZeroOutput, nn.Module):
     """Encoder → MLP → tanh. obs dict (B, ...) → params (B, 3, 2) in [-1, 1]; with ``scores``
     (P-DDPG) (B, 3, 3): each decision's parameters and then its score.
 
-    ``gate``: a hold gate, one linear score of the MLP's hidden features (B,), zero at the
-    start; where it is > 0 the driver holds speed (``LearnerConfig.hold_gate``). Gradient
-    training leaves it alone (it is not in the optimiser); the fleet search sets it."""
+    ``gate``: a hold gate, one linear score (B,) of the MLP's hidden features and of the
+    observation's optional ``LEAD_SPREAD`` (:func:`gate_input`), zero at the start; where it
+    is > 0 the driver holds speed (``LearnerConfig.hold_gate``). Gradient training leaves it
+    alone (it is not in the optimiser); the fleet search sets it."""
 
     def __init__(self, cfg: LCAConfig, scores: bool = False, gate: bool = False) -> None:
         super().__init__()
@@ -60,7 +75,7 @@ class Actor(_ZeroOutput, nn.Module):
         self.head = nn.Sequential(
             nn.Linear(d, d), nn.ReLU(), nn.Linear(d, N_DECISIONS * self.width)
         )  # W9
-        self.gate = nn.Linear(d, 1) if gate else None
+        self.gate = nn.Linear(d + 1, 1) if gate else None
         if self.gate is not None:
             nn.init.zeros_(self.gate.weight)
             nn.init.zeros_(self.gate.bias)
@@ -73,7 +88,7 @@ class Actor(_ZeroOutput, nn.Module):
         pass of the encoder and the MLP; hold where the score is > 0."""
         hid = self.head[1](self.head[0](self.lca(obs)))
         out = fast_tanh(self.head[2](hid)).view(-1, N_DECISIONS, self.width)
-        return out, None if self.gate is None else self.gate(hid).squeeze(-1)
+        return out, None if self.gate is None else self.gate(gate_input(hid, obs)).squeeze(-1)
 
     def hold_score(self, obs: dict[str, Tensor]) -> Tensor | None:
         """(B,) the hold gate's score (hold where > 0), or None without a gate."""
