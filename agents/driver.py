@@ -69,6 +69,18 @@ class Command(NamedTuple):
     """(A, 3, 2) float32 ACC-LC's parameters (zeros where not evaluated)."""
 
 
+class Lead(NamedTuple):
+    """What the hold tracks of each agent's leader (:meth:`Driver._track`)."""
+
+    ref: np.ndarray
+    """(A,) reference speed [m/s]: the leader's speed, averaged over ``hold_tau``."""
+    free: np.ndarray
+    """(A,) bool: the hold may act (a leader seen, no signal or give-way line in view)."""
+    spread: np.ndarray
+    """(A,) float32 the leader's speed spread about ``ref`` over ``hold_tau``, divided by ``ref``
+    (at least 1 m/s) [-]: the gate's ``LEAD_SPREAD``."""
+
+
 def steps_per_decision(interval: float, step_length: float) -> int:
     """k: the decision interval [s] in whole simulation steps of ``step_length`` [s], >= 1."""
     return max(1, round(interval / step_length))
@@ -147,15 +159,15 @@ class Driver:
         with_teacher = self.cfg.residual or labels or mode == "teacher"
         self.plan = None
         t_dec, t_par, cap = self._teacher(obs, n) if with_teacher else _no_teacher(n)
-        track = self._track(agents) if self.cfg.hold_gate and self.plan is not None else None
+        lead = self._track(agents) if self.cfg.hold_gate and self.plan is not None else None
         due = np.array([self._held.get(a, (0,))[0] <= 0 for a in agents], bool)
         if due.any():
-            spread = None if track is None else track[2]
+            spread = None if lead is None else lead.spread
             self._decide(obs, agents, np.flatnonzero(due), t_dec, t_par, mode, rng, spread)
         decision, u, hold = self._hold(agents, obs, mask, t_dec)
         self._steps += n
         self._holds += int(hold.sum())
-        held = None if track is None else self._held_ab(t_par, hold, *track[:2])
+        held = None if lead is None else self._held_ab(t_par, hold, lead)
         params = self._execute(u, t_par, cap, held)
         return Command(decision, params, due, u, hold, t_dec, t_par)
 
@@ -179,10 +191,8 @@ class Driver:
             cap = np.minimum(cap, to_ab(plan.rss_caps(self.rss), c))
         return plan.decision.astype(np.int64), plan.params.astype(np.float32), cap
 
-    def _track(self, agents: list[str]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Moves every agent's reference speed one step on → (reference (A,) [m/s], where the
-        hold may act (A,) bool: a leader seen and no signal in view, the leader's relative
-        speed spread (A,) [-], the gate's ``LEAD_SPREAD``)."""
+    def _track(self, agents: list[str]) -> Lead:
+        """Moves every agent's reference speed and the leader's variance one step on."""
         f = self.plan.features
         lead = f["present"][:, LANE_C, 0]
         v_lead = f["v"] + np.where(lead, f["vrel"][:, LANE_C, 0], 0.0)
@@ -194,15 +204,13 @@ class Driver:
         ref = np.where(signal & lead, v_lead, ref)
         self._ref = dict(zip(agents, zip(ref.tolist(), var.tolist())))  # forgets the gone
         spread = np.sqrt(var) / np.maximum(ref, 1.0)
-        return ref, lead & ~signal, spread.astype(np.float32)
+        return Lead(ref, lead & ~signal, spread.astype(np.float32))
 
-    def _held_ab(self, t_par: np.ndarray, hold: np.ndarray, ref: np.ndarray,
-                 free: np.ndarray) -> np.ndarray:  # fmt: skip
-        """(A,) the follow row's accel_brake of the agents that ``hold``, NaN for the others
-        (``ref`` and ``free`` from :meth:`_track`)."""
+    def _held_ab(self, t_par: np.ndarray, hold: np.ndarray, lead: Lead) -> np.ndarray:
+        """(A,) the follow row's accel_brake of the agents that ``hold``, NaN for the others."""
         c, cfg = self.teacher.c, self.cfg
-        a = held_accel(from_ab(t_par[:, FOLLOW, 1], c), self.plan.features["v"], ref, free,
-                       cfg.hold_gain, cfg.hold_brake)  # fmt: skip
+        a = held_accel(from_ab(t_par[:, FOLLOW, 1], c), self.plan.features["v"], lead.ref,
+                       lead.free, cfg.hold_gain, cfg.hold_brake)  # fmt: skip
         return np.where(hold, to_ab(a, c), np.nan)
 
     def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,

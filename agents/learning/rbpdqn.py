@@ -121,8 +121,8 @@ class LearnerConfig:
     beyond ``hold_brake`` (docs/agent.md, "Hold gate"). The fleet search sets the gate
     (``--target gate``); False = no gate, as checkpoints before it."""
     hold_brake: float = 1.5
-    """Braking of ACC-LC's a held AV ignores: it brakes at a + hold_brake where that is below
-    its tracking [m/s²]."""
+    """How much of ACC-LC's braking a held AV ignores [m/s²]: it brakes at a + hold_brake where
+    that is below its tracking acceleration."""
     hold_tau: float = 40.0
     """Time constant of the held reference speed, an exponential mean of the leader's speed
     [s]; longer than a stop-and-go wave's period (about 30 s on the 260 m ring)."""

@@ -44,10 +44,10 @@ class _ZeroOutput:
 
 
 LEAD_SPREAD = "lead_spread"
-"""Optional observation key (B,) that only the hold gate reads: the spread of the leader's
-speed about its mean over the last minute or so, relative to that mean [-] (large in
-stop-and-go waves, small behind a steady leader). The driver tracks it (``agents.driver``);
-absent, it is 0."""
+"""Optional observation key (B,) that only the hold gate reads: the standard deviation of the
+leader's speed about its mean over ``LearnerConfig.hold_tau``, divided by that mean (at least
+1 m/s) [-]; large in stop-and-go waves, small behind a steady leader. The driver tracks it
+(``agents.driver.Lead``); absent, it is 0."""
 
 
 def gate_input(hid: Tensor, obs: dict[str, Tensor]) -> Tensor:
