@@ -91,6 +91,8 @@ def test_episode_score_is_log_speed_minus_unsafe_events() -> None:
     bad = {**ok, "collisions": 1, "terminal_collision": 1, "terminal_off_road": 2}
     assert episode_score(bad, 0.5) == pytest.approx(1.0 - 0.5 * 3)
     assert episode_score({"mean_speed": None}, 1.0) == -math.inf
+    waves = {"mean_speed": math.e, "speed_std": math.e / 2, "collisions": 0}
+    assert episode_score(waves, 1.0, spread_weight=0.4) == pytest.approx(1.0 - 0.4 * 0.5)
     assert unsafe_events(bad) == 3 and unsafe_events(ok) == 0
 
 

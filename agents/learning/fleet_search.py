@@ -49,12 +49,18 @@ class SearchConfig:
     """Pair differences are clipped at this many RMS [-]."""
     unsafe_penalty: float = 1.0
     """Score lost per collision or AV terminal event [ln(m/s) units: 1 = the mean speed / e]."""
+    spread_weight: float = 0.0
+    """Score lost per unit of the speed spread of all vehicles, speed std / mean speed
+    [ln(m/s) units]; 0 scores speed alone. Stop-and-go waves cost fuel and comfort that the
+    mean speed does not show."""
 
     def __post_init__(self) -> None:
         for name in ("sigma", "lr", "clip", "unsafe_penalty"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{name}={value!r} must be a positive finite number")
+        if not (math.isfinite(self.spread_weight) and self.spread_weight >= 0):
+            raise ValueError(f"spread_weight={self.spread_weight!r} must be finite and >= 0")
         if self.pairs < 1:
             raise ValueError(f"pairs={self.pairs!r} must be at least 1")
 
@@ -103,13 +109,14 @@ def unsafe_events(metrics: dict[str, Any]) -> int:
     return int((metrics.get("collisions") or 0) + others)
 
 
-def episode_score(metrics: dict[str, Any], penalty: float) -> float:
-    """ln(mean speed of all vehicles [m/s]) − ``penalty`` per :func:`unsafe_events`; −inf
-    when the episode measured no speed."""
+def episode_score(metrics: dict[str, Any], penalty: float, spread_weight: float = 0.0) -> float:
+    """ln(mean speed of all vehicles [m/s]) − ``penalty`` per :func:`unsafe_events` −
+    ``spread_weight`` × speed std / mean speed; −inf when the episode measured no speed."""
     speed = metrics.get("mean_speed")
     if speed is None or not speed > 0:
         return -math.inf
-    return math.log(speed) - penalty * unsafe_events(metrics)
+    spread = (metrics.get("speed_std") or 0.0) / speed
+    return math.log(speed) - penalty * unsafe_events(metrics) - spread_weight * spread
 
 
 def normalised(d: np.ndarray, clip: float) -> np.ndarray:

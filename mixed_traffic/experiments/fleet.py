@@ -248,7 +248,12 @@ class FleetSearch:
         roles += ["center", "acc-lc"]
         records, executor = _run_jobs(executor, ctx, cfg, jobs)
         metrics = [r["metrics"] if r else None for r in records]
-        scores = np.array([episode_score(m, s.unsafe_penalty) if m else math.nan for m in metrics])
+        scores = np.array(
+            [
+                episode_score(m, s.unsafe_penalty, s.spread_weight) if m else math.nan
+                for m in metrics
+            ]
+        )
         for record, role, score in zip(records, roles, scores):
             if record:
                 record.update(fleet={"iteration": it + 1, "role": role, "score": score})
