@@ -99,12 +99,13 @@ def track_leader(ref: np.ndarray, var: np.ndarray, v: np.ndarray, v_lead: np.nda
     return ref, var
 
 
-def held_accel(a: np.ndarray, v: np.ndarray, ref: np.ndarray, lead: np.ndarray, gain: float,
+def held_accel(a: np.ndarray, v: np.ndarray, ref: np.ndarray, free: np.ndarray, gain: float,
                brake: float) -> np.ndarray:  # fmt: skip
     """(A,) acceleration [m/s²] of a held follow row: ``gain`` (ref − v) towards the reference
     speed, but never above ACC-LC's a + ``brake`` (ACC-LC's braking beyond ``brake`` passes);
-    ACC-LC's a where ``lead`` is False (no leader seen, or a signal in view)."""
-    return np.where(lead, np.minimum(gain * (ref - v), a + brake), a)
+    ACC-LC's a where the hold may not act (``free`` False: no leader seen, or a signal in
+    view)."""
+    return np.where(free, np.minimum(gain * (ref - v), a + brake), a)
 
 
 def lane_switched(ego: np.ndarray) -> np.ndarray:
