@@ -346,6 +346,32 @@ def test_speed_cap_holds_the_limit_curves_and_a_red_light() -> None:
     assert speed_cap(f, AccLcConfig())[2] == pytest.approx((3.3**2 - 10.0**2) / (2 * 19.0))
 
 
+def test_a_signal_on_the_map_but_not_in_sight_is_approached_ready_to_stop() -> None:
+    """In fog the camera sees a light at 30 m; at 15.7 m/s ACC-LC could no longer stop for a
+    red seen there. A signal the HD map shows is approached at a speed from which its line
+    can be reached at ``signal_sight_decel``, until the camera shows it green."""
+    from agents.rules.acc_lc_longitudinal import speed_cap
+
+    c, a, m = AccLcConfig(), 3, 10
+    v = np.array([15.7, 15.7, 8.0])
+    f = {
+        "v": v, "v_mean": v, "d": np.zeros(a),
+        "wp_speed": np.full((a, 3, m), 16.7), "wp_orient": np.zeros((a, 3, m)),
+        "pv_dist": np.full((a, 3, 2), np.inf), "pv_speed": np.full((a, 3, 2), np.inf),
+        "light": np.array([[-1, -1, -1], [-1, 2, -1], [-1, -1, -1]]),
+        "light_dist": np.array([[np.inf] * 3, [np.inf, 35.0, np.inf], [np.inf] * 3]),
+        "give_way": np.zeros(a, bool), "signal_dist": np.full(a, 35.0),
+    }  # fmt: skip
+    need = 15.7**2 / (2 * (35.0 - c.stop_margin))
+    assert need > c.signal_sight_decel
+    cap = speed_cap(f, c)
+    assert cap[0] == pytest.approx(-need)  # unseen: brake to stay able to stop
+    assert cap[1] > 0  # seen green: pass at speed
+    assert cap[2] > 0  # slow enough already
+    f["signal_dist"] = np.full(a, np.inf)  # no signal on the map: no bound
+    assert speed_cap(f, c)[0] > 0
+
+
 @functools.cache
 def _all_acc_lc_on_straight(step: float) -> dict:
     """Metrics of 90 s of ``straight`` with all AVs under ACC-LC at ``step`` [s]."""

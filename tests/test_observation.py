@@ -43,6 +43,7 @@ def test_space_shapes() -> None:
     assert sp["vehicles"].shape == (3, 4, 12)
     assert sp["lights"].shape == (3, 4, 4)
     assert sp["node_mask"].shape == (3, 3) and sp["action_mask"].shape == (3,)
+    assert sp["signals"].shape == (3,)
 
 
 @pytest.mark.parametrize("weather, reach", [("fog", 1.0), ("rain", 1.0), ("normal", 1.5)])
@@ -115,7 +116,7 @@ def test_noise_off_observation_matches_ground_truth(tmp_path) -> None:
                 else:
                     assert not veh[6:].any()
                 assert o["node_mask"][col, 1] == (np.isfinite(f) or np.isfinite(b))
-            assert not o["lights"].any()  # no signals on the straight road
+            assert not o["lights"].any() and not o["signals"].any()  # no signals on the road
     finally:
         sim.backend.close()
 

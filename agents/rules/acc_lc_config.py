@@ -43,6 +43,10 @@ class AccLcConfig:
     # lights and junctions
     yellow_stop_decel: float = 3.5
     stop_margin: float = 1.5
+    signal_sight_decel: float = 3.0
+    """Towards a signal the HD map shows but the camera does not (fog: 30 m of sight), the
+    speed stays low enough to stop at its line at this deceleration [m/s²], so a red seen late
+    is still stopped for; below ``yellow_stop_decel``, so a late yellow is too."""
     # approach speed at a give-way line [m/s]: SUMO may close the link at any moment (no yellow
     # phase warns), so the AV must be able to stop at the line when it does
     junction_speed: float = 3.3

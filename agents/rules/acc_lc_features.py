@@ -57,6 +57,9 @@ def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarr
     f["exists"] = nm[:, :, 0] > 0
     f["mask"] = np.asarray(ob["action_mask"]) > 0
     _light_features(f, lights, c)
+    # where the HD map shows a signal on the current lane (none in an older observation)
+    sig = np.asarray(ob["signals"], np.float64)[:, 1] if "signals" in ob else np.zeros(A)
+    f["signal_dist"] = np.where(sig > 0, sig * c.preview_range, np.inf)
     # an older observation has no give_way key: every line may then be one
     f["give_way"] = np.asarray(ob["give_way"])[:, 1] > 0 if "give_way" in ob else np.ones(A, bool)
     return f
@@ -80,9 +83,12 @@ def _ego_features(
     e = ego[:, -1] * EGO_SCALE
     f = {"v": np.maximum(e[:, 0], 0.0), "h": e[:, 1], "len": e[:, 2], "wid": e[:, 3]}
     f["d"] = e[:, 4]
+    valid = ego[:, :, 2] > 0
+    # the mean over the observed frames: in fog a frame's speed is read with 15 % noise
+    speeds = np.maximum(ego[:, :, 0] * EGO_SCALE[0], 0.0)
+    f["v_mean"] = np.where(valid, speeds, 0.0).sum(1) / np.maximum(valid.sum(1), 1)
     # lateral offset history, unwrapped across lane switches (jumps > 1.5 m)
     dh = ego[:, :, 4] * EGO_SCALE[4]
-    valid = ego[:, :, 2] > 0
     k = max(0, ego.shape[1] - 3)
     diffs = np.diff(dh[:, k:], axis=1)
     ok = valid[:, k + 1 :] & valid[:, k:-1] & (np.abs(diffs) < 1.5)

@@ -12,7 +12,17 @@ from typing import Any
 
 import numpy as np
 
-OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "limits", "give_way", "node_mask", "action_mask")
+OBS_KEYS = (
+    "ego",
+    "lanes",
+    "vehicles",
+    "lights",
+    "limits",
+    "signals",
+    "give_way",
+    "node_mask",
+    "action_mask",
+)
 
 
 def stack_obs(

@@ -49,16 +49,25 @@ def traffic_lights(
             f"(one per Perception.tls_ids)"
         )
     lsafe = np.maximum(lanes, 0)
-    tl, link = g.signal(lanes, np.broadcast_to(next_edge[:, None], lanes.shape))
-    tl2, link2 = g.signal(lanes, g.next_edge[lsafe])  # lane's own way on
-    miss = tl < 0
-    tl, link = np.where(miss, tl2, tl), np.where(miss, link2, link)
+    tl, link = lane_signals(g, lanes, next_edge)
     chars, ok = _link_chars(tls_states, tl, link)
     state = np.where(ok, _CODE[chars], NO_LIGHT)
     ratio = hd.lane_length[lsafe] / np.maximum(hd.lane_length[lsafe[:, CURRENT]], 1e-9)[:, None]
     pos = snap.lane_pos[rows][:, None] * ratio
     dist = np.where(ok, np.maximum(hd.lane_length[lsafe] - pos, 0.0), np.inf)
     return state.astype(np.int8), dist
+
+
+def lane_signals(g: LaneGraph, lanes: np.ndarray, next_edge: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(A, 3) light index (into ``g.tls_ids``) and link index of the signal at the end of each
+    lane column (-1 where none): its link into the route's ``next_edge`` (A,), else the lane's
+    own way on."""
+    lsafe = np.maximum(lanes, 0)
+    tl, link = g.signal(lanes, np.broadcast_to(next_edge[:, None], lanes.shape))
+    tl2, link2 = g.signal(lanes, g.next_edge[lsafe])  # lane's own way on
+    miss = tl < 0
+    return np.where(miss, tl2, tl), np.where(miss, link2, link)
 
 
 #: Signal characters at which a vehicle must yield to its link's foes: a permissive green

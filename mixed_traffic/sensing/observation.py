@@ -30,6 +30,10 @@ limits     (3, k, 2)   f32    latest frame only (k = ``sensors.preview_points``)
                               points along the route within ``sensors.preview_range`` where
                               the speed limit drops below every limit before it, each:
                               distance / preview_range, limit / 40 m/s; zeros = none
+signals    (3,)        f32    latest frame only, from the HD map: distance to the stop line of
+                              the next signal along each lane's route (at its end or the next
+                              lane's) / preview_range, where within ``sensors.preview_range``;
+                              zeros = none (its state is the camera's, in ``lights``)
 give_way   (3,)        int8   latest frame only: 1 where the line in ``lights`` is a give-way
                               line (SUMO's right of way: a minor link, a turn waiting for
                               the oncoming stream, a permissive green), not a signal
@@ -70,7 +74,7 @@ import gymnasium as gym
 import numpy as np
 
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.sensing.camera import NO_LIGHT
+from mixed_traffic.sensing.camera import NO_LIGHT, lane_signals
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import wrap_angle
 from mixed_traffic.sensing.lane_graph import CURRENT, lane_graph, next_route_edge
@@ -133,6 +137,7 @@ def observation_space(config: EnvConfig) -> gym.spaces.Dict:
             "vehicles": box(3, z, 12, far=VEHICLE_DISTANCES),
             "lights": box(3, z, 4, far=(3,)),
             "limits": gym.spaces.Box(0.0, 1.0, (3, config.sensors.preview_points, 2), np.float32),
+            "signals": gym.spaces.Box(0.0, 1.0, (3,), np.float32),
             "give_way": gym.spaces.Box(0, 1, (3,), np.int8),
             "node_mask": gym.spaces.Box(0, 1, (3, 3), np.int8),
             "action_mask": gym.spaces.MultiBinary(3),
@@ -245,6 +250,7 @@ class ObservationBuilder:
         pos, via = self._route_hops(snap, rows, lanes, nxt)
         wp = self._waypoints(snap, rows, lanes, pos, via)  # (A, 3, 4m)
         limits = self._limits(lanes, pos, via)  # (A, 3, k, 2)
+        signals = self._signals(lanes, pos, nxt, via, after)  # (A, 3)
         veh, present = self._vehicles(sensed, lanes, mandatory, end_dist, snap.speed[rows])
         light_on = sensed.light_state != NO_LIGHT
         lights = np.zeros((A, 3, 4))
@@ -264,15 +270,15 @@ class ObservationBuilder:
         h_lights = _push(self._lights, slots, lights, axis=2)
         act = act.astype(np.int8)
         self.last_batch = {"ego": h_ego, "lanes": h_lanes, "vehicles": h_veh, "lights": h_lights,
-                           "limits": limits, "give_way": gw, "node_mask": node,
-                           "action_mask": act}  # fmt: skip
+                           "limits": limits, "signals": signals, "give_way": gw,
+                           "node_mask": node, "action_mask": act}  # fmt: skip
         # list(array) makes the per-agent views in C; a dict literal per agent is the cheapest
         return {
             a: {"ego": e, "lanes": ln, "vehicles": v, "lights": li, "limits": lm,
-                "give_way": g, "node_mask": nm, "action_mask": am}
-            for a, e, ln, v, li, lm, g, nm, am in zip(agent_ids, list(h_ego), list(h_lanes),
-                                                       list(h_veh), list(h_lights), list(limits),
-                                                       list(gw), list(node), list(act))
+                "signals": sg, "give_way": g, "node_mask": nm, "action_mask": am}
+            for a, e, ln, v, li, lm, sg, g, nm, am in zip(
+                agent_ids, list(h_ego), list(h_lanes), list(h_veh), list(h_lights),
+                list(limits), list(signals), list(gw), list(node), list(act))
         }  # fmt: skip
 
     # ------------------------------------------------------------------ features
@@ -306,6 +312,28 @@ class ObservationBuilder:
         out[..., 0] = np.where(seen, dist / s.preview_range, 0.0)
         out[..., 1] = np.where(seen, speed / SPEED_SCALE, 0.0)
         return out
+
+    def _signals(self, lanes: np.ndarray, pos: np.ndarray, next_edge: np.ndarray,
+                 via: np.ndarray, after: np.ndarray) -> np.ndarray:  # fmt: skip
+        """(A, 3) distance from ``pos`` (A, 3) [m] to the next signal's stop line along each lane
+        column's route: at the lane's end into ``next_edge`` (A,), else at the end of the lane
+        its route hop ``via`` (A, 3) leads into, towards ``after`` (A,); / preview_range where
+        within it, 0 elsewhere. (A short edge ending at a signal comes into view one edge early.)"""
+        hd, rng = self.hdmap, self.config.sensors.preview_range
+        tl, _ = lane_signals(self.graph, lanes, np.asarray(next_edge, np.int64))
+        dist = hd.lane_length[np.maximum(lanes, 0)] - pos
+        exit_lane, exit_dist = exit_table(hd)
+        vs = np.maximum(via, 0)
+        beyond = np.where(via < 0, -1, np.where(exit_lane[vs] >= 0, exit_lane[vs], via))
+        tl2, _ = lane_signals(self.graph, beyond, np.asarray(after, np.int64))
+        far = (
+            dist
+            + np.where(exit_lane[vs] >= 0, exit_dist[vs], 0.0)
+            + hd.lane_length[np.maximum(beyond, 0)]
+        )
+        dist = np.where(tl >= 0, dist, np.where((tl2 >= 0) & (beyond >= 0), far, np.inf))
+        on = (lanes >= 0) & (dist <= rng)
+        return np.where(on, np.clip(dist / rng, 1e-4, 1.0), 0.0).astype(np.float32)
 
     def _waypoints(
         self,
