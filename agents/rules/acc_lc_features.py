@@ -4,7 +4,8 @@
 constants of ``mixed_traffic.sensing.observation`` via ``mixed_traffic.env.api``):
 
 - ego: ``v``, ``h`` (heading), ``len``, ``wid``, ``d`` (lateral offset), ``vlat_hist`` (lateral
-  velocity from the offset history, unwrapped across lane switches);
+  velocity from the offset history, unwrapped across lane switches), ``v_mean`` (speed over
+  the observed history frames);
 - waypoints: ``wp_speed``, ``wp_orient`` (A, 3, m);
 - speed-limit preview (A, 3, k): ``pv_dist`` [m] (inf = none) and ``pv_speed`` [m/s] of the
   drops ahead (k = 0 for an observation without ``limits``);
@@ -13,7 +14,8 @@ constants of ``mixed_traffic.sensing.observation`` via ``mixed_traffic.env.api``
 - front vehicles of the last frames since the last lane switch (A, 3, K): ``h_dist`` (extrapolated
   to now), ``h_rel``, ``h_len``, ``h_wid``, ``h_lat``;
 - ``exists`` (A, 3) lanes, ``mask`` (A, 3) allowed decisions, ``light`` (A, 3) majority state
-  (0 red, 1 yellow, 2 green, -1 none) and ``light_dist`` (A, 3).
+  (0 red, 1 yellow, 2 green, -1 none) and ``light_dist`` (A, 3), ``signal_dist`` (A,) [m] to
+  the HD map's next signal on the current lane's route (inf = none or no ``signals`` key).
 """
 
 from __future__ import annotations
@@ -57,7 +59,7 @@ def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarr
     f["exists"] = nm[:, :, 0] > 0
     f["mask"] = np.asarray(ob["action_mask"]) > 0
     _light_features(f, lights, c)
-    # where the HD map shows a signal on the current lane (none in an older observation)
+    # the HD map's next signal on the current lane's route (none in an older observation)
     sig = np.asarray(ob["signals"], np.float64)[:, 1] if "signals" in ob else np.zeros(A)
     f["signal_dist"] = np.where(sig > 0, sig * c.preview_range, np.inf)
     # an older observation has no give_way key: every line may then be one

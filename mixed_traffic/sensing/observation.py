@@ -318,7 +318,7 @@ class ObservationBuilder:
         """(A, 3) distance from ``pos`` (A, 3) [m] to the next signal's stop line along each lane
         column's route: at the lane's end into ``next_edge`` (A,), else at the end of the lane
         its route hop ``via`` (A, 3) leads into, towards ``after`` (A,); / preview_range where
-        within it, 0 elsewhere. (A short edge ending at a signal comes into view one edge early.)"""
+        within it, 0 elsewhere (so a signal behind a short edge is known in time)."""
         hd, rng = self.hdmap, self.config.sensors.preview_range
         tl, _ = lane_signals(self.graph, lanes, np.asarray(next_edge, np.int64))
         dist = hd.lane_length[np.maximum(lanes, 0)] - pos
