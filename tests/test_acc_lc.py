@@ -322,8 +322,10 @@ def test_speed_cap_holds_the_limit_curves_and_a_red_light() -> None:
     a, m = 4, 10
     pv_dist, pv_speed = np.full((a, 3, 2), np.inf), np.full((a, 3, 2), np.inf)
     pv_dist[3, 1, 0], pv_speed[3, 1, 0] = 60.0, 5.0
+    v = np.array([10.0, 13.9, 10.0, 13.0])
     f = {
-        "v": np.array([10.0, 13.9, 10.0, 13.0]),
+        "v": v,
+        "v_mean": v,
         "d": np.zeros(a),
         "wp_speed": np.full((a, 3, m), 13.9),
         "wp_orient": np.zeros((a, 3, m)),
@@ -333,6 +335,7 @@ def test_speed_cap_holds_the_limit_curves_and_a_red_light() -> None:
         "light_dist": np.array([[np.inf] * 3, [np.inf] * 3, [np.inf, 20.0, np.inf],
                                 [np.inf] * 3]),
         "give_way": np.zeros(a, bool),
+        "signal_dist": np.full(a, np.inf),
     }  # fmt: skip
     cap = speed_cap(f, AccLcConfig())
     assert cap[0] == pytest.approx(13.9 - 10.0)  # reaches the limit within 1 s

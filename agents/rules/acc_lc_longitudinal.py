@@ -282,10 +282,9 @@ def _unseen_signal_bound(f: Features, c: AccLcConfig) -> np.ndarray:
     lane whose state the camera does not show: brake at what stopping at its line needs once
     that exceeds ``signal_sight_decel``. Without it, ACC-LC reached a red first seen at the
     fog camera's 30 m at 15.7 m/s and could not stop (urban-grid3x3, fog)."""
-    sig = f.get("signal_dist", np.full(len(f["v"]), np.inf))
+    sig = f["signal_dist"]
     unseen = (f["light"][:, _C] < 0) & np.isfinite(sig)
-    v = f.get("v_mean", f["v"])
-    need = v**2 / (2 * np.maximum(sig - c.stop_margin, 0.05))
+    need = f["v_mean"] ** 2 / (2 * np.maximum(sig - c.stop_margin, 0.05))
     return np.where(unseen & (need >= c.signal_sight_decel), -need, np.inf)
 
 
