@@ -130,6 +130,8 @@ class Driver:
         steer = cfg.steer_delta if cfg.steer_control else 0.0  # HEAD: ACC-LC steers
         self.delta = np.array([steer, cfg.accel_delta], np.float32)
         self.rss = RssConfig()
+        self.cap_factor = 1.0
+        """The speed governor's cap as a share of the limit (that of the ACC-LC compared with)."""
         self.plan: AccLcPlan | None = None
         """ACC-LC's plan of the last :meth:`act` (None where ACC-LC was not evaluated)."""
         # per agent: [steps left, held decision, held u (3, 2), hold gate open]
@@ -187,7 +189,7 @@ class Driver:
         c = self.teacher.c
         cap = np.ones((n, 3))
         if self.cfg.residual and self.cfg.speed_governor:
-            cap = np.minimum(cap, to_ab(plan.speed_cap(), c)[:, None])
+            cap = np.minimum(cap, to_ab(plan.speed_cap(self.cap_factor), c)[:, None])
         if self.cfg.residual and self.cfg.rss_governor:
             cap = np.minimum(cap, to_ab(plan.rss_caps(self.rss), c))
         return plan.decision.astype(np.int64), plan.params.astype(np.float32), cap

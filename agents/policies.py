@@ -1,5 +1,5 @@
-"""Policies that drive the env's agents from observations, by name: auto, auto-raw, acc-lc,
-random.
+"""Policies that drive the env's agents from observations, by name or spec: auto, auto-raw,
+acc-lc (``acc-lc:T=1.0,speed_factor=1.0``: :mod:`agents.rules.spec`), acc-lc-tuned, random, ...
 
 Every policy maps a *batch* of observations (each key stacked over the A agents of a step) to
 ``(decision (A,), params (A, 3, 2))`` in one call, so inference is one batched pass per step.
@@ -10,13 +10,13 @@ policy, so ACC-LC does not import this module) and are re-exported here.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 from pathlib import Path
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
 from agents.rules.obs_batch import OBS_KEYS, stack_obs, to_actions
+from agents.rules.spec import RULE_CONFIGS, PolicySpec, build_config, parse_policy
 from mixed_traffic.schema import STUDY_POLICIES
 
 SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "auto.pt"
@@ -107,26 +107,50 @@ class AutoPolicy:
 
 
 def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = None, z: int | None = None,
-                m: int | None = None, dt: float = 0.1) -> BatchPolicy:  # fmt: skip
-    """A policy by name; ``z``/``m`` are the env's history and waypoint counts (checked for
-    auto), ``dt`` the time between its decisions [s]."""
-    if name == "random":
+                m: int | None = None, dt: float = 0.1, family: str | None = None) -> BatchPolicy:  # fmt: skip
+    """A policy by name or spec (``acc-lc:T=1.0,speed_factor=1.0``, :mod:`agents.rules.spec`);
+    ``z``/``m`` are the env's history and waypoint counts (checked for auto), ``dt`` the time
+    between its decisions [s], ``family`` the scenario family (``acc-lc-tuned`` drives with its
+    tuned parameters, and a learned policy's governor caps at that ACC-LC's speed). The policy's
+    ``params`` are the parameters it resolved to (the records carry them)."""
+    spec = parse_policy(name)
+    base = spec.base
+    if base == "random":
         return RandomPolicy(seed)
-    if name in ("acc-lc", "acc-lc-conservative"):
-        from agents.rules.acc_lc import AccLcPolicy
-        from agents.rules.acc_lc_config import AccLcConfig, conservative
+    if base in RULE_CONFIGS:
+        return _rule(spec, dt, family)
+    if base in ("auto", "auto-raw") or base in STUDY_POLICIES:
+        from agents.rules.tuned import cap_factor
 
-        base = conservative() if name == "acc-lc-conservative" else AccLcConfig()
-        return AccLcPolicy(replace(base, dt=dt))
-    if name in ("auto", "auto-raw"):
-        return AutoPolicy(checkpoint, z=z, m=m, safety=name == "auto", dt=dt)
-    if name in STUDY_POLICIES:  # trained by mixed_traffic.study, behind the safety module
-        return AutoPolicy(checkpoint_path(name, checkpoint), z=z, m=m, dt=dt, name=name)
-    if name in ("follower-stopper", "pi-saturation"):
-        from agents.rules.stern import FollowerStopper, PISaturation, SternConfig
+        path = checkpoint_path(base, checkpoint)
+        policy = AutoPolicy(path, z=z, m=m, safety=base != "auto-raw", dt=dt, name=base)
+        policy.driver.cap_factor = cap_factor(family)
+        policy.params = {"speed_cap_factor": policy.driver.cap_factor}
+        return policy
+    raise ValueError(f"policy {base!r} drives no agent here (SUMO drives the AVs under it)")
 
-        cls = FollowerStopper if name == "follower-stopper" else PISaturation
-        return cls(SternConfig(dt=dt))
-    raise ValueError(f"unknown policy {name!r}; choose from auto, auto-raw, acc-lc, "
-                     "acc-lc-conservative, random, follower-stopper, pi-saturation, "
-                     f"{', '.join(STUDY_POLICIES)}")  # fmt: skip
+
+def _rule(spec: PolicySpec, dt: float, family: str | None) -> BatchPolicy:
+    """A rule-based policy (ACC-LC or Stern et al.'s) with the spec's parameters."""
+    from agents.rules.acc_lc import AccLcPolicy
+    from agents.rules.acc_lc_config import AccLcConfig, conservative
+    from agents.rules.stern import FollowerStopper, PISaturation, SternConfig
+
+    params, extra, checkpoint = spec.overrides, {}, None
+    if spec.base == "acc-lc-tuned":
+        from agents.rules.tuned import TUNED_FILE, tuned_params
+
+        tuned = tuned_params(family)
+        extra = {"tuned_for": tuned.pop("tuned_for")}
+        checkpoint = TUNED_FILE
+        params = {**tuned, **params}  # the spec's own fields win
+    if spec.base.startswith("acc-lc"):
+        start = conservative() if spec.base == "acc-lc-conservative" else AccLcConfig()
+        policy: Any = AccLcPolicy(build_config(AccLcConfig, {**params, "dt": dt}, spec.base, start))
+    else:
+        cls = FollowerStopper if spec.base == "follower-stopper" else PISaturation
+        policy = cls(build_config(SternConfig, {**params, "dt": dt}, spec.base))
+    policy.name = str(spec)
+    policy.params = {**params, **extra}
+    policy.checkpoint = checkpoint  # a record names the file its parameters came from
+    return policy

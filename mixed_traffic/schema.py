@@ -90,7 +90,8 @@ agents/checkpoints/study/; rbp-dqn is AUTO's training pipeline at the study's bu
 LEARNED = ("auto", "auto-raw", *STUDY_POLICIES)
 """Policies that load a checkpoint."""
 POLICIES = (
-    "auto", "auto-raw", "acc-lc", "acc-lc-conservative", "idm", "random", "follower-stopper",
+    "auto", "auto-raw", "acc-lc", "acc-lc-tuned", "acc-lc-conservative", "idm", "random",
+    "follower-stopper",
     "pi-saturation", *STUDY_POLICIES,
 )  # fmt: skip
 

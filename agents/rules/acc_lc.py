@@ -113,12 +113,14 @@ class AccLcPlan:
     """The configuration the plan was made with."""
     _memo: dict = field(default_factory=dict, repr=False)
 
-    def speed_cap(self) -> np.ndarray:
-        """(A,) ACC-LC's speed cap [m/s²] (:func:`~agents.rules.acc_lc_longitudinal.speed_cap`),
-        computed once per plan: the driver's governor and the safety module both read it."""
-        if "speed_cap" not in self._memo:
-            self._memo["speed_cap"] = speed_cap(self.features, self.config)
-        return self._memo["speed_cap"]
+    def speed_cap(self, factor: float = 1.0) -> np.ndarray:
+        """(A,) ACC-LC's speed cap [m/s²] towards ``factor`` x the limit
+        (:func:`~agents.rules.acc_lc_longitudinal.speed_cap`), computed once per plan and
+        factor: the driver's governor and the safety module both read it."""
+        key = ("speed_cap", factor)
+        if key not in self._memo:
+            self._memo[key] = speed_cap(self.features, self.config, factor=factor)
+        return self._memo[key]
 
     def rss_caps(self, rss: RssConfig) -> np.ndarray:
         """(A, 3) RSS-safe accelerations [m/s²] per lane column (:func:`agents.rules.rss.rss_caps`),

@@ -3,7 +3,8 @@ parts; see :mod:`agents.rules.acc_lc` for what the driver does)."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, fields
 
 from mixed_traffic.config import HumanConfig, SensorConfig, VehicleConfig
 from mixed_traffic.env.api import DEAD_END_DISTANCE
@@ -14,9 +15,25 @@ LEFT, FOLLOW, RIGHT = 0, 1, 2
 LANE_L, LANE_C, LANE_R = 0, 1, 2
 
 
-@dataclass
+def check_rule_fields(obj: object, positive: tuple[str, ...]) -> None:
+    """``ValueError`` naming the first field of a rule's config that is not a finite number
+    >= 0 (> 0 for the ``positive`` ones): every length, time, speed and rate of the rules."""
+    for f in fields(obj):
+        value = getattr(obj, f.name)
+        for v in value if isinstance(value, tuple) else (value,):
+            if isinstance(v, bool) or not isinstance(v, int | float):
+                continue
+            low = "> 0" if f.name in positive else ">= 0"
+            if not math.isfinite(v) or v < 0 or (f.name in positive and v == 0):
+                raise ValueError(
+                    f"{type(obj).__name__}.{f.name}={value!r} must be finite and {low}"
+                )
+
+
+@dataclass(frozen=True)
 class AccLcConfig:
-    """Parameters of the rule-based driver (SI units)."""
+    """Parameters of the rule-based driver (SI units). Every field is a finite number >= 0;
+    a time, a rate or a factor that divides is > 0."""
 
     # the env's sensor ranges and vehicle limits (one source: mixed_traffic.config)
     lidar_range: float = SensorConfig.lidar_range
@@ -98,6 +115,19 @@ class AccLcConfig:
     # past its lane centre into the next lane (a fixed small cap instead left egos straddling
     # two lanes when the queue stopped)
     follow_curvature: float = 0.1
+
+    def __post_init__(self) -> None:
+        check_rule_fields(self, _POSITIVE)
+        if self.speed_factor > 1.5:
+            raise ValueError(f"AccLcConfig.speed_factor={self.speed_factor!r} must be <= 1.5 "
+                             "(the desired speed as a share of the limit)")  # fmt: skip
+
+
+_POSITIVE = ("dt", "a", "b", "T", "speed_factor", "emergency_decel", "emergency_span",
+             "yellow_stop_decel", "signal_sight_decel", "junction_speed", "curve_accel",
+             "lat_accel", "lat_speed", "max_accel", "max_decel", "hv_a", "hv_b", "hv_T",
+             "rear_decel", "force_rear_decel", "force_front_decel", "hidden_decel",
+             "yield_decel", "wheelbase", "max_steer_deg")  # fmt: skip
 
 
 def conservative() -> AccLcConfig:

@@ -117,15 +117,16 @@ def lane_accels(
     ]
 
 
-def speed_cap(f: Features, c: AccLcConfig, horizon: float = 1.0) -> np.ndarray:
-    """(A,) the largest acceleration [m/s²] that keeps the ego within the speed limit of its
-    lane, the curve and limit targets ahead and the traffic light: towards the speed limit
-    where it is (or the curve's speed there) within ``horizon`` [s], ACC-LC's kinematic
+def speed_cap(f: Features, c: AccLcConfig, horizon: float = 1.0, factor: float = 1.0) -> np.ndarray:
+    """(A,) the largest acceleration [m/s²] that keeps the ego within ``factor`` x the speed
+    limit of its lane, the curve and limit targets ahead and the traffic light: towards that
+    speed where it is (or the curve's speed there) within ``horizon`` [s], ACC-LC's kinematic
     braking for lower targets ahead, its stop at a red or yellow light and its approach to a
-    give-way line."""
+    give-way line. ``factor`` 1 is the limit itself; a learned policy compared with an ACC-LC
+    that aims at 0.95 of the limit is capped at ``factor`` 0.95 (agents.rules.tuned)."""
     ln = np.full(len(f["v"]), _C)
     lim_now, v0, a_lim = _speed_limits(f, c, ln, f["d"])
-    cap = np.minimum((v0 / c.speed_factor - f["v"]) / horizon, a_lim)
+    cap = np.minimum((factor * v0 / c.speed_factor - f["v"]) / horizon, a_lim)
     return _light_accel(f, c, cap, v0, lim_now)
 
 

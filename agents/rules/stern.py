@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from agents.rules.acc_lc import AccLcPolicy
-from agents.rules.acc_lc_config import FOLLOW
+from agents.rules.acc_lc_config import FOLLOW, check_rule_fields
 from agents.rules.acc_lc_config import LANE_C as CURRENT
 from mixed_traffic.config import VehicleConfig
 from mixed_traffic.env.api import to_accel_brake
@@ -56,6 +56,9 @@ class SternConfig:
     """PI: smallest Δx_s [m]."""
     dt: float = 0.1
     """Time between decisions [s]."""
+
+    def __post_init__(self) -> None:
+        check_rule_fields(self, ("window", "gamma", "dt", "decel"))
 
 
 class _SpeedMemory:

@@ -31,6 +31,17 @@ def _whole_number(text: str) -> int:
     return int(value)
 
 
+def policy_arg(text: str) -> str:
+    """argparse type of a policy option: the canonical spec (``acc-lc:T=1.0``), or the
+    one-line error naming what is wrong (:func:`mixed_traffic.experiments.runner.check_policy`)."""
+    from mixed_traffic.experiments.runner import check_policy
+
+    try:
+        return check_policy(text)
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
+
+
 _TYPES: dict[str, Any] = {"float": float, "int": _whole_number, "str": str, "Path": Path}
 
 

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from agents.policies import checkpoint_path
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.experiments.cli import add_config_args, config_from_args
+from mixed_traffic.experiments.cli import add_config_args, config_from_args, policy_arg
 from mixed_traffic.experiments.runner import (
     DEFAULT_WARMUP,
     cell_of,
@@ -32,7 +32,7 @@ from mixed_traffic.experiments.runner import (
     validate,
 )
 from mixed_traffic.provenance import check_writable, record_meta, write_record_atomic
-from mixed_traffic.schema import LEARNED, METRICS, POLICIES
+from mixed_traffic.schema import LEARNED, METRICS
 from mixed_traffic.world.backend import SumoError
 
 DEFAULT_OUT = Path("results/evaluate/records.jsonl")
@@ -85,7 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Run episodes of a policy and report flow and safety metrics (DESIGN §9).",
     )
     parser.add_argument(
-        "--policy", choices=POLICIES, default="idm",
+        "--policy", type=policy_arg, default="idm",
         help="policy driving the AVs; idm = all-human reference (default: idm)",
     )  # fmt: skip
     add_config_args(parser, EnvConfig, only=CONFIG_OPTIONS, group_title="environment")

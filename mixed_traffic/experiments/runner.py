@@ -19,11 +19,12 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from agents.rules.spec import parse_policy
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.checks import check_warmup
 from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.provenance import file_digest, json_safe, record_meta
-from mixed_traffic.schema import CELL_KEYS, LEARNED, METRICS, POLICIES
+from mixed_traffic.schema import CELL_KEYS, METRICS
 from mixed_traffic.world.registry import load_scenario
 
 DEFAULT_WARMUP = 30.0
@@ -42,10 +43,15 @@ def validate(config: EnvConfig, warmup: float, policy: str | None = None) -> Env
     return load_scenario(config.scenario).configure(config)
 
 
-def check_policy(policy: str) -> None:
-    """Raise ``ValueError`` unless ``policy`` is one of ``schema.POLICIES``."""
-    if policy not in POLICIES:
-        raise ValueError(f"policy {policy!r} is not available; choose from {list(POLICIES)}")
+def check_policy(policy: str) -> str:
+    """``policy``'s canonical spec (:mod:`agents.rules.spec`); ``ValueError`` unless it names
+    one of ``schema.POLICIES`` with valid parameters (and ``acc-lc-tuned`` its readable file)."""
+    spec = parse_policy(policy)
+    if spec.base == "acc-lc-tuned":
+        from agents.rules.tuned import tuned_params
+
+        tuned_params(None)
+    return str(spec)
 
 
 def check_checkpoint(path: str | Path) -> None:
@@ -71,7 +77,8 @@ def run_episode(
 
     Args:
         config: the environment; ``config.seed`` seeds demand, SUMO and sensor noise.
-        policy: a name from ``schema.POLICIES``.
+        policy: a name from ``schema.POLICIES`` or a rule's spec (``acc-lc:T=1.0``); the
+            record's cell carries its canonical text, ``policy_params`` what it resolved to.
         warmup: simulated time before flow metrics are averaged [s].
         checkpoint: AUTO checkpoint for ``auto``/``auto-raw`` (default: the shipped one).
         gif: record the episode as an animated GIF here.
@@ -83,15 +90,16 @@ def run_episode(
         ValueError: bad policy, scenario, density, warm-up or checkpoint (before SUMO starts).
         SumoError: SUMO failed to start.
     """
-    check_policy(policy)
+    policy = check_policy(policy)
+    base = parse_policy(policy).base
     t0 = time.perf_counter()
     # the env validates the config against its scenario before anything else is done
-    env = MixedTrafficEnv(config=config, warmup=warmup, sumo_drives_avs=policy in SUMO_DRIVEN,
+    env = MixedTrafficEnv(config=config, warmup=warmup, sumo_drives_avs=base in SUMO_DRIVEN,
                           render_mode="rgb_array" if gif else None, trace=trace is not None)  # fmt: skip
     config, meta = env.config, record_meta(env.config)  # the scenario's defaults filled in
     frames = _Gif(gif)
     try:
-        agent = _make_policy(policy, config, checkpoint)
+        agent = _make_policy(policy, config, checkpoint, env.scenario.family)
         infer_s, decisions = _drive(env, agent, frames, progress)
         metrics: dict[str, Any] = dict.fromkeys(METRICS)
         metrics.update(env.episode_metrics())
@@ -117,9 +125,12 @@ def run_episode(
         "metrics": json_safe(metrics),
         "diagnostics": json_safe(diagnostics),
     }
-    if policy in LEARNED:
-        record["checkpoint"] = str(agent.checkpoint)
-        record["checkpoint_sha"] = file_digest(agent.checkpoint)
+    if getattr(agent, "params", None):
+        record["policy_params"] = json_safe(agent.params)
+    source = getattr(agent, "checkpoint", None)  # weights, or the tuned parameters' file
+    if source is not None:
+        record["checkpoint"] = str(source)
+        record["checkpoint_sha"] = file_digest(source)
     return record
 
 
@@ -129,14 +140,14 @@ def cell_of(config: EnvConfig, policy: str) -> dict[str, Any]:
     return {"policy": policy, **cell, "detection_range": config.sensors.range_factor}
 
 
-def _make_policy(name: str, config: EnvConfig, checkpoint: str | Path | None) -> Any:
+def _make_policy(name: str, config: EnvConfig, checkpoint: str | Path | None, family: str) -> Any:
     """The batched policy, or None when SUMO drives the AVs."""
-    if name in SUMO_DRIVEN:
+    if parse_policy(name).base in SUMO_DRIVEN:
         return None
     from agents.policies import make_policy  # torch only for learned policies
 
     return make_policy(name, seed=config.seed, checkpoint=checkpoint, z=config.sensors.history,
-                       m=config.sensors.waypoints, dt=config.step_length)  # fmt: skip
+                       m=config.sensors.waypoints, dt=config.step_length, family=family)  # fmt: skip
 
 
 def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tuple[float, int]:

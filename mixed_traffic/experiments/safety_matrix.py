@@ -13,8 +13,9 @@ from collections.abc import Sequence
 from typing import Any
 
 from mixed_traffic.config import WEATHERS, EnvConfig
+from mixed_traffic.experiments.cli import policy_arg
 from mixed_traffic.experiments.runner import run_episode
-from mixed_traffic.schema import POLICIES, TERMINAL_REASONS
+from mixed_traffic.schema import TERMINAL_REASONS
 
 SCENARIOS = (
     "straight", "straight-eval", "highway", "highway-eval", "bottleneck",
@@ -88,7 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--seed", type=int, default=0, help="env seed of every episode (default: 0)")
     p.add_argument("--weather", choices=WEATHERS, default="normal",
                    help="weather preset (default: normal)")  # fmt: skip
-    p.add_argument("--policy", choices=POLICIES, default="acc-lc",
+    p.add_argument("--policy", type=policy_arg, default="acc-lc",
                    help="policy driving the AVs (default: acc-lc)")  # fmt: skip
     return p
 

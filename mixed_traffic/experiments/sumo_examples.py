@@ -21,10 +21,10 @@ from typing import Any
 from tqdm import tqdm
 
 from mixed_traffic.config import EnvConfig
+from mixed_traffic.experiments.cli import policy_arg
 from mixed_traffic.experiments.runner import run_episode
 from mixed_traffic.experiments.safety_matrix import terminal_events
 from mixed_traffic.provenance import check_writable, rewrite_records
-from mixed_traffic.schema import POLICIES
 from mixed_traffic.world.demand import av_count
 from mixed_traffic.world.registry import load_scenario
 
@@ -99,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--kind", choices=("net", "sumocfg"), default="net",
                    help="networks or configurations (default: net)")  # fmt: skip
-    p.add_argument("--policy", choices=POLICIES, default="acc-lc",
+    p.add_argument("--policy", type=policy_arg, default="acc-lc",
                    help="policy driving the AVs (default: acc-lc)")  # fmt: skip
     p.add_argument("--penetration", type=float, default=1.0, help="AV share (default: 1.0)")
     p.add_argument("--seconds", type=float, default=90.0,

@@ -68,7 +68,8 @@ class SweepConfig:
     reference: bool = True
     """Add the all-human 0 % reference cells to a penetration sweep."""
     policies: tuple[str, ...] = ("auto", "acc-lc")
-    """Policies to compare: auto (AUTO behind its safety module), auto-raw, acc-lc, idm, random."""
+    """Policies to compare: auto (AUTO behind its safety module), auto-raw, acc-lc, acc-lc-tuned,
+    a rule's spec such as acc-lc:T=1.0,speed_factor=1.0, idm, random, ..."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Root seeds; each cell runs once per seed."""
     episode_length: float = 150.0
@@ -104,14 +105,18 @@ class SweepConfig:
 
         if self.axis not in AXES:
             bad("axis", f"choose from {AXES}")
-        unknown = [p for p in self.policies if p not in POLICIES]
-        if unknown or not self.policies:
-            bad("policies", f"unknown policies {unknown}; choose from {list(POLICIES)}")
+        if not self.policies:
+            bad("policies", f"give at least one; choose from {list(POLICIES)}")
+        from mixed_traffic.experiments.runner import check_checkpoint, check_policy
+
+        try:  # canonical specs: acc-lc:T=1 and acc-lc:T=1.0 are one cell
+            specs = tuple(dict.fromkeys(check_policy(p) for p in self.policies))
+        except ValueError as e:
+            bad("policies", str(e))
+        object.__setattr__(self, "policies", specs)
         if self.checkpoint is not None and not {"auto", "auto-raw"} & set(self.policies):
             bad("checkpoint", "no auto or auto-raw policy in --policies would use it")
         if self.checkpoint is not None:
-            from mixed_traffic.experiments.runner import check_checkpoint
-
             try:
                 check_checkpoint(self.checkpoint)
             except ValueError as e:
@@ -171,8 +176,12 @@ class SweepConfig:
 
     def checkpoint_key(self, policy: str) -> tuple[str, str]:
         """The weights ``policy``'s cells run: (absolute path, content digest), ('', '') for a
-        rule; part of their key, so other weights (another file, or the same file retrained)
-        are another cell."""
+        rule (``acc-lc-tuned``: its parameters' file); part of their key, so other weights
+        (another file, or the same file retrained) are another cell."""
+        if policy == "acc-lc-tuned":
+            from agents.rules.tuned import TUNED_FILE
+
+            return str(TUNED_FILE), file_digest(TUNED_FILE)
         if policy not in LEARNED:
             return "", ""
         from agents.policies import checkpoint_path
