@@ -13,10 +13,11 @@ POLICY_COLORS: dict[str, str] = {
     "auto": "#1f77b4",
     "auto-raw": "#9467bd",
     "acc-lc": "#ff7f0e",
+    "acc-lc-tuned": "#d62728",
     "idm": "#7f7f7f",
     "random": "#2ca02c",
 }
-_EXTRA_COLORS = ("#d62728", "#8c564b", "#e377c2", "#bcbd22", "#17becf")
+_EXTRA_COLORS = ("#8c564b", "#e377c2", "#bcbd22", "#17becf")
 REFERENCE_COLOR = "#333333"
 """Colour of the 0 % all-human reference."""
 

@@ -339,6 +339,8 @@ def test_speed_cap_holds_the_limit_curves_and_a_red_light() -> None:
     }  # fmt: skip
     cap = speed_cap(f, AccLcConfig())
     assert cap[0] == pytest.approx(13.9 - 10.0)  # reaches the limit within 1 s
+    # a learned policy compared with an ACC-LC that aims at 0.95 of the limit is capped there
+    assert speed_cap(f, AccLcConfig(), factor=0.95)[0] == pytest.approx(0.95 * 13.9 - 10.0)
     assert cap[1] == pytest.approx(0.0, abs=1e-9)
     assert cap[2] < -1.0  # stop before the red light
     assert cap[3] == pytest.approx(1.3 * ((0.95 * 5.0) ** 2 - 13.0**2) / (2 * 60.0))

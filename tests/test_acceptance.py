@@ -9,12 +9,14 @@ from mixed_traffic.experiments.acceptance import eval_rows, flow_rows
 
 
 def _half(gain: float, sm: float = 2.0, collisions: float = 0.0) -> pd.DataFrame:
-    """Four paired seeds; AUTO's AvgDT-A is ``gain`` % below ACC-LC's, with seed noise."""
+    """Four paired seeds; AUTO's AvgDT-A is ``gain`` % below the tuned ACC-LC's, with seed
+    noise; the default ACC-LC is 10 % slower than the tuned one."""
     rows = []
     for seed, acc in enumerate([80.0, 76.0, 78.0, 82.0]):
         noise = 0.2 * (seed % 2 - 0.5)
-        rows.append({"policy": "acc-lc", "seed": seed, "avg_dt_a": acc, "avg_at_c": 0.1,
-                     "sm_share": None, "terminal_collision": 0.0})  # fmt: skip
+        for policy, slower in (("acc-lc-tuned", 1.0), ("acc-lc", 1.1)):
+            rows.append({"policy": policy, "seed": seed, "avg_dt_a": acc * slower, "avg_at_c": 0.1,
+                         "sm_share": None, "terminal_collision": 0.0})  # fmt: skip
         rows.append({"policy": "auto", "seed": seed, "avg_dt_a": acc * (1 - (gain + noise) / 100),
                      "avg_at_c": 0.1, "sm_share": sm, "terminal_collision": collisions})  # fmt: skip
     return pd.DataFrame(rows)
@@ -25,15 +27,21 @@ RAW = pd.DataFrame(
 )
 
 
+TUNED = "acc-lc-tuned"
+
+
 def _passed(rows: list[dict]) -> dict[str, bool]:
     return {r["check"]: r["pass"] for r in rows}
 
 
 def test_a_clear_gain_passes_and_a_small_one_does_not() -> None:
-    assert _passed(eval_rows("x", _half(4.0), RAW)) == {
+    assert _passed(eval_rows("x", _half(4.0), RAW, TUNED)) == {
         "dt_gain": True, "at_c": True, "terminal": True, "sm_share": True, "raw_terminal": True,
     }  # fmt: skip
-    assert not _passed(eval_rows("x", _half(1.0), RAW))["dt_gain"]  # significant but < 3 %
+    assert not _passed(eval_rows("x", _half(1.0), RAW, TUNED))["dt_gain"]  # significant but < 3 %
+    # over the default ACC-LC the same AUTO gains about 13 %: shown, not what is checked
+    row = eval_rows("x", _half(1.0), RAW, TUNED)[0]
+    assert "over acc-lc-tuned" in row["value"] and "over acc-lc +10." in row["value"]
 
 
 @pytest.mark.parametrize(
@@ -43,7 +51,7 @@ def test_a_clear_gain_passes_and_a_small_one_does_not() -> None:
 )  # fmt: skip
 def test_safety_limits(kw: dict, raw_events: float, failing: str) -> None:
     raw = RAW.assign(terminal_off_road=raw_events)  # 0.1 % passes, 0.3 % does not
-    passed = _passed(eval_rows("x", _half(4.0, **kw), raw))
+    passed = _passed(eval_rows("x", _half(4.0, **kw), raw, TUNED))
     assert [k for k, ok in passed.items() if not ok] == [failing]
 
 

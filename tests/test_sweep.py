@@ -192,9 +192,9 @@ def test_default_penetration_sweep_cells() -> None:
     assert density.axis_values() == (60.0, 90.0) and density.report_pdf is None
     assert density.results == Path("results/density")
     grid = cells(sweep)
-    # 5 penetrations x 2 policies + the all-IDM 0 % reference, for 3 seeds
-    assert len(grid) == 33
-    assert {c.policy for c in grid} == {"auto", "acc-lc", "idm"}
+    # 5 penetrations x 3 policies + the all-IDM 0 % reference, for 3 seeds
+    assert len(grid) == 48
+    assert {c.policy for c in grid} == {"auto", "acc-lc-tuned", "acc-lc", "idm"}
     assert {c.penetration for c in grid if c.policy == "idm"} == {0.0}
 
 

@@ -1,11 +1,12 @@
-"""Choose among AUTO checkpoints on the train split, relative to ACC-LC.
+"""Choose among AUTO checkpoints on the train split, relative to the tuned ACC-LC.
 
     python -m mixed_traffic.compare runs/ft6 agents/checkpoints/auto.pt
 
 A run folder stands for its ``snapshots/*.pt`` and ``auto.pt``. Every checkpoint drives the
-``auto`` policy (network behind the safety module) in the same cells as ACC-LC: train-split
-scenarios only, so the held-out eval variants stay unseen until the final table. Per cell the
-score is AUTO's AvgDT-A excess over ACC-LC's [%] (mean over seeds); a checkpoint's rank is its
+``auto`` policy (network behind the safety module) in the same cells as the ``baseline`` rule
+(``acc-lc-tuned`` unless given; "ACC-LC" below): train-split scenarios only, so the held-out
+eval variants stay unseen until the final table. Per cell the score is AUTO's AvgDT-A excess
+over ACC-LC's [%] (mean over seeds); a checkpoint's rank is its
 largest excess over the cells, so no single scenario (urban's long trips) dominates the choice;
 checkpoints whose largest excess is within ``tie`` points of the best one's (seed noise) are
 ordered by their mean excess instead. A checkpoint with a terminal event (collision, leaving
@@ -30,8 +31,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from agents.rules.spec import parse_policy
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
-from mixed_traffic.experiments.runner import check_checkpoint
+from mixed_traffic.experiments.runner import check_checkpoint, check_policy
 from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
 from mixed_traffic.provenance import FolderBusyError, check_folder, current_code_key, read_records
 from mixed_traffic.world.registry import train_split_scenario
@@ -63,8 +65,11 @@ class CompareConfig:
     are ordered by their mean excess [percentage points]."""
     out: Path = Path("results/compare")
     """Records folder; a re-run skips episodes already recorded with the same code."""
+    baseline: str = "acc-lc-tuned"
+    """The rule the checkpoints are compared with: a policy name or spec (acc-lc:T=1.0,...)."""
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "baseline", check_policy(self.baseline))
         if not (self.tie >= 0):
             raise ValueError(f"--tie: {self.tie} must be >= 0 percentage points")
         if not self.scenarios:
@@ -74,7 +79,7 @@ class CompareConfig:
                 train_split_scenario(name)
             except ValueError as e:
                 raise ValueError(f"--scenarios: {e}") from None
-        self.sweep("acc-lc", None, self.scenarios[0], Path("."))  # validates the rest
+        self.sweep(self.baseline, None, self.scenarios[0], Path("."))  # validates the rest
 
     @property
     def folder(self) -> Path:
@@ -171,7 +176,11 @@ def rank(scores: list[dict], tie: float) -> list[dict]:
 
 def run(cfg: CompareConfig, checkpoints: list[Path], progress: bool = True) -> list[dict]:
     """Run the missing episodes; one score dict per checkpoint, best first."""
-    jobs = [("acc-lc", None, "acc-lc")] + [("auto", c, content_key(c)) for c in checkpoints]
+    base = cfg.baseline
+    key = (
+        base if base == parse_policy(base).base else hashlib.sha256(base.encode()).hexdigest()[:12]
+    )
+    jobs = [(base, None, key)] + [("auto", c, content_key(c)) for c in checkpoints]
     bar = tqdm(total=len(jobs) * len(cfg.scenarios), desc="compare", unit="scenario",
                disable=not progress)  # fmt: skip
     records: dict[str, list[dict]] = {}
@@ -183,7 +192,7 @@ def run(cfg: CompareConfig, checkpoints: list[Path], progress: bool = True) -> l
             records.setdefault(key, []).extend(r for r in read_records(path) if cfg.wanted(r))
             bar.update(1)
     bar.close()
-    acc = cell_means(records["acc-lc"])
+    acc = cell_means(records[key])
     scores = [{"checkpoint": str(c), "key": k, **score(cell_means(records[k]), acc)}
               for _, c, k in jobs[1:]]  # fmt: skip
     return rank(scores, cfg.tie)
@@ -204,7 +213,7 @@ def table(scores: list[dict]) -> str:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.compare",
-        description="Rank AUTO checkpoints by their largest AvgDT-A excess over ACC-LC on "
+        description="Rank AUTO checkpoints by their largest AvgDT-A excess over the tuned ACC-LC on "
         "train-split cells (safe ones first, near-ties by the mean excess); the best is "
         "printed last.",
     )

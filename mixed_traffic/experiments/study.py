@@ -37,7 +37,7 @@ from mixed_traffic.provenance import FolderBusyError, check_writable
 KINDS = ("baselines", "rl-models", "ablations", "robustness", "detection-range")
 SWEEP_STUDIES = {
     "robustness": ("weather", ("rbp-dqn", "auto-nohis", "auto")),
-    "detection-range": ("detection_range", ("auto", "rbp-dqn", "acc-lc")),
+    "detection-range": ("detection_range", ("auto", "rbp-dqn", "acc-lc-tuned", "acc-lc")),
 }
 """Studies that are sweeps: (axis, policies)."""
 

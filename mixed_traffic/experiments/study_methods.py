@@ -41,7 +41,7 @@ METHOD_FLAGS: dict[str, tuple[str, ...]] = {
 assert set(METHOD_FLAGS) == set(STUDY_POLICIES)
 
 STUDIES: dict[str, tuple[str, ...]] = {
-    "baselines": ("acc-lc", "auto", "rbp-dqn", *BASELINES),
+    "baselines": ("acc-lc-tuned", "acc-lc", "auto", "rbp-dqn", *BASELINES),
     "rl-models": ("rbp-dqn", "bp-dqn", "p-ddpg", "q-pamdp"),
     "ablations": ("rbp-dqn", *ABLATIONS),
 }

@@ -67,9 +67,10 @@ class SweepConfig:
     every weather, or detection range 0.6 .. 1.2 of nominal)."""
     reference: bool = True
     """Add the all-human 0 % reference cells to a penetration sweep."""
-    policies: tuple[str, ...] = ("auto", "acc-lc")
-    """Policies to compare: auto (AUTO behind its safety module), auto-raw, acc-lc, acc-lc-tuned,
-    a rule's spec such as acc-lc:T=1.0,speed_factor=1.0, idm, random, ..."""
+    policies: tuple[str, ...] = ("auto", "acc-lc-tuned", "acc-lc")
+    """Policies to compare: auto (AUTO behind its safety module), auto-raw, acc-lc-tuned (the
+    baseline a learned policy is compared with), acc-lc (its default), a rule's spec such as
+    acc-lc:T=1.0,speed_factor=1.0, idm, random, ..."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Root seeds; each cell runs once per seed."""
     episode_length: float = 150.0

@@ -12,6 +12,11 @@ as a share of each family's best, is highest on average.
 
     python -m mixed_traffic.experiments.tune_acc_lc            # every family, then the file
     python -m mixed_traffic.experiments.tune_acc_lc --families straight merge --choose-only
+    python -m mixed_traffic.experiments.tune_acc_lc --verify   # the choice on held-out cells
+
+``--verify`` runs the whole grid and ``acc-lc-tuned`` on held-out eval variants on other
+seeds, and tests on paired seeds whether the tuned setting is within noise of, or better
+than, the best grid point there (by the same criterion, the fleet's mean speed).
 
 Cells run through the sweep machinery (parallel, resumable: a re-run skips recorded cells)
 into ``OUT/<scenario>/``; the choice goes atomically to ``agents/checkpoints/acc_lc_tuned.json``
@@ -29,8 +34,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from agents.rules.spec import parse_policy
+from analysis.stats import paired_difference
 from agents.rules.tuned import TUNED_FIELDS, TUNED_FILE
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
 from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
@@ -82,9 +89,15 @@ class TuneConfig:
     """Where the choice goes (JSON)."""
     choose_only: bool = False
     """Choose from the records already in ``out`` without running cells."""
+    verify: bool = False
+    """Instead of tuning: check the stored choice against the grid on ``verify_scenarios``."""
+    verify_scenarios: tuple[str, ...] = ("straight-eval", "merge-eval")
+    """Held-out scenarios of the check."""
+    verify_seeds: tuple[int, ...] = (10, 11, 12, 13)
+    """Seeds of the check (paired across settings; apart from the tuning's)."""
 
     def __post_init__(self) -> None:
-        for name in ("T", "speed_factor", "a", "seeds"):
+        for name in ("T", "speed_factor", "a", "seeds", "verify_seeds"):
             if not getattr(self, name):
                 raise ValueError(f"--{name.replace('_', '-')}: give at least one value")
         for p in self.grid():  # each grid point must be a valid ACC-LC
@@ -99,11 +112,13 @@ class TuneConfig:
         points = itertools.product(self.T, self.speed_factor, self.a)
         return [str(parse_policy(f"acc-lc:T={t},speed_factor={v},a={a}")) for t, v, a in points]
 
-    def sweep(self, scenario: str, policies: tuple[str, ...], penetration: float) -> SweepConfig:
-        """The sweep of ``policies`` on ``scenario`` at ``penetration``."""
+    def sweep(self, scenario: str, policies: tuple[str, ...], penetration: float,
+              seeds: tuple[int, ...] = ()) -> SweepConfig:  # fmt: skip
+        """The sweep of ``policies`` on ``scenario`` at ``penetration`` (default seeds:
+        the tuning's)."""
         return SweepConfig(
             axis="penetration", scenario=scenario, values=(penetration,), reference=False,
-            policies=policies, seeds=self.seeds, episode_length=self.episode_length,
+            policies=policies, seeds=seeds or self.seeds, episode_length=self.episode_length,
             warmup=self.warmup, workers=self.workers, out=self.out / scenario, report=False,
             traffic=False,
         )  # fmt: skip
@@ -231,6 +246,37 @@ def _previous(cfg: TuneConfig) -> dict[str, dict[str, Any]]:
     return dict(old.get("families", {})) if same else {}
 
 
+def verify(cfg: TuneConfig) -> list[dict[str, Any]]:
+    """Per scenario of ``verify_scenarios``: the best admissible grid point by mean speed on
+    the verify seeds, and ``acc-lc-tuned`` minus it on paired seeds (mean speed [m/s] and
+    AvgDT-A [s/km], 95 % t-intervals); ``pass`` when the tuned one is within noise of, or
+    better than, the best."""
+    grid = tuple(cfg.grid())
+    rows = []
+    for scenario in cfg.verify_scenarios:
+        sweep = cfg.sweep(scenario, (*grid, "acc-lc-tuned"), cfg.penetration, cfg.verify_seeds)
+        records = [r for r in read_records(run_sweep(sweep)) if r["status"] == "ok"]
+        table = setting_table(records, cfg.penetration)
+        best = next(p for p in ranked(table, len(cfg.verify_seeds)) if p in grid)
+        diff = {
+            m: paired_difference(_per_seed(records, "acc-lc-tuned", m), _per_seed(records, best, m))
+            for m in ("mean_speed", "avg_dt_a")
+        }  # fmt: skip
+        speed = diff["mean_speed"]
+        rows.append({"scenario": scenario, "best_grid_point": best,
+                     "tuned_minus_best": {m: [d.mean, d.half_width, d.n] for m, d in diff.items()},
+                     "tuned_events": table.get("acc-lc-tuned", {}).get("events"),
+                     "pass": bool(speed.mean + speed.half_width >= 0)})  # fmt: skip
+    return rows
+
+
+def _per_seed(records: list[dict[str, Any]], policy: str, metric: str) -> pd.Series:
+    """(seeds,) ``metric`` of ``policy``'s episodes, indexed by seed."""
+    mine = [r for r in records if r["cell"]["policy"] == policy]
+    return pd.Series([r["metrics"][metric] for r in mine], index=[r["cell"]["seed"] for r in mine],
+                     dtype=float)  # fmt: skip
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m mixed_traffic.experiments.tune_acc_lc",
                                 description=__doc__.split("\n\n")[0])  # fmt: skip
@@ -239,6 +285,10 @@ def main(argv: list[str] | None = None) -> int:
         cfg = config_from_args(p.parse_args(argv), TuneConfig)
     except ValueError as e:
         p.error(str(e))
+    if cfg.verify:
+        rows = verify(cfg)
+        print("\n".join(json.dumps(r) for r in rows))
+        return 0 if all(r["pass"] for r in rows) else 1
     names = cfg.families or sorted(
         {load_scenario(n).family for n in list_scenarios() if load_scenario(n).split == "train"}
     )
