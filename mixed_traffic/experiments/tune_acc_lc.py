@@ -37,8 +37,8 @@ import numpy as np
 import pandas as pd
 
 from agents.rules.spec import parse_policy
-from analysis.stats import paired_difference
 from agents.rules.tuned import TUNED_FIELDS, TUNED_FILE
+from analysis.stats import paired_difference
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
 from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
 from mixed_traffic.provenance import (
