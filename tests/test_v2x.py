@@ -113,15 +113,16 @@ def test_parallel_api_with_v2x(scenario: str, fleet: bool) -> None:
 )
 def test_route_distances_are_sumos_driving_distances(scenario: str, density: float | None) -> None:
     """Every vehicle ahead of an agent on its route within 400 m is paired with it, at
-    SUMO's driving distance (junction lanes included); on a ring within one lap."""
+    SUMO's driving distance (junction lanes included; on a ring within one lap); one behind
+    it on its route, at the distance SUMO drives that vehicle to the agent."""
     e = parallel_env(scenario=scenario, density=density, penetration=0.2, episode_length=30.0)
     try:
         e.reset(seed=1)
         run(e, 100)
-        rows, pairs = pairs_now(e, 0.0, 400.0)
+        rows, pairs = pairs_now(e, 400.0, 400.0)
         api, snap = e._backend._api.vehicle, e._snap
         found = dict(zip(zip(pairs.agent.tolist(), pairs.vehicle.tolist()), pairs.distance))
-        checked = 0
+        checked = behind = 0
         for i, a in enumerate(rows.ids):
             for v, vid in enumerate(snap.ids):
                 if vid == a:
@@ -131,7 +132,13 @@ def test_route_distances_are_sumos_driving_distances(scenario: str, density: flo
                 if 0.5 < ref < 399.5:  # SUMO reaches it along the agent's route
                     assert found.get((i, v)) == pytest.approx(ref, abs=1e-6), (a, vid)
                     checked += 1
-        assert checked > 20
+                elif not e.scenario.ring and found.get((i, v), 0.0) < 0:
+                    back = api.getDrivingDistance(vid, api.getRoadID(a), api.getLanePosition(a),
+                                                  api.getLaneIndex(a))  # fmt: skip
+                    if back >= 0:  # the vehicle's own route passes the agent
+                        assert found[(i, v)] == pytest.approx(-back, abs=1e-6), (a, vid)
+                        behind += 1
+        assert checked > 20 and (behind > 10 or e.scenario.ring)
         if e.scenario.ring:
             assert (pairs.distance >= 0).all() and (pairs.distance < pairs.lap[pairs.agent]).all()
     finally:
@@ -307,3 +314,24 @@ def test_local_speed_falls_when_the_traffic_around_slows() -> None:
         finally:
             e.close()
     assert values[1] < values[0] - 0.05
+
+
+def test_the_feed_changes_no_other_observation() -> None:
+    """The feed draws its noise from its own generator: with it on, the sensors' noise, the
+    other keys, the rewards and the traffic are those of the same seed without it."""
+    kw = dict(scenario="straight", density=60.0, penetration=0.2, episode_length=5.0,
+              v2x_feed=V2XConfig(probe_share=0.5))  # fmt: skip
+    on, off = parallel_env(**kw, v2x=True), parallel_env(**kw)
+    try:
+        o1, _ = on.reset(seed=7)
+        o0, _ = off.reset(seed=7)
+        for _ in range(25):
+            o1, r1, *_ = on.step(follow_all(on))
+            o0, r0, *_ = off.step(follow_all(off))
+            assert r1 == r0 and list(o1) == list(o0)
+            for a in o0:
+                assert set(o1[a]) - set(o0[a]) == {"downstream"}
+                assert all(np.array_equal(o1[a][k], o0[a][k]) for k in o0[a])
+    finally:
+        on.close()
+        off.close()

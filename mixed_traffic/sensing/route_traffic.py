@@ -80,6 +80,11 @@ class _MapTables:
         """(E,) lanes cars may use per edge (at least 1) [count]."""
         self.edge_limit = np.where(car, hd.lane_speed[rows], 0.0).max(axis=1)
         """(E,) fastest car lane's speed limit per edge [m/s]."""
+        slack = float(self.junction_len.max(initial=0.0)) + MAX_JUNCTION_HOPS + 1.0
+        self.key_shift = slack
+        """Added to a position so that junction lanes before an edge stay >= 0 [m]."""
+        self.key_stride = 2.0 * (float(hd.lane_length.max(initial=0.0)) + slack + 1.0)
+        """Edge multiplier of the (edge, position) sort key of the vehicles [m]."""
 
     def junction(self, edge: np.ndarray, nxt: np.ndarray) -> np.ndarray:
         """(...) length of the junction lanes from ``edge`` into ``nxt`` [m], 0 if none."""
@@ -178,17 +183,23 @@ def route_pairs(hd: HDMap, snap: TrafficSnapshot, frame: RouteFrame, behind: flo
     before = np.concatenate([np.zeros((A, 1)), frame.span[:, :-1]], axis=1)  # junction slack
     near = (frame.edges >= 0) & (hi >= -behind) & (lo - before <= ahead)
     ea, ej = np.nonzero(near)
-    e = frame.edges[ea, ej]
+    e, base = frame.edges[ea, ej], lo[ea, ej]
+    # vehicles sorted by (edge, position): each entry's window is one searchsorted range
+    t = map_tables(hd)
     on = np.flatnonzero(edge >= 0)
-    on = on[np.argsort(edge[on], kind="stable")]  # vehicles grouped by edge
-    counts = np.bincount(edge[on], minlength=len(hd.edge_ids))
-    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    n = counts[e]
+    key = edge[on] * t.key_stride + (pos[on] + t.key_shift)
+    order = np.argsort(key, kind="stable")
+    on, key = on[order], key[order]
+    left = np.searchsorted(key, e * t.key_stride + np.maximum(-behind - base + t.key_shift, 0.0))
+    right = np.searchsorted(
+        key, e * t.key_stride + np.minimum(ahead - base + t.key_shift, t.key_stride), side="right"
+    )
+    n = np.maximum(right - left, 0)
     k = np.repeat(np.arange(len(e)), n)
     within = np.arange(int(n.sum())) - np.repeat(np.cumsum(n) - n, n)
-    veh = on[first[e][k] + within]
-    dist = lo[ea, ej][k] + pos[veh]
-    keep = (dist >= -behind) & (dist <= ahead)
+    veh = on[left[k] + within]
+    dist = base[k] + pos[veh]
+    keep = (dist >= -behind) & (dist <= ahead)  # float edges of the ranges
     return Pairs(ea[k][keep], veh[keep], dist[keep], np.full(A, np.inf))
 
 
