@@ -64,7 +64,6 @@ class _MapTables:
         E = len(hd.edge_ids)
         self.n_edges = E
         self.anchor_edge, self.anchor_offset = _anchors(hd)
-        keys, vals = [], []
         best: dict[int, float] = {}
         for (lane, nxt), first in hd.conn_to.items():
             key = int(hd.lane_edge[lane]) * E + nxt
@@ -80,7 +79,7 @@ class _MapTables:
         """(E,) lanes cars may use per edge (at least 1) [count]."""
         self.edge_limit = np.where(car, hd.lane_speed[rows], 0.0).max(axis=1)
         """(E,) fastest car lane's speed limit per edge [m/s]."""
-        slack = float(self.junction_len.max(initial=0.0)) + MAX_JUNCTION_HOPS + 1.0
+        slack = float(-self.anchor_offset.min(initial=0.0)) + 1.0
         self.key_shift = slack
         """Added to a position so that junction lanes before an edge stay >= 0 [m]."""
         self.key_stride = 2.0 * (float(hd.lane_length.max(initial=0.0)) + slack + 1.0)
