@@ -154,8 +154,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
         self._controller = BicycleController(cfg.vehicle, self.hdmap, cfg.step_length)
         self._builder = ObservationBuilder(cfg, self.hdmap)
-        n, ring = len(self.possible_agents), self.scenario.ring
-        self._feed = DownstreamFeed(cfg.v2x_feed, n, ring) if cfg.v2x else None
+        self._feed = DownstreamFeed(cfg, len(self.possible_agents), self.scenario.ring)
         self._backend = SumoBackend("traci" if render_mode == "human" else cfg.backend, cfg.second_instance,
                                     gui=render_mode == "human")  # fmt: skip
         self._backend.set_lane_table(self.hdmap.lane_ids, self.hdmap.lane_edge)
@@ -203,9 +202,8 @@ class MixedTrafficEnv(ParallelEnv):
             self._tmp = scratch_dir()
         self._phase = "running"
         cfg = replace(self.config, seed=int(seed))
-        # a 4th word for the V2X feed: the first three stay those of an env without it
         seeds = np.random.SeedSequence(int(seed)).generate_state(4)
-        demand_seed, sumo_seed, noise_seed, v2x_seed = seeds
+        demand_seed, sumo_seed, noise_seed, v2x_seed = seeds  # 4th: V2X, the rest as without
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
         route_file = Path(self._tmp) / "demand.rou.xml"
         sc = self.scenario
@@ -218,8 +216,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._noise_rng = np.random.default_rng(noise_seed)
         self._controller.reset()
         self._builder.reset()
-        if self._feed is not None:
-            self._feed.reset(np.random.default_rng(v2x_seed))
+        self._feed.reset(np.random.default_rng(v2x_seed))
         every = max(1, round(TRACE_INTERVAL / cfg.step_length)) if self.trace else 0
         self._flow = FlowRecorder(
             self.hdmap, self.scenario.measurement, cfg.step_length, self.warmup, every
@@ -342,7 +339,8 @@ class MixedTrafficEnv(ParallelEnv):
         self._controller.add_from_snapshot(snap, new, self._backend)
         for a in new:
             table.set_route(a, self._route_rows(self._backend.vehicle_route(a)))
-        self._drop_history(new)
+        self._builder.drop(new)
+        self._feed.drop(table.slots_of(new))
         if not self.config.fixed_fleet:
             table.agents += new
         return new
@@ -417,12 +415,8 @@ class MixedTrafficEnv(ParallelEnv):
         routes = list(map(self._table.routes.__getitem__, ids))
         if not ids:
             return {}
-        extra = None
-        if self._feed is not None:
-            t = self._table
-            down = self._feed.observe(self.hdmap, snap, rows.r, rows.slots,
-                                      t.route_table[rows.slots], t.route_len[rows.slots])  # fmt: skip
-            extra = {"downstream": down}
+        t = self._table
+        extra = self._feed.keys(self.hdmap, snap, rows.r, rows.slots, t.route_table, t.route_len)
         obs = self._builder.build(snap, ids, rows.r, sensed, routes, extra)
         self._batches.add(ids, self._builder.last_batch)
         self._last_obs.update(obs)
@@ -470,17 +464,12 @@ class MixedTrafficEnv(ParallelEnv):
         self._snap = snap
         return obs_out, rew_out, terminated, truncated, infos
 
-    def _drop_history(self, ids: list[str]) -> None:
-        """Forget what agents ``ids`` observed before (they leave, or enter afresh)."""
-        self._builder.drop(ids)
-        if self._feed is not None:
-            self._feed.drop(np.fromiter(map(self._table.slot.__getitem__, ids), np.int64, len(ids)))
-
     def _forget(self, done: list[str]) -> None:
         """Free what finished agents hold (history slots; last observations, which are views
         of a whole step's arrays), so memory stays flat. A fixed fleet keeps a compact copy
         of each last observation: it is returned until the agent enters again."""
-        self._drop_history(done)
+        self._builder.drop(done)
+        self._feed.drop(self._table.slots_of(done))
         for a in done:
             last = self._last_obs.pop(a, None)
             if last is not None and self.config.fixed_fleet:

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from mixed_traffic.config import JAM_DENSITY_PER_LANE, V2XConfig
+from mixed_traffic.config import JAM_DENSITY_PER_LANE, EnvConfig
 from mixed_traffic.sensing.observation import SPEED_SCALE
 from mixed_traffic.sensing.route_traffic import (
     Pairs,
@@ -69,14 +69,15 @@ class DownstreamFeed:
     """The ``downstream`` observation of every agent, with the feed's timing and noise.
 
     Args:
-        cfg: segments, update period, latency, noise.
+        config: the env config: ``v2x`` (the feed is on) and ``v2x_feed`` (segments, update
+            period, latency, noise).
         n_agents: number of possible agents (slots).
         ring: the scenario is a ring (segments wrap around).
     """
 
-    def __init__(self, cfg: V2XConfig, n_agents: int, ring: bool) -> None:
-        self.cfg, self.ring = cfg, ring
-        seg = np.asarray(cfg.segments, np.float64)
+    def __init__(self, config: EnvConfig, n_agents: int, ring: bool) -> None:
+        self.on, self.cfg, self.ring = config.v2x, config.v2x_feed, ring
+        seg = np.asarray(self.cfg.segments, np.float64)
         self.lo, self.hi = seg[:-1], seg[1:]
         self.shape = (len(seg) - 1, FEATURES)
         self._value = np.zeros((n_agents, *self.shape), np.float32)
@@ -97,6 +98,16 @@ class DownstreamFeed:
         slots = np.asarray(slots, np.int64)
         self._value[slots] = 0.0
         self._epoch[slots] += 1
+
+    def keys(self, hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray, slots: np.ndarray,
+             route_table: np.ndarray, route_len: np.ndarray) -> dict[str, np.ndarray]:  # fmt: skip
+        """``{"downstream": (A, S, 2)}`` of the agents at snapshot ``rows`` (A,) and slots
+        ``slots`` (A,) (routes by slot: ``route_table`` (n, W), ``route_len`` (n,)); ``{}``
+        when the feed is off."""
+        if not self.on:
+            return {}
+        down = self.observe(hd, snap, rows, slots, route_table[slots], route_len[slots])
+        return {"downstream": down}
 
     def observe(self, hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray, slots: np.ndarray,
                 routes: np.ndarray, route_len: np.ndarray) -> np.ndarray:  # fmt: skip
