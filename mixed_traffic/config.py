@@ -132,14 +132,32 @@ class RewardConfig:
     """Bound on the gap ratio's change in r2,2, |gap_new/gap_old - 1| <= cap, so one lane change
     is worth at most lane_change_gain x cap [-]. 0 = the paper's unbounded term, measured from
     -19.9 to +3,580 per change (a change out from behind a car 0.5 m ahead)."""
+    w_local_speed: float = 0.0
+    """w5, weight of r5_local_speed, the mean speed of the traffic around the agent [-]
+    (0 = the paper's reward)."""
+    w_follower_comfort: float = 0.0
+    """w6, weight of r6_follower_comfort, the accelerations of the agent's followers [-]
+    (0 = the paper's reward)."""
+    local_upstream: float = 200.0
+    """How far behind the agent, along its route, r5 counts vehicles and r6 looks for
+    followers [m] (on a ring r5 counts the whole ring)."""
+    local_downstream: float = 200.0
+    """How far ahead of the agent, along its route, r5 counts vehicles [m]."""
+    followers: int = 5
+    """The nearest vehicles behind the agent in its lane (same lane index) within
+    ``local_upstream`` whose accelerations r6 averages [count]."""
     lane_term: str = "offset"
     """How r1,2 measures the distance from the lane centre: offset (SUMO's lateral offset, 0 when
     centred) | waypoint (the paper: distance to the nearest 1 m centreline waypoint, about
     -0.078 when centred because the vehicle sits between waypoints)."""
 
     def __post_init__(self) -> None:
-        for name in ("w_safety", "w_efficiency", "w_comfort", "w_impact"):
+        for name in ("w_safety", "w_efficiency", "w_comfort", "w_impact", "w_local_speed",
+                     "w_follower_comfort"):  # fmt: skip
             _check_range(self, name, 0.0, 10.0)
+        _check_range(self, "local_upstream", 0.0, 10000.0)
+        _check_range(self, "local_downstream", 0.0, 10000.0)
+        _check_range(self, "followers", 1, 100, integer=True)
         _check_range(self, "ttc_threshold", 0.0, 60.0, lo_open=True)
         _check_range(self, "acc_threshold", 0.0, 20.0, lo_open=True)
         _check_range(self, "rear_speed_drop", 0.0, 10.0)
@@ -147,6 +165,41 @@ class RewardConfig:
         _check_range(self, "lane_change_gain", 0.0, 1000.0)
         _check_range(self, "lane_change_cap", 0.0, 1000.0)
         _check_choice(self, "lane_term", LANE_TERMS)
+
+
+@dataclass(frozen=True)
+class V2XConfig:
+    """The downstream feed of ``EnvConfig.v2x`` (observation key ``downstream``): the mean speed
+    of the traffic in segments ahead on the AV's route, as a roadside or probe-vehicle feed
+    reports it: measured every ``update_period``, received ``latency`` later, with noise."""
+
+    segments: tuple[float, ...] = (0.0, 100.0, 300.0, 1000.0)
+    """Edges of the segments along the route, from the AV's front bumper [m], increasing:
+    S = len - 1 segments (0-100, 100-300 and 300-1000 m)."""
+    update_period: float = 1.0
+    """Time between two measurements of the feed [s] (a value shorter than the step length
+    measures every step)."""
+    latency: float = 1.0
+    """Delay from a measurement to its arrival at the AV [s]."""
+    speed_noise: float = 0.5
+    """Standard deviation of the Gaussian error added to each segment's mean speed [m/s]."""
+    probe_share: float = 1.0
+    """Chance that a vehicle's report reaches a measurement, drawn per vehicle and
+    measurement [0-1] (1 = a roadside feed that sees every vehicle; below 1 a probe-vehicle
+    feed, whose density estimate divides the count by it)."""
+
+    def __post_init__(self) -> None:
+        seg = self.segments
+        ok = isinstance(seg, tuple) and 2 <= len(seg) <= 17
+        ok = ok and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in seg)
+        ok = ok and all(math.isfinite(x) for x in seg) and seg[0] >= 0.0 and seg[-1] <= 10000.0
+        if not ok or any(b <= a for a, b in zip(seg, seg[1:])):
+            raise ValueError(f"V2XConfig.segments={seg!r} must be 2-17 increasing distances "
+                             "in [0, 10000] m")  # fmt: skip
+        _check_range(self, "update_period", 0.0, 3600.0, lo_open=True)
+        _check_range(self, "latency", 0.0, 3600.0)
+        _check_range(self, "speed_noise", 0.0, 50.0)
+        _check_range(self, "probe_share", 0.0, 1.0, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -263,8 +316,14 @@ class EnvConfig:
     """How long reset() lets the simulation run, with nobody acting, until the first AV enters
     when none is in the network yet [s]; never past the episode's last step (PettingZoo needs an
     agent after reset). If none enters, reset() raises NoAgentError (docs/env.md)."""
+    v2x: bool = False
+    """Add the observation key ``downstream``: the traffic's mean speed in segments ahead on
+    the route, from a roadside or probe-vehicle feed (``v2x_feed``); off = the paper's
+    observation."""
     sensors: SensorConfig = field(default_factory=SensorConfig)
     """Sensor ranges, history length and noise switch."""
+    v2x_feed: V2XConfig = field(default_factory=V2XConfig)
+    """Segments, update period, latency and noise of the ``downstream`` feed (with ``v2x``)."""
     reward: RewardConfig = field(default_factory=RewardConfig)
     """Hybrid reward weights and thresholds."""
     vehicle: VehicleConfig = field(default_factory=VehicleConfig)
@@ -290,12 +349,11 @@ class EnvConfig:
             raise ValueError(f"EnvConfig.episode_length={self.episode_length!r} is shorter than one "
                              f"step (step_length={self.step_length!r})")  # fmt: skip
         _check_bool(self, "fixed_fleet")
+        _check_bool(self, "v2x")
         _check_range(self, "lateral_resolution", 0.1, 3.2)
         _check_range(self, "speed_tolerance", 0.0, 1.0)
         _check_range(self, "reset_wait", 0.0, 86400.0)
-        nested = {"sensors": SensorConfig, "reward": RewardConfig, "vehicle": VehicleConfig,
-                  "human": HumanConfig}  # fmt: skip
-        for name, cls in nested.items():
+        for name, cls in _nested().items():
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f"EnvConfig.{name}={getattr(self, name)!r} must be a "
                                  f"{cls.__name__}(...) (a dict goes through EnvConfig.from_dict)")  # fmt: skip
@@ -310,16 +368,27 @@ class EnvConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> EnvConfig:
-        nested = {"sensors": SensorConfig, "reward": RewardConfig, "vehicle": VehicleConfig,
-                  "human": HumanConfig}  # fmt: skip
+        nested = _nested()
         known = {f.name for f in fields(cls)}
         unknown = set(data) - known
         if unknown:
             raise ValueError(f"unknown EnvConfig fields {sorted(unknown)}; known: {sorted(known)}")
         kwargs = {
-            k: nested[k](**v) if k in nested and isinstance(v, dict) else v for k, v in data.items()
+            k: nested[k](**_tuples(v)) if k in nested and isinstance(v, dict) else v
+            for k, v in data.items()
         }
         return cls(**kwargs)
+
+
+def _nested() -> dict[str, type]:
+    """The dataclass-valued fields of ``EnvConfig`` and their types."""
+    return {"sensors": SensorConfig, "reward": RewardConfig, "vehicle": VehicleConfig,
+            "human": HumanConfig, "v2x_feed": V2XConfig}  # fmt: skip
+
+
+def _tuples(data: dict[str, Any]) -> dict[str, Any]:
+    """``data`` with lists (JSON's tuples) as tuples."""
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
 
 
 def _to_dict(obj: Any) -> dict[str, Any]:

@@ -149,6 +149,10 @@ class AgentTable:
         self._rows_key, self._rows = (snap, *key), rows
         return rows
 
+    def slots_of(self, ids: list[str]) -> np.ndarray:
+        """(n,) slots of the agents ``ids``."""
+        return np.fromiter(map(self.slot.__getitem__, ids), np.int64, len(ids))
+
     def by_slot(self, slots: np.ndarray, values: np.ndarray, fill: Any = -1) -> np.ndarray:
         """(n,) table with ``values`` at ``slots`` and ``fill`` elsewhere (id lookups become
         array indexing)."""

@@ -14,9 +14,10 @@ Agents
 Observation
     ``Dict(ego (z,5), lanes (3,z,4m), vehicles (3,z,12), lights (3,z,4), limits (3,k,2),
     give_way (3,), node_mask (3,3), action_mask (3,))``, see ``mixed_traffic.sensing.
-    observation`` for features and scales. Sensors (LiDAR vehicles, camera lights, GNSS/IMU
-    ego) apply the weather preset's noise and misdetection; rewards, terminations and metrics
-    use ground truth.
+    observation`` for features and scales; ``v2x=True`` adds ``downstream (S,2)``, the mean
+    speed ahead on the route from a roadside or probe feed (``mixed_traffic.sensing.v2x``).
+    Sensors (LiDAR vehicles, camera lights, GNSS/IMU ego) apply the weather preset's noise and
+    misdetection; rewards, terminations and metrics use ground truth.
 Action
     ``Dict(decision=Discrete(3), params=Box(-1, 1, (3, 2)))``: decision 0 left change, 1 follow,
     2 right change; the chosen row ``(steering, accel_brake)`` is executed: steering ±1 =
@@ -27,7 +28,8 @@ Action
 Reward
     ``0.9·r1 + 0.8·r2 + 0.6·r3 + 0.2·r4`` (``RewardConfig``), every term by name in
     ``infos[agent]["reward_terms"]``: r1_ttc, r1_lane, r1_terminal, r2_speed, r2_lane_change,
-    r3_comfort, r4_impact (``mixed_traffic.env.reward``).
+    r3_comfort, r4_impact (``mixed_traffic.env.reward``), and, weighted 0 by default, the
+    traffic around the agent: r5_local_speed, r6_follower_comfort (``env.traffic_terms``).
 Termination / truncation
     Terminated on arrival or a terminal event (``infos[agent]["event"]`` = collision,
     off_road, route_deviation, red_light, speed_limit; the vehicle leaves SUMO). All live
@@ -89,6 +91,7 @@ from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import ttc
 from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
 from mixed_traffic.sensing.perception import Perception
+from mixed_traffic.sensing.v2x import DownstreamFeed
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.boundary import PeriodicBoundary, make_boundary
 from mixed_traffic.world.demand import av_count, make_demand, write_demand
@@ -151,6 +154,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
         self._controller = BicycleController(cfg.vehicle, self.hdmap, cfg.step_length)
         self._builder = ObservationBuilder(cfg, self.hdmap)
+        self._feed = DownstreamFeed(cfg, len(self.possible_agents), self.scenario.ring)
         self._backend = SumoBackend("traci" if render_mode == "human" else cfg.backend, cfg.second_instance,
                                     gui=render_mode == "human")  # fmt: skip
         self._backend.set_lane_table(self.hdmap.lane_ids, self.hdmap.lane_edge)
@@ -198,7 +202,8 @@ class MixedTrafficEnv(ParallelEnv):
             self._tmp = scratch_dir()
         self._phase = "running"
         cfg = replace(self.config, seed=int(seed))
-        demand_seed, sumo_seed, noise_seed = np.random.SeedSequence(int(seed)).generate_state(3)
+        seeds = np.random.SeedSequence(int(seed)).generate_state(4)
+        demand_seed, sumo_seed, noise_seed, v2x_seed = seeds  # 4th: V2X, the rest as without
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
         route_file = Path(self._tmp) / "demand.rou.xml"
         sc = self.scenario
@@ -211,6 +216,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._noise_rng = np.random.default_rng(noise_seed)
         self._controller.reset()
         self._builder.reset()
+        self._feed.reset(np.random.default_rng(v2x_seed))
         every = max(1, round(TRACE_INTERVAL / cfg.step_length)) if self.trace else 0
         self._flow = FlowRecorder(
             self.hdmap, self.scenario.measurement, cfg.step_length, self.warmup, every
@@ -334,6 +340,7 @@ class MixedTrafficEnv(ParallelEnv):
         for a in new:
             table.set_route(a, self._route_rows(self._backend.vehicle_route(a)))
         self._builder.drop(new)
+        self._feed.drop(table.slots_of(new))
         if not self.config.fixed_fleet:
             table.agents += new
         return new
@@ -363,7 +370,7 @@ class MixedTrafficEnv(ParallelEnv):
         """Reward, named terms and completed lane changes (bool per agent number) of every
         agent that acted."""
         return agent_rewards(self.config, self.hdmap, self._memory, self._table, snap, rows,
-                             truth, events)  # fmt: skip
+                             truth, events, self.scenario.ring)  # fmt: skip
 
     def _record(self, snap, rows: Rows, truth: PerceptionFrame, rewards: dict[str, float],
                 changed: np.ndarray) -> None:  # fmt: skip
@@ -408,7 +415,9 @@ class MixedTrafficEnv(ParallelEnv):
         routes = list(map(self._table.routes.__getitem__, ids))
         if not ids:
             return {}
-        obs = self._builder.build(snap, ids, rows.r, sensed, routes)
+        t = self._table
+        extra = self._feed.keys(self.hdmap, snap, rows.r, rows.slots, t.route_table, t.route_len)
+        obs = self._builder.build(snap, ids, rows.r, sensed, routes, extra)
         self._batches.add(ids, self._builder.last_batch)
         self._last_obs.update(obs)
         return obs
@@ -460,6 +469,7 @@ class MixedTrafficEnv(ParallelEnv):
         of a whole step's arrays), so memory stays flat. A fixed fleet keeps a compact copy
         of each last observation: it is returned until the agent enters again."""
         self._builder.drop(done)
+        self._feed.drop(self._table.slots_of(done))
         for a in done:
             last = self._last_obs.pop(a, None)
             if last is not None and self.config.fixed_fleet:

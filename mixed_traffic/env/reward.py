@@ -21,7 +21,9 @@ Terms (``reward_terms`` returns them by these names)::
                    more than v_thr, else 0
 
 ``total_reward = w1 (r1_ttc + r1_lane + r1_terminal) + w2 (r2_speed + r2_lane_change)
-+ w3 r3_comfort + w4 r4_impact``.
++ w3 r3_comfort + w4 r4_impact (+ w5 r5_local_speed + w6 r6_follower_comfort)``; r5 and r6,
+the traffic around the agent, come from :mod:`mixed_traffic.env.traffic_terms` (weights 0 by
+default: the paper's reward).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ import numpy as np
 
 from mixed_traffic.config import EnvConfig, RewardConfig
 from mixed_traffic.env.agent_table import AgentTable, Rows, StepMemory
+from mixed_traffic.env.traffic_terms import TRAFFIC_TERMS, traffic_terms
 from mixed_traffic.env.truth import FrontView, speeds_of
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.world.hdmap import HDMap
@@ -46,6 +49,7 @@ TERM_NAMES = (
     "r2_lane_change",
     "r3_comfort",
     "r4_impact",
+    *TRAFFIC_TERMS,
 )
 #: Smallest bumper gap used in the lane-change ratio [m] (avoids dividing by ~0).
 MIN_GAP = 0.5
@@ -209,24 +213,29 @@ def reward_terms(
 
 
 def total_reward(terms: Mapping[str, np.ndarray], cfg: RewardConfig) -> np.ndarray:
-    """(A,) w1·r1 + w2·r2 + w3·r3 + w4·r4 from the named terms."""
+    """(A,) w1·r1 + w2·r2 + w3·r3 + w4·r4 (+ w5·r5 + w6·r6 where their weights are not 0)
+    from the named terms."""
     r1 = terms["r1_ttc"] + terms["r1_lane"] + terms["r1_terminal"]
     r2 = terms["r2_speed"] + terms["r2_lane_change"]
-    return (
+    total = (
         cfg.w_safety * r1
         + cfg.w_efficiency * r2
         + cfg.w_comfort * terms["r3_comfort"]
         + cfg.w_impact * terms["r4_impact"]
     )
+    for name, w in zip(TRAFFIC_TERMS, (cfg.w_local_speed, cfg.w_follower_comfort)):
+        if w:  # weight 0: the paper's sum, bit for bit
+            total = total + w * terms[name]
+    return total
 
 
 # ---------------------------------------------------------------------- per step
 def agent_rewards(
     cfg: EnvConfig, hd: HDMap, memory: StepMemory, table: AgentTable, snap: TrafficSnapshot,
-    rows: Rows, truth: PerceptionFrame, events: dict[str, str],
+    rows: Rows, truth: PerceptionFrame, events: dict[str, str], ring: bool = False,
 ):  # fmt: skip
     """Reward, named terms and completed lane changes (bool per agent number) of every
-    agent that acted."""
+    agent that acted; ``ring``: the network is a ring (for r5 and r6)."""
     prev = memory
     rewards: dict[str, float] = {}
     terms_out: dict[str, dict[str, float]] = {}
@@ -245,6 +254,9 @@ def agent_rewards(
     # truth was sensed in the order of rows
     k = table.by_slot(rows.slots, np.arange(len(rows.r)))[prev.slots[p]]
     terms, changed = _terms(cfg, hd, memory, snap, truth, k, now[p], p, ids, failed)
+    slots = prev.slots[p]
+    terms.update(traffic_terms(cfg.reward, hd, snap, now[p], table.route_table[slots],
+                               table.route_len[slots], ring))  # fmt: skip
     total = total_reward(terms, cfg.reward)
     names = list(terms)
     columns = [np.asarray(v, np.float64).tolist() for v in terms.values()]

@@ -74,8 +74,9 @@ class FlatActionWrapper(BaseParallelWrapper):
 class FlatObservationWrapper(BaseParallelWrapper):
     """PettingZoo parallel wrapper giving each agent one flat ``Box`` observation (float32).
 
-    The Dict observation is flattened with ``gymnasium.spaces.flatten`` in the Dict space's key
-    order (``action_mask, ego, lanes, lights, node_mask, vehicles``); ``slices[key]`` is the
+    The Dict observation is flattened with ``gymnasium.spaces.flatten`` in the Dict space's
+    (sorted) key order (``action_mask, [downstream,] ego, give_way, lanes, lights, limits,
+    node_mask, signals, vehicles``; ``downstream`` with ``v2x=True``); ``slices[key]`` is the
     part of the vector holding ``key`` (e.g. ``obs[..., w.slices["action_mask"]]`` is the
     (3,) action mask). Needed by SuperSuit's ``black_death_v3`` and vector envs.
     """

@@ -39,7 +39,7 @@ DEFAULT_OUT = Path("results/evaluate/records.jsonl")
 #: EnvConfig fields exposed as options, in help order.
 CONFIG_OPTIONS = [
     "scenario", "density", "penetration", "weather", "episode_length", "step_length",
-    "lateral_resolution", "backend",
+    "lateral_resolution", "backend", "v2x",
 ]  # fmt: skip
 
 

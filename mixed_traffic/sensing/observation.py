@@ -39,6 +39,9 @@ give_way   (3,)        int8   latest frame only: 1 where the line in ``lights`` 
                               the oncoming stream, a permissive green), not a signal
 node_mask  (3, 3)      int8   per lane: lane exists, vehicle(s) detected, light detected
 action_mask (3,)       int8   allowed decisions: left change, follow, right change
+downstream (S, 2)      f32    only with ``EnvConfig.v2x``: the V2X feed's mean speed / 40 m/s
+                              and density / jam density in S segments ahead on the route
+                              (:mod:`~mixed_traffic.sensing.v2x`); Box [0, 1]
 ========== =========== ====== ========================================================
 
 Boxes are ``[-1, 1]`` float32 and every value is clipped into them; the masks are int8 0/1 for
@@ -141,8 +144,14 @@ def observation_space(config: EnvConfig) -> gym.spaces.Dict:
             "give_way": gym.spaces.Box(0, 1, (3,), np.int8),
             "node_mask": gym.spaces.Box(0, 1, (3, 3), np.int8),
             "action_mask": gym.spaces.MultiBinary(3),
+            **({"downstream": downstream_space(config)} if config.v2x else {}),
         }
     )
+
+
+def downstream_space(config: EnvConfig) -> gym.spaces.Box:
+    """``Box(0, 1, (S, 2), float32)`` of the V2X key ``downstream`` (``sensing.v2x``)."""
+    return gym.spaces.Box(0.0, 1.0, (len(config.v2x_feed.segments) - 1, 2), np.float32)
 
 
 class ObservationBuilder:
@@ -222,6 +231,7 @@ class ObservationBuilder:
         rows: np.ndarray,
         sensed: PerceptionFrame,
         routes: Sequence[Sequence[int]],
+        extra: dict[str, np.ndarray] | None = None,
     ) -> dict[str, dict[str, np.ndarray]]:
         """Observations of all agents; shifts each built agent's history by one frame.
 
@@ -231,6 +241,8 @@ class ObservationBuilder:
             rows: (A,) snapshot rows of the agents.
             sensed: the sensed ``PerceptionFrame`` for the same rows.
             routes: per agent, the edge rows of its route.
+            extra: further keys built elsewhere, ``{key: (A, ...)}`` in the order of
+                ``agent_ids`` (the V2X ``downstream``).
         Returns:
             ``{agent_id: {key: array}}`` per the module table; arrays are fresh copies. The
             per-agent arrays are views of ``last_batch`` (``{key: (A, ...)}``, rows in the
@@ -273,13 +285,18 @@ class ObservationBuilder:
                            "limits": limits, "signals": signals, "give_way": gw,
                            "node_mask": node, "action_mask": act}  # fmt: skip
         # list(array) makes the per-agent views in C; a dict literal per agent is the cheapest
-        return {
+        out = {
             a: {"ego": e, "lanes": ln, "vehicles": v, "lights": li, "limits": lm,
                 "signals": sg, "give_way": g, "node_mask": nm, "action_mask": am}
             for a, e, ln, v, li, lm, sg, g, nm, am in zip(
                 agent_ids, list(h_ego), list(h_lanes), list(h_veh), list(h_lights),
                 list(limits), list(signals), list(gw), list(node), list(act))
         }  # fmt: skip
+        for key, arr in (extra or {}).items():
+            self.last_batch[key] = arr
+            for o, x in zip(out.values(), list(arr)):
+                o[key] = x
+        return out
 
     # ------------------------------------------------------------------ features
     def _route_hops(
