@@ -263,6 +263,9 @@ class EnvConfig:
     """How long reset() lets the simulation run, with nobody acting, until the first AV enters
     when none is in the network yet [s]; never past the episode's last step (PettingZoo needs an
     agent after reset). If none enters, reset() raises NoAgentError (docs/env.md)."""
+    av_window: float = 200.0
+    """Reach ahead of and behind each AV along its lane whose vehicles' speeds make the
+    metrics speed_std_ahead / speed_std_behind [m]; on a closed loop at most half the loop."""
     sensors: SensorConfig = field(default_factory=SensorConfig)
     """Sensor ranges, history length and noise switch."""
     reward: RewardConfig = field(default_factory=RewardConfig)
@@ -293,6 +296,7 @@ class EnvConfig:
         _check_range(self, "lateral_resolution", 0.1, 3.2)
         _check_range(self, "speed_tolerance", 0.0, 1.0)
         _check_range(self, "reset_wait", 0.0, 86400.0)
+        _check_range(self, "av_window", 0.0, 1000.0, lo_open=True)
         nested = {"sensors": SensorConfig, "reward": RewardConfig, "vehicle": VehicleConfig,
                   "human": HumanConfig}  # fmt: skip
         for name, cls in nested.items():
