@@ -67,6 +67,8 @@ METRICS: dict[str, Metric] = {
 #: The paper's macroscopic and microscopic tables (Tables "Macroscopic/Microscopic Evaluation").
 MACRO = ("avg_dt_a", "avg_at_c", "avg_di_c")
 MICRO = ("min_ttc_a", "avg_off_a", "avg_vel_a", "avg_jerk_a", "avg_dec_c")
+#: Traffic smoothing: travel time, the speed spread, fuel, and the waves ahead of / behind the AVs.
+SMOOTHING = ("dt_tf", "speed_std", "fuel", "speed_std_ahead", "speed_std_behind")
 SAFETY = (
     "collisions",
     "teleports",
