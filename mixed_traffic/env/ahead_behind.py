@@ -95,13 +95,19 @@ class AheadBehind:
     def __init__(self, hdmap: HDMap, window: float) -> None:
         if not window > 0:
             raise ValueError(f"AheadBehind: window={window} must be > 0 m")
-        ahead = LaneReach(hdmap, window, ahead=True)
-        behind = LaneReach(hdmap, window, ahead=False)
+        # built once per map and window (a large city network takes a few tenths of a second)
+        cache = hdmap.__dict__.setdefault("_ahead_behind", {})
+        if window not in cache:
+            cache[window] = (LaneReach(hdmap, window, True), LaneReach(hdmap, window, False))
+        ahead, behind = cache[window]
         # both sides as one (L, Da + Db) table, so a step is one batch of searches
         self._lane = np.concatenate([ahead.lane, behind.lane], axis=1)
         self._offset = np.concatenate([ahead.offset, behind.offset], axis=1)
-        self._is_ahead = np.arange(self._lane.shape[1]) < ahead.lane.shape[1]
-        self._side = np.stack([self._is_ahead, ~self._is_ahead], axis=1).astype(np.float64)
+        d_ahead = ahead.lane.shape[1]
+        self._is_ahead = np.arange(self._lane.shape[1]) < d_ahead
+        # lanes reached from each row, per side (a row's columns are a prefix of its side)
+        self._reach = np.stack([(ahead.lane >= 0).sum(1), (behind.lane >= 0).sum(1)], axis=1)
+        self._d_ahead = d_ahead
         # one window per lane for both sides, so on a loop they never overlap
         self.window = np.minimum(ahead.window, behind.window)
         """(L,) the window of each lane row [m]."""
@@ -122,28 +128,35 @@ class AheadBehind:
         key = key[order]
         v = snap.speed[on][order]
         cum = np.stack([np.arange(len(v) + 1.0), _cumsum0(v), _cumsum0(v * v)])  # (3, M+1)
-        lo, hi = self._ranges(snap.lane[avs], snap.lane_pos[avs], key)
-        got = (cum[:, hi] - cum[:, lo]) @ self._side  # (3, A, 2): ahead, behind
+        lane = snap.lane[avs]
+        # only the columns some AV's lane reaches (a few on most roads, many in a city)
+        ka, kb = self._reach[lane].max(axis=0)
+        cols = np.r_[0:ka, self._d_ahead : self._d_ahead + kb]
+        lo, hi = self._ranges(lane, snap.lane_pos[avs], key, cols)
+        side = np.stack([self._is_ahead[cols], ~self._is_ahead[cols]], axis=1).astype(np.float64)
+        got = (cum[:, hi] - cum[:, lo]) @ side  # (3, A, 2): ahead, behind
         slots = self._slots([snap.ids[i] for i in avs.tolist()])
         np.add.at(self._sums, slots, got.transpose(1, 2, 0))
 
-    def _ranges(self, lane: np.ndarray, pos: np.ndarray,
-                key: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
-        """(A, D) index ranges into the sorted vehicles of each AV's windows on each lane."""
-        lanes = self._lane[lane]  # (A, D)
-        rel = pos[:, None] - self._offset[lane]  # the AV's position in each lane's frame
+    def _ranges(self, lane: np.ndarray, pos: np.ndarray, key: np.ndarray,
+                cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+        """(A, C) index ranges into the sorted vehicles of each AV's windows on the lanes of
+        columns ``cols`` of the reach table."""
+        lanes = self._lane[lane][:, cols]  # (A, C)
+        rel = pos[:, None] - self._offset[lane][:, cols]  # the AV's position in each lane's frame
         w = self.window[lane][:, None]
+        ahead = self._is_ahead[cols]
         # ahead (rel, rel + w], behind [rel - w, rel): the AV itself (at rel) is left out
-        a = np.where(self._is_ahead, rel, rel - w)
-        b = np.where(self._is_ahead, rel + w, rel)
+        a = np.where(ahead, rel, rel - w)
+        b = np.where(ahead, rel + w, rel)
         # clipped to the lane's band so a range never spills onto the next lane
         top = self._length[lanes] + 1.0
         base = np.maximum(lanes, 0) * self._band
         a = base + np.clip(a, -1.0, top)
         b = base + np.clip(b, -1.0, top)
         # searches keep keys in (a, b]; behind's [a, b) is (a⁻, b⁻] with x⁻ the float below x
-        a = np.where(self._is_ahead, a, np.nextafter(a, -np.inf))
-        b = np.where(self._is_ahead, b, np.nextafter(b, -np.inf))
+        a = np.where(ahead, a, np.nextafter(a, -np.inf))
+        b = np.where(ahead, b, np.nextafter(b, -np.inf))
         lo = np.searchsorted(key, a, side="right")
         hi = np.searchsorted(key, b, side="right")
         return lo, np.where(lanes >= 0, np.maximum(hi, lo), lo)
