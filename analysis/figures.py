@@ -9,7 +9,7 @@ the same t-intervals as the tables (:func:`analysis.results.summarise`).
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +28,7 @@ from analysis.results import (
     sweep_condition,
 )
 from analysis.style import REFERENCE_COLOR, describe_condition, order_policies, policy_palette
-from mixed_traffic.schema import MACRO, METRICS, MICRO, label
+from mixed_traffic.schema import MACRO, METRICS, MICRO, SMOOTHING, label
 
 DPI = 170
 """Resolution of saved PNGs (sharp when embedded in an A4 PDF)."""
@@ -98,18 +98,79 @@ def plot_penetration(
     if cond is None:
         return None
     sub = ok_rows(filter_condition(df, cond))
+    fig, (ax,) = new_figure(6.4, 4.2)
+    if not _penetration_panel(ax, sub, metric):
+        return None
+    ax.set_title(f"{METRICS[metric].label} vs penetration\n{describe_condition(cond)}", fontsize=10)
+    ax.legend(title="policy", frameon=True)
+    fig.text(0.99, 0.0, "error bars: 95 % t-CI across seeds", ha="right", va="bottom", fontsize=7)
+    return save_figure(fig, Path(out_dir) / f"{name}{metric}_vs_penetration.png")
+
+
+def plot_smoothing(
+    df: pd.DataFrame,
+    out_dir: str | os.PathLike[str],
+    metrics: Sequence[str] = SMOOTHING[1:],
+    name: str = "",
+) -> Path | None:
+    """One panel per traffic-smoothing metric (speed spread, fuel, speed spread ahead of and
+    behind the AVs) against AV penetration [%], one line per policy, the 0 % reference dashed
+    where it has a value; the ahead and behind panels share their y axis. ``None`` without two
+    penetrations under one condition or without any of ``metrics`` (older records)."""
+    cond = sweep_condition(df, "penetration")
+    if cond is None:
+        return None
+    sub = ok_rows(filter_condition(df, cond))
+    metrics = [m for m in metrics if sub[m].notna().any()]
+    if not metrics:
+        return None
+    ncols = min(2, len(metrics))
+    nrows = -(-len(metrics) // ncols)
+    fig, axes = new_figure(4.4 * ncols + 1.6, 3.4 * nrows, ncols=ncols, nrows=nrows)
+    for ax in axes[len(metrics) :]:
+        ax.set_visible(False)
+    drawn = []
+    for letter, ax, m in zip("abcdefgh", axes, metrics):
+        if _penetration_panel(ax, sub, m, legend_ref=not drawn):
+            ax.set_title(f"({letter}) {METRICS[m].label}", fontsize=10)
+            drawn.append(ax)
+        else:
+            ax.set_visible(False)
+    if not drawn:
+        return None
+    _share_y(ax for ax, m in zip(axes, metrics) if m in ("speed_std_ahead", "speed_std_behind"))
+    handles, labels = drawn[0].get_legend_handles_labels()
+    fig.legend(handles, labels, title="policy", loc="outside right center")
+    fig.suptitle(f"Traffic smoothing vs penetration — {describe_condition(cond)}", fontsize=10)
+    fig.text(0.99, 0.0, "error bars: 95 % t-CI across seeds", ha="right", va="bottom", fontsize=7)
+    return save_figure(fig, Path(out_dir) / f"{name}smoothing_vs_penetration.png")
+
+
+def _share_y(axes: Iterable[Axes]) -> None:
+    """One y range for ``axes`` (the union of their own)."""
+    axes = list(axes)
+    if len(axes) > 1:
+        lows, highs = zip(*(ax.get_ylim() for ax in axes))
+        for ax in axes:
+            ax.set_ylim(min(lows), max(highs))
+
+
+def _penetration_panel(ax: Axes, sub: pd.DataFrame, metric: str, legend_ref: bool = True) -> bool:
+    """``metric`` against AV penetration [%] on ``ax``: a line with CI error bars per policy and
+    the 0 % all-human cells (any policy) as a dashed line with its CI band and a point at 0 %.
+    False (nothing drawn) without a value or with fewer than two penetrations."""
     stats = summarise(sub[sub["penetration"] > 0], ["policy", "penetration"], [metric])
     ref = summarise(sub[sub["penetration"] == 0], [], [metric])
     has_ref = not ref.empty and ref[f"{metric}_n"].iloc[0] > 0
     if stats.empty or stats[f"{metric}_n"].sum() == 0:
-        return None
+        return False
     if stats["penetration"].nunique() + int(has_ref) < 2:
-        return None
-    fig, (ax,) = new_figure(6.4, 4.2)
+        return False
     _errorbar_lines(ax, stats, "penetration", metric, x_scale=100.0, jitter=1.0)
     if has_ref:
         m, h = ref[f"{metric}_mean"].iloc[0], ref[f"{metric}_ci"].iloc[0]
-        ax.axhline(m, color=REFERENCE_COLOR, linestyle="--", linewidth=1.3, label="0 % (all human)")
+        ax.axhline(m, color=REFERENCE_COLOR, linestyle="--", linewidth=1.3,
+                   label="0 % (all human)" if legend_ref else None)  # fmt: skip
         if h == h:
             ax.axhspan(m - h, m + h, color=REFERENCE_COLOR, alpha=0.10, linewidth=0)
         ax.errorbar(
@@ -123,10 +184,7 @@ def plot_penetration(
     ax.set_xticks(ticks)
     ax.set_xlabel("AV penetration rate (%)")
     ax.set_ylabel(label(metric))
-    ax.set_title(f"{METRICS[metric].label} vs penetration\n{describe_condition(cond)}", fontsize=10)
-    ax.legend(title="policy", frameon=True)
-    fig.text(0.99, 0.0, "error bars: 95 % t-CI across seeds", ha="right", va="bottom", fontsize=7)
-    return save_figure(fig, Path(out_dir) / f"{name}{metric}_vs_penetration.png")
+    return True
 
 
 def plot_density(
@@ -274,10 +332,11 @@ def plot_weather(
 def all_figures(
     df: pd.DataFrame, out_dir: str | os.PathLike[str], name: str = ""
 ) -> dict[str, Path]:
-    """Every figure the data supports: {'penetration', 'density', 'micro', 'weather',
-    'detection_range'} -> PNG path."""
+    """Every figure the data supports: {'penetration', 'smoothing', 'density', 'micro',
+    'weather', 'detection_range'} -> PNG path."""
     made = {
         "penetration": plot_penetration(df, out_dir, name=name),
+        "smoothing": plot_smoothing(df, out_dir, name=name),
         "density": plot_density(df, out_dir, name=name),
         "micro": plot_micro(df, out_dir, name=name),
         "weather": plot_weather(df, out_dir, name=name),

@@ -126,6 +126,34 @@ def trend(df: pd.DataFrame, vary: str, metric: str) -> list[str]:
     return out
 
 
+def wake(df: pd.DataFrame) -> list[str]:
+    """Per policy, at its lowest AV share of the penetration sweep: the speed spread behind the
+    AVs against the one ahead of them, paired by episode (a damping AV leaves a calmer wake)."""
+    cond = sweep_condition(df, "penetration") or reference_condition(df)
+    if cond is None:
+        return []
+    sub = ok_rows(filter_condition(df, {k: v for k, v in cond.items() if k != "penetration"}))
+    sub = sub[sub["penetration"] > 0]
+    out: list[str] = []
+    for policy in order_policies(sub["policy"]):
+        mine = sub[sub["policy"] == policy]
+        at = mine[mine["penetration"] == mine["penetration"].min()]
+        behind, ahead = by_seed(at, "speed_std_behind"), by_seed(at, "speed_std_ahead")
+        if not (len(behind) and len(ahead)):
+            continue
+        d = paired_difference(behind, ahead)
+        verdict = _noise_note(d, "speed_std_behind")
+        if d.significant:
+            calmer = "calmer" if d.mean < 0 else "rougher"
+            verdict = f" ({calmer} behind; {_test_note(d, 'speed_std_behind')})"
+        out.append(
+            f"Speed std behind vs ahead of the AVs with {policy} at "
+            f"{fmt_penetration(at['penetration'].iloc[0])}: {fmt_num(behind.mean())} vs "
+            f"{_value('speed_std_ahead', ahead.mean())}{verdict}."
+        )
+    return out
+
+
 def compare(first: str, other: str, a: pd.Series, b: pd.Series, metric: str, where: str) -> str:
     """One finding: policy ``first`` (values ``a`` by seed) against ``other`` (``b``) on ``metric``.
 
@@ -234,6 +262,8 @@ def findings(df: pd.DataFrame) -> list[str]:
     """All findings, most important first."""
     out: list[str] = []
     out += trend(df, "penetration", "dt_tf")
+    out += trend(df, "penetration", "fuel")
+    out += wake(df)
     out += trend(df, "density", "avg_dt_a")
     out += trend(df, "detection_range", "avg_r")
     out += weather_summary(df)

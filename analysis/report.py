@@ -33,7 +33,7 @@ from analysis import traffic_figures as tf
 from analysis.pdf import PAGE_WIDTH, figure, frame_rows, grid, make_styles, para, write_pdf
 from analysis.results import load_results
 from analysis.style import fmt_density, fmt_penetration
-from mixed_traffic.schema import FD_DIR, METRICS
+from mixed_traffic.schema import FD_DIR, METRICS, SMOOTHING
 
 _ERROR_CHARS = 300
 
@@ -105,6 +105,11 @@ _FIGURE_CAPTIONS = {
     "penetration": "DT-TF (mean time of all vehicles to cross the 1 km measurement segment) against AV "
     "penetration per policy; dashed line: the 0 % all-human reference (paper Fig. 'Scalability "
     "Analysis' (d)).",
+    "smoothing": "Traffic smoothing against AV penetration per policy: the speed spread of all "
+    "vehicles in the measurement segment, the fleet's fuel per distance (SUMO's emission model), "
+    "and the speed spread of the vehicles within 200 m ahead of and behind each AV in its lane "
+    "(equal y axes; behind below ahead: the AVs leave a calmer wake). Dashed: the 0 % all-human "
+    "reference (it has no AVs, so no values ahead or behind).",
     "density": "AvgDT-A, AvgAT-C and AvgDI-C against traffic density per policy "
     "(paper Fig. 'Scalability Analysis' (a)-(c)).",
     "micro": "Microscopic metrics per policy (paper table 'Microscopic Evaluation').",
@@ -204,8 +209,12 @@ def build_report(
     cells = tbl.cell_table(df)
     if len(cells) > 1:
         story += _table_block(cells, styles)
+    smoothing = tbl.smoothing_table(df)
+    if not smoothing.empty:
+        story += _table_block(smoothing, styles)
     story.append(Spacer(1, 6))
-    story.append(_metric_legend(("dt_tf", *tbl.MACRO, *tbl.MICRO, "pt_rt"), styles))
+    legend = ("dt_tf", *tbl.MACRO, *tbl.MICRO, "pt_rt", *SMOOTHING[1:])
+    story.append(_metric_legend(legend, styles))
 
     if made:
         story.append(para("Figures", styles["h1"]))

@@ -26,7 +26,7 @@ from analysis.style import (
     fmt_penetration,
     order_policies,
 )
-from mixed_traffic.schema import MACRO, METRICS, MICRO, TERMINAL_REASONS, label
+from mixed_traffic.schema import MACRO, METRICS, MICRO, SMOOTHING, TERMINAL_REASONS, label
 
 TERMINAL_KEYS = tuple(f"terminal_{r}" for r in TERMINAL_REASONS)
 #: Safety columns placed beside every results table.
@@ -41,6 +41,9 @@ SAFETY_HEADERS = {
     "route_completion": "completion (%)",
     "sm_share": "safety module (%)",
 }
+#: Columns ``safety_counts`` adds to a table.
+_SAFETY_OUT = ("episodes", "av_trips", "collisions", "terminal_events", *TERMINAL_KEYS,
+               "teleports", "route_completion", "sm_share")  # fmt: skip
 #: Metrics of the per-cell sweep table.
 CELL_METRICS = ("dt_tf", *MACRO, "pt_rt")
 
@@ -140,6 +143,23 @@ def micro_table(df: pd.DataFrame, condition: dict[str, Any] | None = None) -> pd
 def cell_table(df: pd.DataFrame, metrics: Sequence[str] = CELL_METRICS) -> pd.DataFrame:
     """One row per sweep cell (policy, scenario, density, penetration, weather) across seeds."""
     return metric_table(df, metrics, by=CONDITION_KEYS, title="Per-cell results")
+
+
+def smoothing_table(df: pd.DataFrame, metrics: Sequence[str] = SMOOTHING) -> pd.DataFrame:
+    """Traffic smoothing per sweep cell across seeds: DT-TF, the speed spread, fuel and the
+    speed spread ahead of / behind the AVs, mean ± 95 % CI (no safety columns: they are in the
+    per-cell table). Empty when no episode measured any of ``metrics`` beyond those of the
+    per-cell table (records from before these measures)."""
+    ok = df[df["status"] == "ok"]
+    extra = [m for m in metrics if m not in CELL_METRICS]
+    if ok.empty or ok[extra].isna().all().all():
+        out = pd.DataFrame(columns=[*CONDITION_KEYS, "n_ok", "n_failed"])
+    else:
+        out = metric_table(df, metrics, by=CONDITION_KEYS)
+        out = out.drop(columns=[c for c in out.columns if c in _SAFETY_OUT])
+    out.attrs.update(title="Traffic smoothing per cell", metrics=tuple(metrics),
+                     by=CONDITION_KEYS, condition={})  # fmt: skip
+    return out
 
 
 def safety_table(df: pd.DataFrame, by: Sequence[str] = ("policy",)) -> pd.DataFrame:

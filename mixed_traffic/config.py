@@ -320,6 +320,9 @@ class EnvConfig:
     """Add the observation key ``downstream``: the traffic's mean speed in segments ahead on
     the route, from a roadside or probe-vehicle feed (``v2x_feed``); off = the paper's
     observation."""
+    av_window: float = 200.0
+    """Reach ahead of and behind each AV along its lane whose vehicles' speeds make the
+    metrics speed_std_ahead / speed_std_behind [m]; on a closed loop at most half the loop."""
     sensors: SensorConfig = field(default_factory=SensorConfig)
     """Sensor ranges, history length and noise switch."""
     v2x_feed: V2XConfig = field(default_factory=V2XConfig)
@@ -353,6 +356,7 @@ class EnvConfig:
         _check_range(self, "lateral_resolution", 0.1, 3.2)
         _check_range(self, "speed_tolerance", 0.0, 1.0)
         _check_range(self, "reset_wait", 0.0, 86400.0)
+        _check_range(self, "av_window", 0.0, 1000.0, lo_open=True)
         for name, cls in _nested().items():
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f"EnvConfig.{name}={getattr(self, name)!r} must be a "

@@ -47,6 +47,9 @@ METRICS: dict[str, Metric] = {
         Metric("mean_speed", "speed", "m/s", "mean speed of all vehicles in the measurement segment", "higher"),
         Metric("vehicles_crossed", "crossed", "veh", "vehicles that crossed the whole measurement segment"),
         Metric("speed_std", "speed std", "m/s", "standard deviation of all (vehicle, step) speeds in the measurement segment after warm-up", "lower"),
+        Metric("fuel", "fuel", "l/100 km", "fuel of all vehicles per distance driven in the measurement segment after warm-up (SUMO's emission model; volume at the fuel's density, 742 g/l petrol)", "lower"),
+        Metric("speed_std_ahead", "speed std ahead", "m/s", "speed std of the vehicles within av_window (200 m) ahead of each AV in its lane (half a ring at most), pooled over the steps after warm-up, mean over AVs weighted by samples", "lower"),
+        Metric("speed_std_behind", "speed std behind", "m/s", "speed std of the vehicles within av_window (200 m) behind each AV in its lane (half a ring at most); below speed std ahead: the AVs leave a calmer wake", "lower"),
         Metric("flow", "flow", "veh/h/lane", "Edie's flow per lane in the measurement segment after warm-up"),
         Metric("wave_speed", "wave speed", "km/h", "propagation speed of speed disturbances (stop-and-go waves travel upstream, < 0); empty without waves"),
         Metric("av_trips", "AV trips", "trips", "AV trips that ended (arrived or terminated)"),
@@ -64,6 +67,8 @@ METRICS: dict[str, Metric] = {
 #: The paper's macroscopic and microscopic tables (Tables "Macroscopic/Microscopic Evaluation").
 MACRO = ("avg_dt_a", "avg_at_c", "avg_di_c")
 MICRO = ("min_ttc_a", "avg_off_a", "avg_vel_a", "avg_jerk_a", "avg_dec_c")
+#: Traffic smoothing: travel time, the speed spread, fuel, and the waves ahead of / behind the AVs.
+SMOOTHING = ("dt_tf", "speed_std", "fuel", "speed_std_ahead", "speed_std_behind")
 SAFETY = (
     "collisions",
     "teleports",

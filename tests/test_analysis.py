@@ -48,6 +48,12 @@ def _metrics(policy: str, density: float, penetration: float, weather: str, rng:
         else None,
         "avg_r": 0.4 - 0.1 * good + noise(0.02) if av else None,
         "avg_it": 2.1 + noise(0.1) if av else None,
+        "speed_std": 2.5 - 1.5 * penetration * (1.0 - 0.4 * good) + noise(0.1),
+        "fuel": 7.0 - 0.8 * penetration * (1.0 - 0.4 * good) + noise(0.1),
+        "speed_std_ahead": 1.2 - 0.5 * penetration + noise(0.05) if av else None,
+        "speed_std_behind": 1.2 - 0.5 * penetration - 0.3 * (1.0 - 0.5 * good) + noise(0.05)
+        if av
+        else None,
         "measured_density": density + noise(2.0),
         "mean_speed": 16.0 - 2 * (load - 1) + noise(0.3),
         "vehicles_crossed": 150 + rng.randint(-5, 5),
@@ -275,6 +281,44 @@ def test_figures(tmp_path):
         assert p is not None and p.suffix == ".png" and p.stat().st_size > 10_000
 
 
+def test_smoothing_table_figure_and_findings(results, tmp_path):
+    d, _ = results
+    with pytest.warns(UserWarning):
+        df = load_results(d)
+    table = tables.smoothing_table(df)
+    # as in the per-cell table: 2 policies x 3 shares, the 0 % reference and the failed cell
+    assert len(table) == 2 * 3 + 1 + 1
+    text = tables.to_text(table, "text")
+    for head in ("DT-TF (s)", "speed std (m/s)", "fuel (l/100 km)", "speed std ahead (m/s)",
+                 "speed std behind (m/s)"):  # fmt: skip
+        assert head in text, head
+    assert "collisions" not in text  # the safety counts stay in the per-cell table
+    path = figures.plot_smoothing(df, tmp_path)
+    assert path is not None and path.stat().st_size > 10_000
+    found = "\n".join(findings.findings(df))
+    assert "fuel with auto falls from" in found
+    assert "Speed std behind vs ahead of the AVs with auto at 20 %" in found
+    assert "calmer behind; paired t-test over 3 seeds" in found
+
+
+def test_records_without_the_smoothing_measures_still_load_and_report(tmp_path):
+    """Records written before fuel and speed_std_ahead/behind existed: NaN columns, no
+    smoothing table or figure, and the report still builds."""
+    d = tmp_path / "old"
+    records = write_results(d, failed=False, truncated=False)
+    new = ("speed_std", "fuel", "speed_std_ahead", "speed_std_behind")
+    with open(d / "records.jsonl", "w") as f:
+        for r in records:
+            r["metrics"] = {k: v for k, v in r["metrics"].items() if k not in new}
+            f.write(json.dumps(r) + "\n")
+    df = load_results(d)
+    assert df[list(new)].isna().all().all() and df["dt_tf"].notna().all()
+    assert tables.smoothing_table(df).empty
+    assert figures.plot_smoothing(df, tmp_path) is None
+    assert "smoothing" not in figures.all_figures(df, tmp_path / "figs")
+    assert build_report(d, tmp_path / "old.pdf").stat().st_size > 20_000
+
+
 def test_figures_skip_missing_dimensions(results, tmp_path):
     d, _ = results
     with pytest.warns(UserWarning):
@@ -321,6 +365,9 @@ def test_report_pdf_contains_labels_and_numbers(results, tmp_path):
         "AvgDI-C",
         "MinTTC-A",
         "AvgDEC-C",
+        "Traffic smoothing per cell",
+        "fuel (l/100 km)",
+        "speed std behind (m/s)",
     ):
         assert name in text, name
     for prov in ("abc1234", "0b0b39a57b8a", "1.28.0", "FatalTraCIError"):

@@ -38,6 +38,10 @@ def test_snapshot_fields_are_consistent(sim) -> None:
     assert all(vid.startswith("av_") == av for vid, av in zip(snap.ids, snap.is_av))
     np.testing.assert_allclose(snap.length, sim.config.vehicle.length)
     assert np.all((snap.route_progress >= 0) & (snap.route_progress <= 1))
+    # fuel from SUMO's emission model in ml/s (not mg/s): a car at ~25 m/s burns 4-12 l/100 km
+    assert snap.fuel.shape == (n,) and np.all(snap.fuel >= 0)
+    per_100km = 100.0 * snap.fuel.sum() / snap.speed.sum()
+    assert 2.0 < per_100km < 20.0
 
 
 def test_route_progress_advances(sim) -> None:
@@ -68,6 +72,7 @@ def test_second_libsumo_falls_back_to_traci_without_touching_the_first(tmp_path)
             assert len(ids_a & set(snap_a.ids)) > 0.9 * len(ids_a)
             # the TraCI snapshot (subscriptions) carries the same fields
             assert snap_b.n > 0 and np.all(snap_b.lane >= 0)
+            assert snap_b.fuel.shape == (snap_b.n,) and snap_b.fuel.sum() > 0
         finally:
             b.close()
     finally:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.flow_metrics import (
     FlowRecorder,
     delay_index,
@@ -99,6 +100,22 @@ def test_recorder_constant_speed_vehicle_by_hand() -> None:
     assert summary["measured_density"] == pytest.approx((1000 + 899) / 1039, abs=0.01)
 
 
+def test_fuel_per_distance_by_hand() -> None:
+    """0.5 ml/s at 10 m/s inside the segment is 0.05 ml/m = 5 l/100 km; a car outside the
+    segment (on the warm-up edge) and the steps before warm-up do not count."""
+    sc = load_scenario("straight")
+    hd = sc.hdmap
+    rec = FlowRecorder(hd, sc.measurement, dt=0.1, warmup=1.0)
+    for k in range(1, 30):
+        snap = _snapshot(
+            hd, 0.1 * k, ["a", "b"], [100.0, 500.0 + k], 10.0, ["warmup", "meas", "exit"]
+        )
+        snap.fuel = np.array([50.0, 0.5 if k >= 10 else 9.0])
+        rec.update(snap)
+    assert rec.summary()["fuel"] == pytest.approx(5.0)
+    assert "speed_std_ahead" not in rec.summary()  # no av_window: not measured
+
+
 def test_flow_metrics_on_a_real_straight_run(tmp_path) -> None:
     sim = start_sim(tmp_path, density=60.0, penetration=0.0, episode_length=100.0)
     rec = FlowRecorder(sim.hdmap, sim.scenario.measurement, sim.config.step_length, warmup=20.0)
@@ -121,3 +138,18 @@ def test_flow_metrics_on_a_real_straight_run(tmp_path) -> None:
     assert np.all(di >= 0.95)
     # delay index = travel time / free-flow time, per vehicle
     np.testing.assert_allclose(di * rec.free_flow_times(list(rec.vehicle_travel_times())), tt)
+
+
+def test_fuel_is_plausible_and_higher_per_km_in_stop_and_go() -> None:
+    """SUMO's emission model (HBEFA4 petrol Euro 4 by default): 4-12 l/100 km for cars cruising
+    on the highway; more per km in the ring's stop-and-go jam than in its free flow."""
+    from mixed_traffic.experiments.runner import run_episode
+
+    def fuel(scenario: str, density: float) -> float:
+        cfg = EnvConfig(scenario=scenario, density=density, penetration=0.0, episode_length=60.0)
+        return run_episode(cfg, "idm", warmup=20.0)["metrics"]["fuel"]
+
+    assert 4.0 < fuel("straight", 30.0) < 12.0
+    free, jam = fuel("ring", 25.0), fuel("ring", 85.0)
+    assert 4.0 < free < 12.0
+    assert jam > 1.5 * free

@@ -218,9 +218,8 @@ class MixedTrafficEnv(ParallelEnv):
         self._builder.reset()
         self._feed.reset(np.random.default_rng(v2x_seed))
         every = max(1, round(TRACE_INTERVAL / cfg.step_length)) if self.trace else 0
-        self._flow = FlowRecorder(
-            self.hdmap, self.scenario.measurement, cfg.step_length, self.warmup, every
-        )
+        self._flow = FlowRecorder(self.hdmap, self.scenario.measurement, cfg.step_length,
+                                  self.warmup, every, cfg.av_window)  # fmt: skip
         self._av = AVMetrics(cfg.step_length, cfg.reward.rear_speed_drop)
         self._table.reset(list(self.possible_agents) if cfg.fixed_fleet else [])
         self._last_obs = {}

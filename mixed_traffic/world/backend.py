@@ -40,6 +40,7 @@ _TRACI_VARS = (
     tc.VAR_LANE_ID,
     tc.VAR_LANEPOSITION,
     tc.VAR_LANEPOSITION_LAT,
+    tc.VAR_FUELCONSUMPTION,
 )
 _labels = itertools.count()
 _libsumo_owner: SumoBackend | None = None
@@ -61,7 +62,7 @@ def _libsumo_getters() -> tuple:
     libsumo = _libsumo()
     ls = getattr(libsumo, "_libsumo", None)
     names = ("getPosition3D", "getAngle", "getSpeed", "getAcceleration", "getLaneID",
-             "getLanePosition", "getLateralLanePosition")  # fmt: skip
+             "getLanePosition", "getLateralLanePosition", "getFuelConsumption")  # fmt: skip
     if ls is None:
         return tuple(getattr(libsumo.vehicle, m) for m in names)
     return tuple(getattr(ls, f"vehicle_{m}") for m in names)
@@ -338,6 +339,7 @@ class SumoBackend:
             lane = list(map(f[4], ids))
             lpos = list(map(f[5], ids))
             lat = list(map(f[6], ids))
+            fuel = list(map(f[7], ids))
         else:
             res = v.getAllSubscriptionResults()
             rows = [res[i] for i in ids]
@@ -348,7 +350,8 @@ class SumoBackend:
             lane = [r[tc.VAR_LANE_ID] for r in rows]
             lpos = [r[tc.VAR_LANEPOSITION] for r in rows]
             lat = [r[tc.VAR_LANEPOSITION_LAT] for r in rows]
-        return self._assemble(ids, pos, angle, speed, accel, lane, lpos, lat)
+            fuel = [r[tc.VAR_FUELCONSUMPTION] for r in rows]
+        return self._assemble(ids, pos, angle, speed, accel, lane, lpos, lat, fuel)
 
     def _lane_rows(self, lane: list[str]) -> np.ndarray:
         """(N,) lane-table row of each lane id, -1 for lanes not in the table."""
@@ -359,7 +362,7 @@ class SumoBackend:
             get = self._lane_row.get
             return np.fromiter((get(lid, -1) for lid in lane), np.int32, n)
 
-    def _assemble(self, ids, pos, angle, speed, accel, lane, lpos, lat) -> TrafficSnapshot:
+    def _assemble(self, ids, pos, angle, speed, accel, lane, lpos, lat, fuel) -> TrafficSnapshot:
         n = len(ids)
         xyz = np.array(pos, dtype=np.float64).reshape(n, 3)
         static = list(map(self._static.__getitem__, ids))
@@ -393,6 +396,7 @@ class SumoBackend:
             edge=edge,
             route_index=route_index,
             route_length=np.fromiter(map(_ITEM[4], static), np.int32, n),
+            fuel=np.array(fuel, dtype=np.float64),
         )
 
     def raw_step(self) -> None:

@@ -164,5 +164,7 @@ def sumo_args(scenario: Scenario, config: EnvConfig, route_file: Path, seed: int
         # an actionStepLength (human drivers) would switch SUMO to the ballistic update; the
         # AVs' commands are integrated with Euler steps (env/control.py), so keep Euler
         "--step-method.ballistic", "false",
+        # fuel in ml (SUMO converts at each fuel's density) instead of mg, for l/100 km
+        "--emissions.volumetric-fuel", "true",
         *scenario.extra_args,
     ]  # fmt: skip

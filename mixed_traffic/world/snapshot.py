@@ -64,6 +64,10 @@ class TrafficSnapshot:
     """(N,) int32 index of the current (or last normal) edge within the vehicle's route."""
     route_length: np.ndarray
     """(N,) int32 number of edges in the vehicle's route."""
+    fuel: np.ndarray | None = None
+    """(N,) fuel consumption in the last step [ml/s], from each vehicle's emission class in
+    SUMO's emission models (SUMO converts mass to volume at the fuel's density: 742 g/l petrol,
+    836 g/l diesel); None where not read (hand-built snapshots)."""
     departed: list[str] = field(default_factory=list)
     """Vehicles that entered the network in the last step."""
     arrived: list[str] = field(default_factory=list)

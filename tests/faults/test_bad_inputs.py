@@ -429,6 +429,7 @@ ENV_CONFIG = [
     pytest.param(lambda: EnvConfig(sensors=5), "EnvConfig.sensors=5 must be a SensorConfig", id="sensors-int"),
     pytest.param(lambda: EnvConfig(fixed_fleet="yes"), "EnvConfig.fixed_fleet='yes' must be True or False",
                  id="fixed-fleet-string"),
+    pytest.param(lambda: EnvConfig(av_window=0.0), "EnvConfig.av_window=0.0", id="zero-av-window"),
     pytest.param(lambda: SensorConfig(history=1.5), "SensorConfig.history=1.5", id="fractional-history"),
     pytest.param(lambda: SensorConfig(noise="no"), "SensorConfig.noise='no' must be True or False",
                  id="noise-string"),
