@@ -94,6 +94,7 @@ from mixed_traffic.world.boundary import PeriodicBoundary, make_boundary
 from mixed_traffic.world.demand import av_count, make_demand, write_demand
 from mixed_traffic.world.fleet_pool import FleetPool
 from mixed_traffic.world.registry import load_scenario
+from mixed_traffic.world.ring import centre_length, draw_ring_length, scaled_ring
 from mixed_traffic.world.scenario import sumo_args
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -138,22 +139,28 @@ class MixedTrafficEnv(ParallelEnv):
         self.warmup = warmup
         self.sumo_drives_avs = sumo_drives_avs
         self.trace = trace
-        self.scenario = load_scenario(cfg.scenario)
-        self.config = cfg = self.scenario.configure(cfg)
+        self._bundled = load_scenario(cfg.scenario)
+        self.config = cfg = self._bundled.configure(cfg)
         warn_coarse_step(cfg.step_length)
-        self.hdmap = self.scenario.hdmap
+        self.scenario = self._bundled
+        self.ring_length: float | None = None
+        """Centre-line length of the ring of the current episode [m] (None: no ring)."""
+        if self._bundled.ring:  # a drawn length starts at the longest: it sizes the agents
+            self.ring_length = (
+                cfg.ring_length[-1] if cfg.ring_length else round(centre_length(self._bundled), 1)
+            )
+        if cfg.ring_length:
+            self.scenario = scaled_ring(self._bundled, self.ring_length)
         self.possible_agents = [f"av_{i}" for i in range(av_count(self.scenario, cfg))]
         self._table = AgentTable(self.possible_agents)
         self._obs_space = observation_space(cfg)
         self._act_space = action_space()
         self._empty_obs = {k: np.zeros(s.shape, s.dtype) for k, s in self._obs_space.spaces.items()}
         self._empty_obs["action_mask"][FOLLOW] = 1  # a waiting AV may only follow
-        self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
-        self._controller = BicycleController(cfg.vehicle, self.hdmap, cfg.step_length)
-        self._builder = ObservationBuilder(cfg, self.hdmap)
         self._backend = SumoBackend("traci" if render_mode == "human" else cfg.backend, cfg.second_instance,
                                     gui=render_mode == "human")  # fmt: skip
-        self._backend.set_lane_table(self.hdmap.lane_ids, self.hdmap.lane_edge)
+        self._renderer: Any = None
+        self._use_map()
         self._tmp = scratch_dir()
         self._episode_rng = np.random.default_rng(cfg.seed)
         # per episode, set by reset()
@@ -168,9 +175,28 @@ class MixedTrafficEnv(ParallelEnv):
         self._step_truth: tuple[Rows, PerceptionFrame] | None = None
         self._last_obs: dict[str, dict] = {}
         self._batches = StepBatches()  # the step's observation arrays (observation_batch)
-        self._renderer: Any = None
         self._phase = "new"  # new -> running -> ended (time limit) | closed
         self._replaced: set[str] = set()  # agents whose decision the mask forbade this step
+
+    def _use_map(self) -> None:
+        """The stages built on the network: HD map, sensors, bicycle model, observations and
+        the backend's lane table (again when a reset scales the ring)."""
+        cfg = self.config
+        self.hdmap = self.scenario.hdmap
+        self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
+        self._controller = BicycleController(cfg.vehicle, self.hdmap, cfg.step_length)
+        self._builder = ObservationBuilder(cfg, self.hdmap)
+        self._backend.set_lane_table(self.hdmap.lane_ids, self.hdmap.lane_edge)
+        self._renderer = None
+
+    def _draw_ring(self, rng: np.random.Generator) -> None:
+        """Scale the ring to a length drawn from ``config.ring_length``'s (low, high) pair."""
+        if len(self.config.ring_length) < 2:
+            return
+        length = draw_ring_length(self.config.ring_length, rng)
+        if length != self.ring_length:
+            self.scenario, self.ring_length = scaled_ring(self._bundled, length), length
+            self._use_map()
 
     @property
     def agents(self) -> list[str]:
@@ -198,7 +224,10 @@ class MixedTrafficEnv(ParallelEnv):
             self._tmp = scratch_dir()
         self._phase = "running"
         cfg = replace(self.config, seed=int(seed))
-        demand_seed, sumo_seed, noise_seed = np.random.SeedSequence(int(seed)).generate_state(3)
+        demand_seed, sumo_seed, noise_seed, ring_seed = np.random.SeedSequence(
+            int(seed)
+        ).generate_state(4)
+        self._draw_ring(np.random.default_rng(ring_seed))
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
         route_file = Path(self._tmp) / "demand.rou.xml"
         sc = self.scenario
