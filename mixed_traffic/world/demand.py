@@ -1,7 +1,9 @@
 """Demand of one episode: the vehicles placed at reset and the queue that enters later.
 
 Density k [veh/km summed over lanes] fixes the initial placement on every road edge and,
-through the IDM equilibrium speed at that density, the inflow q = k·v_eq at the entries.
+through the IDM equilibrium speed at that density, the inflow q = k·v_eq at the entries: on
+an ``inflow`` scenario the later vehicles enter on a timetable at that rate, elsewhere each
+replaces one that left (``boundary``).
 Penetration p makes exactly round(p·N) of the N planned vehicles AVs (``av_0…``), chosen by
 the seed; conventional vehicles are ``hv_0…``. SUMO inserts every placed vehicle at t = 0 (the
 spacing continues across junctions, and departure speeds respect each vehicle's speed factor,
