@@ -179,3 +179,29 @@ def test_the_wave_check_passes_and_fails_on_its_thresholds() -> None:
     assert [r["pass"] for r in rows] == [True, False, True]
     slow = road_rows(roads[:1], [rec(speed_std=3.0, wave_speed=-8.0)])  # too slow a wave
     assert not slow[0]["pass"]
+
+
+# possible_agents is sized for the longest ring (and every AV of the timetable): some never
+# take part in a shorter or truncated episode
+@pytest.mark.filterwarnings("ignore:No agents present but not all possible_agents")
+@pytest.mark.parametrize(
+    "where", [{"scenario": "ring", "ring_length": (200.0, 300.0)}, {"scenario": "wave-highway"}]
+)
+def test_pettingzoo_api_on_a_drawn_ring_and_on_the_wave_road(where: dict) -> None:
+    """A ring that changes its network at reset, and an inflow road, pass PettingZoo's API and
+    seed tests (same seed, same episode)."""
+    import warnings
+
+    from pettingzoo.test import parallel_api_test, parallel_seed_test
+
+    from mixed_traffic.env import parallel_env
+
+    short = {"penetration": 0.3, "episode_length": 8.0, **where}
+    e = parallel_env(**short)
+    try:
+        parallel_api_test(e, num_cycles=80)
+    finally:
+        e.close()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # the 2nd env falls back to TraCI
+        parallel_seed_test(lambda: parallel_env(**short), num_cycles=30)
