@@ -297,6 +297,9 @@ class EnvConfig:
             raise ValueError(f"EnvConfig.episode_length={self.episode_length!r} is shorter than one "
                              f"step (step_length={self.step_length!r})")  # fmt: skip
         _check_bool(self, "fixed_fleet")
+        if self.fixed_fleet and len(self.ring_length) == 2:
+            raise ValueError(f"EnvConfig.ring_length={self.ring_length!r} draws a length per "
+                             "reset, which changes the size of a fixed_fleet: give one length")  # fmt: skip
         _check_range(self, "lateral_resolution", 0.1, 3.2)
         _check_range(self, "speed_tolerance", 0.0, 1.0)
         _check_range(self, "reset_wait", 0.0, 86400.0)

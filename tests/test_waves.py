@@ -32,6 +32,8 @@ def test_ring_length_outside_the_range_is_refused(bad) -> None:
 
 def test_ring_length_is_refused_on_a_road_and_parsed_from_the_command_line() -> None:
     assert EnvConfig(ring_length=300).ring_length == (300.0,)
+    with pytest.raises(ValueError, match="changes the size of a fixed_fleet"):
+        EnvConfig(scenario="ring", ring_length=(220.0, 270.0), fixed_fleet=True)
     with pytest.raises(ValueError, match=r"ring_length=.*'straight' is none"):
         load_scenario("straight").configure(EnvConfig(ring_length=(220.0, 270.0)))
     args = build_parser().parse_args(["--scenario", "ring", "--ring-length", "220", "270"])
