@@ -224,9 +224,9 @@ class MixedTrafficEnv(ParallelEnv):
             self._tmp = scratch_dir()
         self._phase = "running"
         cfg = replace(self.config, seed=int(seed))
-        demand_seed, sumo_seed, noise_seed, ring_seed = np.random.SeedSequence(
-            int(seed)
-        ).generate_state(4)
+        # the first three words are those of generate_state(3): other scenarios seed as before
+        words = np.random.SeedSequence(int(seed)).generate_state(4)
+        demand_seed, sumo_seed, noise_seed, ring_seed = words
         self._draw_ring(np.random.default_rng(ring_seed))
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
         route_file = Path(self._tmp) / "demand.rou.xml"
