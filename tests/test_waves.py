@@ -177,8 +177,10 @@ def test_the_wave_check_passes_and_fails_on_its_thresholds() -> None:
     assert [r["pass"] for r in failed] == [False, False]
     roads = [cell("w", "idm"), cell("w", "acc-lc", 0.02), cell("w", "acc-lc", 0.1)]
     rows = road_rows(roads, [rec(speed_std=3.0, wave_speed=-14.0),
-                             rec(av_trips=3, terminal_speed_limit=1), rec(av_trips=9)])  # fmt: skip
+                             rec(avg_vel_a=5.0, terminal_speed_limit=1), rec(avg_vel_a=5.0)])  # fmt: skip
     assert [r["pass"] for r in rows] == [True, False, True]
+    no_av = road_rows(roads[:2], [rec(speed_std=3.0, wave_speed=-14.0), rec(avg_vel_a=None)])
+    assert not no_av[1]["pass"]
     slow = road_rows(roads[:1], [rec(speed_std=3.0, wave_speed=-8.0)])  # too slow a wave
     assert not slow[0]["pass"]
 

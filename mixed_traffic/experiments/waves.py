@@ -12,7 +12,7 @@ the table gives each figure as the mean over the seeds with its range:
   slow zone has a speed std of at least 1.5 m/s and waves travelling upstream at 10 to 25
   km/h (every seed);
 - ``road_terminal``: each of ``policies`` at each of ``penetrations`` drives there with AVs
-  and without a terminal event.
+  (in every seed) and without a terminal event.
 """
 
 from __future__ import annotations
@@ -207,9 +207,10 @@ def road_rows(cells: list[Cell], records: list[dict[str, Any]]) -> list[dict[str
             ]
             events = sum(map(_terminal, got))
             trips = [m.get("av_trips") or 0 for m in got]
+            drove = all(m.get("avg_vel_a") is not None for m in got)  # AVs on the road each seed
             rows.append(_row("road_terminal", f"{road}, {policy}, {100 * p:g} % AVs",
-                             f"{events} terminal events; AV trips {_spread(trips)}",
-                             events == 0 and min(trips) > 0))  # fmt: skip
+                             f"{events} terminal events; AV trips ended {_spread(trips)}",
+                             events == 0 and drove))  # fmt: skip
     return rows
 
 
