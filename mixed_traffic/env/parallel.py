@@ -94,7 +94,7 @@ from mixed_traffic.world.boundary import PeriodicBoundary, make_boundary
 from mixed_traffic.world.demand import av_count, make_demand, write_demand
 from mixed_traffic.world.fleet_pool import FleetPool
 from mixed_traffic.world.registry import load_scenario
-from mixed_traffic.world.ring import centre_length, draw_ring_length, scaled_ring
+from mixed_traffic.world.ring import episode_ring
 from mixed_traffic.world.scenario import sumo_args
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -142,15 +142,8 @@ class MixedTrafficEnv(ParallelEnv):
         self._bundled = load_scenario(cfg.scenario)
         self.config = cfg = self._bundled.configure(cfg)
         warn_coarse_step(cfg.step_length)
-        self.scenario = self._bundled
-        self.ring_length: float | None = None
-        """Centre-line length of the ring of the current episode [m] (None: no ring)."""
-        if self._bundled.ring:  # a drawn length starts at the longest: it sizes the agents
-            self.ring_length = (
-                cfg.ring_length[-1] if cfg.ring_length else round(centre_length(self._bundled), 1)
-            )
-        if cfg.ring_length:
-            self.scenario = scaled_ring(self._bundled, self.ring_length)
+        # ring_length: the episode's ring circumference [m] (None: no ring); the longest first
+        self.scenario, self.ring_length = episode_ring(self._bundled, cfg.ring_length, None)
         self.possible_agents = [f"av_{i}" for i in range(av_count(self.scenario, cfg))]
         self._table = AgentTable(self.possible_agents)
         self._obs_space = observation_space(cfg)
@@ -179,8 +172,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._replaced: set[str] = set()  # agents whose decision the mask forbade this step
 
     def _use_map(self) -> None:
-        """The stages built on the network: HD map, sensors, bicycle model, observations and
-        the backend's lane table (again when a reset scales the ring)."""
+        """Build the network's stages: HD map, sensors, bicycle model, observations, lane table."""
         cfg = self.config
         self.hdmap = self.scenario.hdmap
         self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
@@ -188,15 +180,6 @@ class MixedTrafficEnv(ParallelEnv):
         self._builder = ObservationBuilder(cfg, self.hdmap)
         self._backend.set_lane_table(self.hdmap.lane_ids, self.hdmap.lane_edge)
         self._renderer = None
-
-    def _draw_ring(self, rng: np.random.Generator) -> None:
-        """Scale the ring to a length drawn from ``config.ring_length``'s (low, high) pair."""
-        if len(self.config.ring_length) < 2:
-            return
-        length = draw_ring_length(self.config.ring_length, rng)
-        if length != self.ring_length:
-            self.scenario, self.ring_length = scaled_ring(self._bundled, length), length
-            self._use_map()
 
     @property
     def agents(self) -> list[str]:
@@ -227,7 +210,12 @@ class MixedTrafficEnv(ParallelEnv):
         # the first three words are those of generate_state(3): other scenarios seed as before
         words = np.random.SeedSequence(int(seed)).generate_state(4)
         demand_seed, sumo_seed, noise_seed, ring_seed = words
-        self._draw_ring(np.random.default_rng(ring_seed))
+        ring, self.ring_length = episode_ring(
+            self._bundled, cfg.ring_length, np.random.default_rng(ring_seed)
+        )
+        if ring.net_file != self.scenario.net_file:  # a drawn ring length: another network
+            self.scenario = ring
+            self._use_map()
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
         route_file = Path(self._tmp) / "demand.rou.xml"
         sc = self.scenario

@@ -92,6 +92,20 @@ def draw_ring_length(spec: tuple[float, ...], rng: np.random.Generator) -> float
     return round(round(float(rng.uniform(lo, hi)) / LENGTH_STEP) * LENGTH_STEP, 1)
 
 
+def episode_ring(
+    bundled: Scenario, spec: tuple[float, ...], rng: np.random.Generator | None
+) -> tuple[Scenario, float | None]:
+    """The scenario of an episode and its ring's centre-line length [m] (None: no ring): the
+    bundled ring, or scaled to ``spec``'s one length, or to a length ``rng`` draws from its
+    (low, high) pair (``rng`` None: the longest, which sizes ``possible_agents``)."""
+    if not bundled.ring:
+        return bundled, None
+    if not spec:
+        return bundled, round(centre_length(bundled), 1)
+    length = draw_ring_length(spec, rng) if rng is not None and len(spec) == 2 else spec[-1]
+    return scaled_ring(bundled, length), length
+
+
 def centre_length(scenario: Scenario) -> float:
     """Length of a bundled ring's centre line [m]: its edges' shapes (or their nodes) summed."""
     nodes, edges = _sources(scenario.source)
