@@ -35,11 +35,13 @@ INFO_COLUMNS = (
     "created",
     "wall_time",
     "warmup",
+    "ring_length",
     "episode_length",
     "step_length",
     "config",
 )
-"""``config`` is the record's full EnvConfig as a JSON string (so the table stays columnar)."""
+"""``config`` is the record's full EnvConfig as a JSON string (so the table stays columnar);
+``ring_length`` the circumference of a ring episode [m] (drawn per episode from a range)."""
 
 METRIC_KEYS = tuple(METRICS)
 COLUMNS = (*CELL_KEYS, *INFO_COLUMNS, *METRIC_KEYS)
@@ -86,6 +88,7 @@ def _flatten(record: dict[str, Any]) -> dict[str, Any]:
     row["created"] = record.get("created")
     row["wall_time"] = record.get("wall_time")
     row["warmup"] = record.get("warmup")
+    row["ring_length"] = record.get("ring_length")  # a ring's circumference [m], else None
     row["episode_length"] = config.get("episode_length")
     row["step_length"] = config.get("step_length")
     row["config"] = json.dumps(config, sort_keys=True) if config else None
@@ -137,6 +140,7 @@ def _normalise(df: pd.DataFrame) -> pd.DataFrame:
         "penetration",
         "wall_time",
         "warmup",
+        "ring_length",
         "episode_length",
         "step_length",
         *METRIC_KEYS,

@@ -20,6 +20,8 @@ SECOND_INSTANCE = ("traci", "error")
 LANE_TERMS = ("offset", "waypoint")
 #: Highest density accepted, veh/km per lane: a 5 m car plus a 2 m standstill gap.
 JAM_DENSITY_PER_LANE = 1000.0 / 7.0
+#: Circumferences a ring scenario may be scaled to [m] (``EnvConfig.ring_length``).
+RING_LENGTH_RANGE = (150.0, 400.0)
 
 
 def _check_range(
@@ -292,6 +294,10 @@ class EnvConfig:
     density: float | None = None
     """Traffic density k summed over all lanes of the road [veh/km] (paper: 60/120/180); None =
     the scenario's default (120 veh/km unless its spec gives one: urban grids use less)."""
+    ring_length: tuple[float, ...] = ()
+    """Circumference of a ring scenario [m], 150-400: one value scales the ring to it; a (low,
+    high) pair draws a length at every reset from the episode's seed. The vehicle count
+    follows density x length. () = the ring as bundled."""
     penetration: float = 0.2
     """AV penetration rate p, the fraction of vehicles that are AVs [0-1]."""
     weather: str = "normal"
@@ -340,6 +346,7 @@ class EnvConfig:
         # the per-scenario jam density (lanes x JAM_DENSITY_PER_LANE) is checked by the demand builder
         if self.density is not None:
             _check_range(self, "density", 0.0, 1000.0, lo_open=True)
+        self._check_ring_length()
         _check_range(self, "penetration", 0.0, 1.0)
         _check_choice(self, "weather", WEATHERS)
         _check_choice(self, "backend", BACKENDS)
@@ -353,6 +360,9 @@ class EnvConfig:
                              f"step (step_length={self.step_length!r})")  # fmt: skip
         _check_bool(self, "fixed_fleet")
         _check_bool(self, "v2x")
+        if self.fixed_fleet and len(self.ring_length) == 2:
+            raise ValueError(f"EnvConfig.ring_length={self.ring_length!r} draws a length per "
+                             "reset, which changes the size of a fixed_fleet: give one length")  # fmt: skip
         _check_range(self, "lateral_resolution", 0.1, 3.2)
         _check_range(self, "speed_tolerance", 0.0, 1.0)
         _check_range(self, "reset_wait", 0.0, 86400.0)
@@ -361,6 +371,23 @@ class EnvConfig:
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f"EnvConfig.{name}={getattr(self, name)!r} must be a "
                                  f"{cls.__name__}(...) (a dict goes through EnvConfig.from_dict)")  # fmt: skip
+
+    def _check_ring_length(self) -> None:
+        """Accept one length, a (low, high) pair or (); a bare number (or a JSON list) becomes
+        a tuple."""
+        value = self.ring_length
+        if isinstance(value, (int, float)) and not isinstance(value, bool):
+            value = (value,)
+        if isinstance(value, list):
+            value = tuple(value)
+        lo, hi = RING_LENGTH_RANGE
+        ok = isinstance(value, tuple) and len(value) <= 2
+        ok = ok and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)
+        ok = ok and all(lo <= v <= hi for v in value) and list(value) == sorted(value)
+        if not ok:
+            raise ValueError(f"EnvConfig.ring_length={self.ring_length!r}: give one length or a "
+                             f"(low, high) pair within [{lo:g}, {hi:g}] m")  # fmt: skip
+        object.__setattr__(self, "ring_length", tuple(float(v) for v in value))
 
     @property
     def steps_per_episode(self) -> int:

@@ -8,6 +8,7 @@ A result record (one per episode, one JSON object per line in ``records.jsonl``)
      "status": "ok" | "failed", "error": str | None,
      "config": EnvConfig.to_dict(), "seed": int, "sumo_version": str, "git_revision": str,
      "code": str (provenance.code_key), "created": ISO-8601 time, "wall_time": s,
+     "warmup": s, "ring_length": m (a ring's circumference, else None),
      "metrics": {key: value for key in METRICS}}
 """
 

@@ -4,8 +4,10 @@ the PI controller with saturation, as batch policies over the env's observations
 
 Both command a velocity v_cmd from the bumper gap Δx to the leader in the ego's lane, the
 leader's speed v_lead and the AV's own speed v; the AV tracks it in one step (acceleration
-(v_cmd − v)/dt within its limits). They are longitudinal controllers: the lane is kept with
-ACC-LC's lateral control, and where the lane must be left (follow masked) ACC-LC drives.
+(v_cmd − v)/dt within its limits and below ACC-LC's speed cap, so that it keeps the speed
+limits, slows for lower ones ahead and stops at red lights as ACC-LC does). They are
+longitudinal controllers: the lane is kept with ACC-LC's lateral control, and where the lane
+must be left (follow masked) ACC-LC drives.
 
 FollowerStopper: with Δv⁻ = min(v_lead − v, 0) and Δx_k = Δx⁰_k + (Δv⁻)² / (2 d_k), k = 1..3,
 v_cmd is 0 below Δx_1, rises linearly to min(max(v_lead, 0), U) at Δx_2 and to U at Δx_3, and
@@ -107,7 +109,10 @@ class _SternPolicy:
         v_lead = np.where(lead, v + f["vrel"][:, CURRENT, 0], np.inf)
         u = self.memory.mean(agents, v)
         v_cmd = self.command(agents, np.maximum(gap, 0.0), v, v_lead, u)
-        accel = np.clip((v_cmd - v) / self.c.dt, -self.vehicle.max_decel, self.vehicle.max_accel)
+        # the road's rules bound the law as they bound ACC-LC: the speed limit here and the
+        # lower ones ahead (a slow zone), red lights and give-way lines
+        accel = np.minimum((v_cmd - v) / self.c.dt, plan.speed_cap())
+        accel = np.clip(accel, -self.vehicle.max_decel, self.vehicle.max_accel)
         follow = f["mask"][:, FOLLOW]
         decision = np.where(follow, FOLLOW, plan.decision)
         params = np.array(plan.params, np.float32, copy=True)
@@ -132,8 +137,9 @@ class FollowerStopper(_SternPolicy):
         closing = np.minimum(np.where(np.isfinite(v_lead), v_lead - v, 0.0), 0.0)
         dx1, dx2, dx3 = (x0 + closing**2 / (2.0 * d) for x0, d in zip(c.dx0, c.decel))
         slow = np.minimum(np.maximum(np.where(np.isfinite(v_lead), v_lead, target), 0.0), target)
-        ramp1 = slow * (gap - dx1) / (dx2 - dx1)
-        ramp2 = slow + (target - slow) * (gap - dx2) / (dx3 - dx2)
+        with np.errstate(invalid="ignore"):  # 0 x inf without a leader: target is selected
+            ramp1 = slow * (gap - dx1) / (dx2 - dx1)
+            ramp2 = slow + (target - slow) * (gap - dx2) / (dx3 - dx2)
         return np.select([gap <= dx1, gap <= dx2, gap <= dx3], [0.0, ramp1, ramp2], target)
 
 

@@ -97,6 +97,7 @@ from mixed_traffic.world.boundary import PeriodicBoundary, make_boundary
 from mixed_traffic.world.demand import av_count, make_demand, write_demand
 from mixed_traffic.world.fleet_pool import FleetPool
 from mixed_traffic.world.registry import load_scenario
+from mixed_traffic.world.ring import episode_ring
 from mixed_traffic.world.scenario import sumo_args
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -141,23 +142,22 @@ class MixedTrafficEnv(ParallelEnv):
         self.warmup = warmup
         self.sumo_drives_avs = sumo_drives_avs
         self.trace = trace
-        self.scenario = load_scenario(cfg.scenario)
-        self.config = cfg = self.scenario.configure(cfg)
+        self._bundled = load_scenario(cfg.scenario)
+        self.config = cfg = self._bundled.configure(cfg)
         warn_coarse_step(cfg.step_length)
-        self.hdmap = self.scenario.hdmap
+        # ring_length: the episode's ring circumference [m] (None: no ring); the longest first
+        self.scenario, self.ring_length = episode_ring(self._bundled, cfg.ring_length, None)
         self.possible_agents = [f"av_{i}" for i in range(av_count(self.scenario, cfg))]
         self._table = AgentTable(self.possible_agents)
         self._obs_space = observation_space(cfg)
         self._act_space = action_space()
         self._empty_obs = {k: np.zeros(s.shape, s.dtype) for k, s in self._obs_space.spaces.items()}
         self._empty_obs["action_mask"][FOLLOW] = 1  # a waiting AV may only follow
-        self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
-        self._controller = BicycleController(cfg.vehicle, self.hdmap, cfg.step_length)
-        self._builder = ObservationBuilder(cfg, self.hdmap)
-        self._feed = DownstreamFeed(cfg, len(self.possible_agents), self.scenario.ring)
         self._backend = SumoBackend("traci" if render_mode == "human" else cfg.backend, cfg.second_instance,
                                     gui=render_mode == "human")  # fmt: skip
-        self._backend.set_lane_table(self.hdmap.lane_ids, self.hdmap.lane_edge)
+        self._renderer: Any = None
+        self._use_map()
+        self._feed = DownstreamFeed(cfg, len(self.possible_agents), self.scenario.ring)
         self._tmp = scratch_dir()
         self._episode_rng = np.random.default_rng(cfg.seed)
         # per episode, set by reset()
@@ -172,9 +172,18 @@ class MixedTrafficEnv(ParallelEnv):
         self._step_truth: tuple[Rows, PerceptionFrame] | None = None
         self._last_obs: dict[str, dict] = {}
         self._batches = StepBatches()  # the step's observation arrays (observation_batch)
-        self._renderer: Any = None
         self._phase = "new"  # new -> running -> ended (time limit) | closed
         self._replaced: set[str] = set()  # agents whose decision the mask forbade this step
+
+    def _use_map(self) -> None:
+        """Build the network's stages: HD map, sensors, bicycle model, observations, lane table."""
+        cfg = self.config
+        self.hdmap = self.scenario.hdmap
+        self._perception = Perception(cfg.sensors, self.hdmap, cfg.weather)
+        self._controller = BicycleController(cfg.vehicle, self.hdmap, cfg.step_length)
+        self._builder = ObservationBuilder(cfg, self.hdmap)
+        self._backend.set_lane_table(self.hdmap.lane_ids, self.hdmap.lane_edge)
+        self._renderer = None
 
     @property
     def agents(self) -> list[str]:
@@ -202,8 +211,16 @@ class MixedTrafficEnv(ParallelEnv):
             self._tmp = scratch_dir()
         self._phase = "running"
         cfg = replace(self.config, seed=int(seed))
-        seeds = np.random.SeedSequence(int(seed)).generate_state(4)
-        demand_seed, sumo_seed, noise_seed, v2x_seed = seeds  # 4th: V2X, the rest as without
+        # the first words are those of generate_state(3): scenarios without V2X or a drawn
+        # ring seed as before
+        words = np.random.SeedSequence(int(seed)).generate_state(5)
+        demand_seed, sumo_seed, noise_seed, v2x_seed, ring_seed = words
+        ring, self.ring_length = episode_ring(
+            self._bundled, cfg.ring_length, np.random.default_rng(ring_seed)
+        )
+        if ring.net_file != self.scenario.net_file:  # a drawn ring length: another network
+            self.scenario = ring
+            self._use_map()
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
         route_file = Path(self._tmp) / "demand.rou.xml"
         sc = self.scenario

@@ -38,8 +38,8 @@ from mixed_traffic.world.backend import SumoError
 DEFAULT_OUT = Path("results/evaluate/records.jsonl")
 #: EnvConfig fields exposed as options, in help order.
 CONFIG_OPTIONS = [
-    "scenario", "density", "penetration", "weather", "episode_length", "step_length",
-    "lateral_resolution", "backend", "v2x",
+    "scenario", "density", "ring_length", "penetration", "weather", "episode_length",
+    "step_length", "lateral_resolution", "backend", "v2x",
 ]  # fmt: skip
 
 
@@ -63,6 +63,10 @@ def metrics_table(records: list[dict[str, Any]]) -> str:
         nums = [v for v in vals if isinstance(v, (int, float))]
         mean = float(np.mean(nums)) if nums else None
         rows.append([METRICS[k].label, METRICS[k].unit, *map(_fmt, vals), _fmt(mean)])
+    rings = [r.get("ring_length") for r in records]  # drawn per seed from a range
+    if any(v is not None for v in rings):
+        nums = [v for v in rings if v is not None]
+        rows.append(["ring length", "m", *map(_fmt, rings), _fmt(float(np.mean(nums)))])
     di = [r.get("diagnostics", {}).get("delay_index_crossed_mean") for r in records]
     if any(v is not None for v in di):
         nums = [v for v in di if v is not None]

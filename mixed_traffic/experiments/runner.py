@@ -104,6 +104,7 @@ def run_episode(
         metrics: dict[str, Any] = dict.fromkeys(METRICS)
         metrics.update(env.episode_metrics())
         diagnostics = env.flow_diagnostics()
+        ring_length = env.ring_length  # drawn at reset when config.ring_length is a range
         if trace is not None:
             _save_trace(Path(trace), env.trajectories(), f"{policy}, {describe(config)}")
     finally:
@@ -121,6 +122,7 @@ def run_episode(
         "error": None,
         **meta,
         "warmup": warmup,
+        "ring_length": ring_length,
         "wall_time": round(time.perf_counter() - t0, 3),
         "metrics": json_safe(metrics),
         "diagnostics": json_safe(diagnostics),

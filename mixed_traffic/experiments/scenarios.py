@@ -41,13 +41,13 @@ def main(argv: list[str] | None = None) -> int:
         print(load_scenario(args.build).net_file)
         return 0
     rows = scenario_table()
-    header = (
-        f"{'name':<22}{'family':<12}{'split':<7}{'lanes':>6}{'net km':>8}{'meas m':>8}  description"
-    )
-    print(header)
+    n = 2 + max(len(str(r["name"])) for r in rows)  # columns as wide as the longest names
+    f = 2 + max(len(str(r["family"])) for r in rows)
+    print(f"{'name':<{n}}{'family':<{f}}{'split':<7}{'lanes':>6}{'net km':>8}{'meas m':>8}  "
+          "description")  # fmt: skip
     for r in rows:
         print(
-            f"{r['name']:<22}{r['family']:<12}{r['split']:<7}{r['lanes']:>6}"
+            f"{r['name']:<{n}}{r['family']:<{f}}{r['split']:<7}{r['lanes']:>6}"
             f"{r['network_km']:>8}{r['measurement_m']:>8}  {r['description']}"
         )
     return 0

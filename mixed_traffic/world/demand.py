@@ -1,7 +1,9 @@
 """Demand of one episode: the vehicles placed at reset and the queue that enters later.
 
 Density k [veh/km summed over lanes] fixes the initial placement on every road edge and,
-through the IDM equilibrium speed at that density, the inflow q = k·v_eq at the entries.
+through the IDM equilibrium speed at that density, the inflow q = k·v_eq at the entries: on
+an ``inflow`` scenario the later vehicles enter on a timetable at that rate, elsewhere each
+replaces one that left (``boundary``).
 Penetration p makes exactly round(p·N) of the N planned vehicles AVs (``av_0…``), chosen by
 the seed; conventional vehicles are ``hv_0…``. SUMO inserts every placed vehicle at t = 0 (the
 spacing continues across junctions, and departure speeds respect each vehicle's speed factor,
@@ -52,7 +54,9 @@ class PlannedVehicle:
     depart_pos: float | None = None
     """Position on the route's first edge [m]; None = at the entry."""
     depart_lane: int | None = None
-    depart_speed: float | None = None
+    depart_speed: float | str | None = None
+    """Departure speed [m/s], or a SUMO keyword (``max``: the highest safe speed); None = the
+    speed of the last vehicle on the lane (SUMO's ``last``)."""
     speed_factor: float | None = None
     """Desired speed / speed limit [-]; None = SUMO draws it from the vehicle type."""
     vtype: str | None = None
@@ -121,7 +125,8 @@ class _Plan:
     inflow: float
     """Total inflow at the entries [veh/s]."""
     n_queue: int
-    """Vehicles queued to enter later (1.5 x the inflow over the episode, plus slack)."""
+    """Vehicles that enter later: queued to replace those that leave (1.5 x the inflow over the
+    episode, plus slack), or on an inflow scenario's timetable (the inflow over the episode)."""
 
 
 def _plan(scenario: Scenario, config: EnvConfig) -> _Plan:
@@ -134,6 +139,8 @@ def _plan(scenario: Scenario, config: EnvConfig) -> _Plan:
     if scenario.ring:  # closed: nobody enters
         return _Plan(per_lane, v_eq, 0.0, 0)
     inflow = per_lane * scenario.lanes * v_eq if v_eq > 0 else 0.0
+    if scenario.inflow:  # a timetable: the count must not depend on the seed
+        return _Plan(per_lane, v_eq, inflow, int(math.floor(inflow * config.episode_length)))
     n_queue = int(math.ceil(1.5 * inflow * config.episode_length)) + 4 * scenario.lanes
     return _Plan(per_lane, v_eq, inflow, n_queue)
 
@@ -192,7 +199,21 @@ def make_demand(scenario: Scenario, config: EnvConfig, rng: np.random.Generator)
     queue_routes = rng.choice(len(weights), size=plan.n_queue, p=weights)
     is_av = _draw_avs(len(placed.planned), plan.n_queue, config, rng)
     vehicles, queue = _vehicles(placed, queue_routes, is_av, config, rng)
+    if scenario.inflow:
+        vehicles, queue = vehicles + _timetable(queue, plan.inflow, rng), ()
     return Demand(tuple(routes), vehicles, queue, plan.v_eq, plan.inflow)
+
+
+def _timetable(queue: tuple[QueuedVehicle, ...], inflow: float,
+               rng: np.random.Generator) -> tuple[PlannedVehicle, ...]:  # fmt: skip
+    """The queued vehicles entering one every 1/``inflow`` [s] (random phase) at the highest
+    safe speed, whether or not anyone left: the demand of an open road, which a bottleneck
+    downstream cannot discharge (SUMO keeps a vehicle that finds no room until it fits)."""
+    first = 1.0 - float(rng.random())  # in (0, 1]: after the placed vehicles' t = 0
+    return tuple(
+        PlannedVehicle(q.vid, (j + first) / inflow, q.route, q.is_av, depart_speed="max")
+        for j, q in enumerate(queue)
+    )
 
 
 END_ROOM = 40.0
@@ -414,7 +435,8 @@ def write_demand(
             del attrs["type"]  # SUMO's default type, as in the user's file
         attrs["departPos"] = f"{v.depart_pos:.2f}" if v.depart_pos is not None else "base"
         attrs["departLane"] = str(v.depart_lane) if v.depart_lane is not None else "free"
-        attrs["departSpeed"] = f"{v.depart_speed:.2f}" if v.depart_speed is not None else "last"
+        speed = v.depart_speed if v.depart_speed is not None else "last"
+        attrs["departSpeed"] = speed if isinstance(speed, str) else f"{speed:.2f}"
         if v.speed_factor is not None:
             attrs["speedFactor"] = f"{v.speed_factor:.4f}"
         if r.edges:

@@ -2,7 +2,9 @@
 
 A bundled scenario is a folder ``scenarios/<family>/<variant>/`` with plain SUMO XML sources
 (``*.nod.xml``, ``*.edg.xml``, optionally ``*.con.xml``/``*.tll.xml``) and a ``spec.toml``; its
-network is built by ``network.build_network``. A user's own ``.net.xml`` or ``.sumocfg`` loads
+network is built by ``network.build_network``. How traffic enters is one of the spec's flags:
+``periodic`` (leavers re-enter behind a virtual leader), ``ring`` (a closed loop), ``inflow``
+(an open road fed on a timetable), or none (leavers re-enter at the entry). A user's own ``.net.xml`` or ``.sumocfg`` loads
 through ``user_scenario``.
 """
 
@@ -42,13 +44,11 @@ def list_scenarios() -> list[str]:
 
 def train_scenarios() -> list[str]:
     """Every bundled train-split scenario, one name per variant folder (aliases dropped)."""
-    seen, out = set(), []
-    for name, folder in sorted(_registry().items(), key=lambda kv: ("-" not in kv[0], kv[0])):
-        if folder in seen or load_scenario(name).split != "train":
-            continue
-        seen.add(folder)
-        out.append(name)
-    return sorted(out)
+    return sorted(
+        name
+        for name, folder in _registry().items()
+        if name == f"{folder.parent.name}-{folder.name}" and load_scenario(name).split == "train"
+    )
 
 
 def train_split_scenario(name: str) -> Scenario:
@@ -87,6 +87,9 @@ def _load_folder(name: str, folder: Path) -> Scenario:
             raise ValueError(f"scenario spec {spec_path} lacks the required key {key!r}")
     if spec["split"] not in SPLITS:
         raise ValueError(f"{spec_path}: split={spec['split']!r} is not one of {SPLITS}")
+    boundaries = [k for k in ("periodic", "ring", "inflow") if spec.get(k)]
+    if len(boundaries) > 1:
+        raise ValueError(f"{spec_path}: {' and '.join(boundaries)} exclude each other")
     routes = tuple(
         Route(
             edges=tuple(r.get("edges", ())),
@@ -102,6 +105,7 @@ def _load_folder(name: str, folder: Path) -> Scenario:
         split=spec["split"],
         description=spec.get("description", ""),
         net_file=build_network(folder),
+        source=folder,
         routes=routes,
         measurement=tuple(spec["measurement"]),
         lanes=int(spec["lanes"]),
@@ -109,6 +113,7 @@ def _load_folder(name: str, folder: Path) -> Scenario:
         placement_edges=tuple(spec.get("placement_edges", ())),
         periodic=bool(spec.get("periodic", False)),
         ring=bool(spec.get("ring", False)),
+        inflow=bool(spec.get("inflow", False)),
         density=float(spec.get("density", 120.0)),
     )
     _validate(scenario, spec_path)

@@ -56,6 +56,8 @@ class Scenario:
     lanes: int
     """Lanes of the main road: the reference for density (veh/km summed over lanes)."""
     sumocfg: Path | None = None
+    source: Path | None = None
+    """Folder of a bundled scenario's plain SUMO XML sources (None: a user's network)."""
     extra_args: tuple[str, ...] = ()
     placement_edges: tuple[str, ...] = field(default=())
     """Edges on which vehicles are placed at reset (default: all edges of the routes)."""
@@ -63,6 +65,10 @@ class Scenario:
     """Close the main road into a ring with a virtual leader (see ``boundary``)."""
     density: float = 120.0
     """Default density [veh/km summed over ``lanes``], used when a config gives none."""
+    inflow: bool = False
+    """An open road: vehicles enter at the density's inflow rate on a timetable, whether or not
+    others left (``demand``), so a bottleneck downstream builds a queue; else each vehicle that
+    leaves is replaced at the entry (``boundary``)."""
     ring: bool = False
     """The network is a closed loop (the first route's edges, in order): vehicles circle it for
     the whole episode, nobody enters or leaves."""
@@ -110,7 +116,8 @@ class Scenario:
 
     def configure(self, config: EnvConfig) -> EnvConfig:
         """``config`` with this scenario's default density where it gives none, checked
-        against the jam density (``ValueError``)."""
+        against the jam density and ring length (``ValueError``)."""
+        self._check_ring_length(config)
         if self.own_vehicles:
             return self._configure_own(config)
         if config.density is None:
@@ -131,6 +138,13 @@ class Scenario:
             vehicle = replace(vehicle, length=self.av_size[0], width=self.av_size[1])
         return replace(config, step_length=self.step_length or config.step_length,
                        episode_length=length, vehicle=vehicle)  # fmt: skip
+
+    def _check_ring_length(self, config: EnvConfig) -> None:
+        """Raise ``ValueError`` if ``config.ring_length`` is given for a scenario that is no
+        bundled ring."""
+        if config.ring_length and not (self.ring and self.source is not None):
+            raise ValueError(f"ring_length={list(config.ring_length)} applies to the bundled ring "
+                             f"scenarios only, and {self.name!r} is none")  # fmt: skip
 
     def check_density(self, density: float) -> None:
         """Raise ``ValueError`` unless 0 < ``density`` [veh/km] <= the jam density."""
