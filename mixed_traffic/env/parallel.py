@@ -70,25 +70,22 @@ from mixed_traffic.env.action import (
     to_physical,
 )
 from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
-from mixed_traffic.env.av_metrics import AVMetrics, AVStep
+from mixed_traffic.env.av_metrics import AVMetrics
 from mixed_traffic.env.checks import check_gui, check_reset_args, check_warmup, warn_coarse_step
 from mixed_traffic.env.control import BicycleController
 from mixed_traffic.env.flow_metrics import FlowRecorder
 from mixed_traffic.env.obs_batch import StepBatches
 from mixed_traffic.env.reward import agent_rewards
+from mixed_traffic.env.step_truth import av_step, step_memory
 from mixed_traffic.env.sumo_sync import fan_choices, follow_sumo_routes, give_way_gates
 from mixed_traffic.env.termination import agent_events
 from mixed_traffic.env.truth import (
-    FrontView,
     SpeedView,
     gather,
-    rear_conventional,
-    take_or_nan,
 )
 from mixed_traffic.paths import scratch_dir
 from mixed_traffic.schema import METRICS
 from mixed_traffic.sensing.frame import PerceptionFrame
-from mixed_traffic.sensing.geometry import ttc
 from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
 from mixed_traffic.sensing.perception import Perception
 from mixed_traffic.sensing.v2x import DownstreamFeed
@@ -391,39 +388,12 @@ class MixedTrafficEnv(ParallelEnv):
     def _record(self, snap, rows: Rows, truth: PerceptionFrame, rewards: dict[str, float],
                 changed: np.ndarray) -> None:  # fmt: skip
         """Per-AV metrics of this step (flow metrics are recorded in ``_advance``)."""
-        ids, r, n = rows.ids, rows.r, len(rows.ids)
-        front = FrontView(snap, truth, np.arange(len(r)), r)
-        rear_ids, rear_speed = rear_conventional(snap, truth)
-        prev, table = self._memory, self._table
-        pi = table.by_slot(prev.slots, np.arange(len(prev.ids)))[rows.slots]  # -1: new agent
-        prev_accel = np.where(pi >= 0, take_or_nan(prev.accel, pi), snap.accel[r])
-        # the same conventional vehicle C behind the agent as at the previous step
-        rear_now = np.array(rear_ids, dtype=object)
-        rear_before = np.array([*prev.rear_ids, ""], dtype=object)[pi]  # pi = -1 -> ""
-        same = (pi >= 0) & (rear_now != "") & (rear_before == rear_now)
-        self._av.step(
-            AVStep(ids=ids, speed=snap.speed[r], accel=snap.accel[r], prev_accel=prev_accel,
-                   lateral=snap.lateral[r],
-                   following=table.decision[rows.slots] == FOLLOW,
-                   lane_changed=changed[rows.slots],
-                   ttc=np.where(front.exists, ttc(front.gap, front.closing), np.inf),
-                   rear_ids=rear_ids, rear_speed=np.nan_to_num(rear_speed),
-                   rear_prev_speed=np.where(same, take_or_nan(prev.rear_speed, pi), np.nan),
-                   reward=np.fromiter(map(rewards.get, ids, repeat(0.0)), np.float64, n)),
-            snap.time,
-            SpeedView(snap),
-        )  # fmt: skip
+        sample = av_step(snap, rows, truth, self._table, self._memory, rewards, changed)
+        self._av.step(sample, snap.time, SpeedView(snap))
 
     def _remember(self, snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame) -> None:
         """Ground truth of this step that the next step's events and rewards compare against."""
-        r = rows.r
-        rear_ids, rear_speed = rear_conventional(snap, truth)
-        self._memory = StepMemory(
-            ids=rows.ids, slots=rows.slots, accel=snap.accel[r].copy(), lane=snap.lane[r].astype(np.int64),
-            edge=snap.edge[r].astype(np.int64),
-            next_edge=self._table.next_edge(rows.slots, snap.route_index[r]),
-            front_gap=FrontView(snap, truth, np.arange(len(r)), r).gap, rear_ids=rear_ids, rear_speed=rear_speed,
-        )  # fmt: skip
+        self._memory = step_memory(snap, rows, truth, self._table)
         self._tls_prev = dict(self._tls)
 
     def _observe(self, snap, rows: Rows, sensed: PerceptionFrame) -> dict[str, dict]:
