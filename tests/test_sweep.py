@@ -161,7 +161,7 @@ def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("argv", "message"),
     [
-        (["--policies", "magic"], "unknown policies"),
+        (["--policies", "magic"], "policy 'magic' is not available"),
         (["--workers", "0"], "--workers"),
         (["--values", "1.5"], "penetration"),
         (["--density", "--values", "-3"], "density"),
