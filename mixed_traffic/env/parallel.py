@@ -6,7 +6,9 @@ Agents
     ``possible_agents = av_0 … av_{N-1}``: every AV the episode's demand contains (fixed for a
     config). An AV becomes an agent when it enters the network and stops being one when it
     arrives (terminated, ``event="arrived"``), collides or commits another terminal event;
-    ids are never reused within an episode. ``fixed_fleet=True``: all AVs are agents from
+    ids are never reused within an episode. When the last agent leaves mid-episode, ``step``
+    runs on with nobody acting until an AV enters or the episode ends, so ``agents`` is empty
+    only at the end (``while env.agents:`` sees every AV trip). ``fixed_fleet=True``: all AVs are agents from
     reset until truncation; an AV that arrives or fails re-enters upstream under the same id
     (a failure still gives its penalty and ``event``; on a .sumocfg a pool of agents drives
     the file's AV trips in turn, ``world.fleet_pool``), and an AV waiting to (re-)enter gets
@@ -236,7 +238,7 @@ class MixedTrafficEnv(ParallelEnv):
         limit = min(self.sim_time + cfg.reset_wait, end)
         obs: dict[str, dict] = {}
         while not self.agents and self.sim_time < limit - 1e-9:
-            obs, *_ = self.step({})
+            obs, *_ = self._step_once({})
         if not self.agents and not allow_none:
             within = (f"within reset_wait={cfg.reset_wait} s" if limit < end - 1e-9
                       else f"during the {cfg.episode_length} s episode")  # fmt: skip
@@ -259,6 +261,13 @@ class MixedTrafficEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ step
     def step(self, actions: dict[str, Any]):
+        out = self._step_once(actions)
+        if self._idles():
+            out = self._idle(*out)
+        return out
+
+    def _step_once(self, actions: dict[str, Any]):
+        """One simulation step: the agents act, SUMO moves, the PettingZoo dicts."""
         self._check_step(actions)
         decision, params = stack_actions(actions, self.agents, self._act_space)  # action
         decision = self._allowed(decision)
@@ -274,6 +283,26 @@ class MixedTrafficEnv(ParallelEnv):
         obs = self._observe(snap, rows, sensed)  # observation
         self._step_truth = (rows, truth)  # reused if agents enter in _finish
         return self._finish(snap, obs, rewards, terms, events)
+
+    def _idles(self) -> bool:
+        """Whether the last live agent left mid-episode where AVs are agents one trip each
+        (not with a fixed fleet, not when SUMO drives the AVs)."""
+        return (not self.agents and self._phase == "running" and bool(self.possible_agents)
+                and not self.sumo_drives_avs and not self.config.fixed_fleet)  # fmt: skip
+
+    def _idle(self, obs: dict, rew: dict, term: dict, trunc: dict, infos: dict):
+        """Run on with nobody acting until an AV enters or the episode ends, so that
+        ``while env.agents:`` stops only at the real end. The step's dicts (of the agents that
+        just finished) gain the entries of the agents that entered (event "entered"); if the
+        episode ended, every info carries its summary under ``"episode"``."""
+        while not self.agents and self._phase == "running":
+            for mine, theirs in zip((obs, rew, term, trunc, infos), self._step_once({})):
+                mine.update(theirs)
+        if self._phase == "ended":
+            summary = self.episode_metrics()
+            for info in infos.values():
+                info["episode"] = summary
+        return obs, rew, term, trunc, infos
 
     def _check_step(self, actions: Any) -> None:
         """Name the misuse before anything moves."""
