@@ -120,6 +120,25 @@ def test_the_examples_tool_lists_sumos_networks_and_sums_per_trip() -> None:
     assert "no car lane" in text and "error: KeyError: 'x'" in text
 
 
+def test_the_games_check_resumes_and_judges_against_the_bound(tmp_path) -> None:
+    """Issue 42's check: episodes already in ``--out`` are not run again (a job that ran would
+    need SUMO and take minutes), and the verdict compares events per trip with the bound."""
+    from mixed_traffic.experiments.sumo_examples import JOB_KEYS, _run, verdict
+    from mixed_traffic.provenance import write_record_atomic
+
+    jobs = [dict(file=f"game/{g}.sumocfg", seed=s, policy="acc-lc", penetration=0.5,
+                 seconds=300.0, code="abc", path=None) for g in ("a", "b") for s in (7, 8)]  # fmt: skip
+    out = tmp_path / "games.jsonl"
+    for k, j in enumerate(jobs):
+        write_record_atomic(out, {**{key: j[key] for key in JOB_KEYS}, "status": "ok",
+                                  "av_trips": 50, "terminal": {"collision": min(k, 1)}})  # fmt: skip
+    rows = _run(jobs, workers=1, out=out)
+    assert [r["seed"] for r in rows] == [7, 8, 7, 8] and len(out.read_text().splitlines()) == 4
+    ok, line = verdict(rows, "acc-lc", 1.0)
+    assert not ok and line.startswith("FAIL: acc-lc, 3 terminal events in 200 AV trips = 1.50")
+    assert verdict(rows, "auto", 2.0)[0]
+
+
 SHORT_NET = {
     "n.nod.xml": '<nodes><node id="A" x="0" y="0"/><node id="B" x="200" y="0"/>'
     '<node id="C" x="200.5" y="0"/><node id="D" x="200.5" y="-200"/>'
