@@ -40,6 +40,11 @@ class AccLcConfig:
     emergency_decel: float = 4.0
     emergency_span: float = 2.0
     speed_factor: float = 0.95
+    long_length: float = 18.75
+    """Length assumed of a vehicle whose observed length fills the observation's scale (10 m;
+    buses of 12 m and trailers of 16.5 m are common in SUMO files): the longest road vehicle
+    the EU allows [m]. Reading such a vehicle as 10 m long put the gap to its rear up to
+    6.5 m further than it was."""
     # lights and junctions
     yellow_stop_decel: float = 3.5
     stop_margin: float = 1.5
