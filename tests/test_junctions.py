@@ -104,6 +104,20 @@ def test_a_lane_shift_is_driven_straight() -> None:
     assert m["terminal_off_road"] == 0 and m["terminal_speed_limit"] == 0
 
 
+def test_every_connection_of_a_widening_road_is_a_lane_shift() -> None:
+    """SUMO's A10KW widens a road from one lane to two at a junction: the connection to the
+    new lane jogs 3.7 m sideways at 52 deg. The HD map straightened only the first connection
+    of a lane (its ``conn_to``); read as a curve, the jog sent AVs at 18 m/s off the road or
+    into the next lane."""
+    hd = load_hdmap(GAME / "A10KW" / "osm.net.xml")
+    road = hd.wp_heading[hd.wp_offset[hd.lane_row["256366928#0_1"]]]
+    for jog in (":2620251424_0_1", ":2620251424_0_0"):
+        row = hd.lane_row[jog]
+        w = slice(hd.wp_offset[row], hd.wp_offset[row] + hd.wp_count[row])
+        turn = (hd.wp_heading[w] - road + np.pi) % (2 * np.pi) - np.pi
+        assert np.abs(turn).max() < SHIFT_STRAIGHT, jog
+
+
 def test_the_examples_tool_lists_sumos_networks_and_sums_per_trip() -> None:
     nets = sumo_examples("net")
     assert len(nets) >= 20 and any(p.name.endswith(".net.xml.gz") for p in nets)

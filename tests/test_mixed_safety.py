@@ -93,3 +93,35 @@ def test_a_merging_truck_does_not_hide_the_car_queued_in_front() -> None:
                                        np.int32), lane_pos=np.array([118.63, 40.0, 8.16]))  # fmt: skip
     nb = find_neighbours(snap, hd, np.array([0]), 90.0, turn)
     assert nb.front[0, CURRENT] == 2 and nb.on_path[0]
+
+
+def test_leaves_a_lane_shift_in_its_lane(tmp_path) -> None:
+    """SUMO's ``cross``: 1fi widens into 1si through junction lanes that jog 7 m sideways within
+    10 m. SUMO's heading follows the jog (50-60 deg off the road's heading, which the HD map
+    keeps), and ACC-LC steered against it: the yaw it built carried the AV 1.4 m into the next
+    lane after the junction, into a car queued there (a collision at 50 % AVs). It now takes
+    the course from its measured lateral speed where SUMO's heading disagrees with it."""
+    import sumo
+
+    net = Path(sumo.SUMO_HOME) / "tools" / "game" / "cross" / "cross.net.xml"
+    (tmp_path / "r.rou.xml").write_text(
+        '<routes><vehicle id="car" depart="0" departSpeed="13.89">'
+        '<route edges="1fi 1si 3o 3fo"/></vehicle></routes>'
+    )
+    cfg = tmp_path / "run.sumocfg"
+    cfg.write_text(f'<configuration><input><net-file value="{net}"/>'
+                   '<route-files value="r.rou.xml"/></input></configuration>')  # fmt: skip
+    e = parallel_env(scenario=str(cfg), penetration=1.0, episode_length=12.0)
+    policy, lateral = AccLcPolicy(), []
+    try:
+        obs, _ = e.reset(seed=0)
+        while e.agents:
+            obs, *_ = e.step(policy.actions({a: obs[a] for a in e.agents}))
+            snap = e._snap
+            if "av_0" in snap.ids:
+                i = snap.ids.index("av_0")
+                if e.hdmap.lane_ids[snap.lane[i]] == "1si_0" and snap.lane_pos[i] < 40.0:
+                    lateral.append(abs(snap.lateral[i]))
+    finally:
+        e.close()
+    assert len(lateral) > 10 and max(lateral) < 0.5, max(lateral, default=None)

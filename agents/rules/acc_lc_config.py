@@ -97,6 +97,9 @@ class AccLcConfig:
     lat_speed: float = 1.0
     lat_gain: float = 0.8
     heading_gain: float = 1.0
+    heading_trust: float = 0.15
+    """SUMO's heading counts as the course while it is within this of the course the measured
+    lateral velocity gives, and not at all beyond twice it [rad]."""
     # in its lane (follow), the course is never steeper than one that can be turned straight
     # at this curvature [1/m] within the remaining offset: creeping in a queue, a course set
     # from the lateral speed alone reached 21 deg, and when the queue moved on the ego swung

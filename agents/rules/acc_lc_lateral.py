@@ -30,7 +30,7 @@ def steer(
         [np.full_like(err, c.lat_speed), c.lat_gain * np.abs(err), np.sqrt(1.6 * np.abs(err))]
     )
     vl_des = np.sign(err) * mag
-    h = _current_course(f, v, vs)
+    h = _current_course(f, c, v, vs)
     vl_now = vs * np.sin(h)
     vl = np.clip(vl_des, vl_now - c.lat_accel * 0.25, vl_now + c.lat_accel * 0.25)
     # (up to 60 deg at walking pace: a change from standstill at a lane's end has little room)
@@ -53,12 +53,19 @@ def steer(
     return np.clip(steer / np.deg2rad(c.max_steer_deg), -1.0, 1.0)
 
 
-def _current_course(f: Features, v: np.ndarray, vs: np.ndarray) -> np.ndarray:
+def _current_course(f: Features, c: AccLcConfig, v: np.ndarray, vs: np.ndarray) -> np.ndarray:
     """(A,) current course [rad]: SUMO's heading trails the lateral path by a body length, so
     at low speed (a lane change from standstill) it lags the course far behind and the ego
-    overshoots into the next lane; there the measured lateral velocity is used."""
+    overshoots into the next lane; there the measured lateral velocity is used. So it is
+    where the two disagree by more than ``heading_trust``: SUMO's heading is the chord of
+    the body along its lane, which on a junction lane that shifts sideways or turns
+    sharply points where the car is not going (SUMO's cross: 50 deg off while the car went
+    straight on), and steering against it built up a yaw that carried the AV into the next
+    lane after the junction."""
     chi_meas = np.arcsin(np.clip(f["vlat_hist"] / vs, -0.9, 0.9))
-    wgt = np.clip((8.0 - v) / 4.0, 0.0, 1.0)
+    slow = np.clip((8.0 - v) / 4.0, 0.0, 1.0)
+    off = np.clip(np.abs(f["h"] - chi_meas) / c.heading_trust - 1.0, 0.0, 1.0)
+    wgt = np.maximum(slow, off)
     return wgt * chi_meas + (1.0 - wgt) * f["h"]
 
 
