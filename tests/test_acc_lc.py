@@ -109,6 +109,26 @@ def test_keeps_clear_of_a_vehicle_straddling_in_from_the_far_side() -> None:
     assert decision[0] != 0
 
 
+def test_keeps_the_corners_of_an_angled_vehicle_alongside_clear() -> None:
+    """Two AVs changing into one lane from both sides met side by side at +-15 deg (SUMO's
+    grid6): their centres kept the clearance, their corners did not. The clearance to a
+    vehicle alongside counts the corners a body at an angle to the lane swings out."""
+    z, m = 5, 10
+    ego = np.zeros((1, z, 5), np.float32)
+    ego[..., 0], ego[..., 2], ego[..., 3], ego[..., 4] = 8 / 40, 0.5, 1.8 / 5, -1.6 / 2
+    veh = np.zeros((1, 3, z, 12), np.float32)
+    batch = dict(ego=ego, lanes=np.zeros((1, 3, z, 4 * m), np.float32), vehicles=veh,
+                 lights=np.zeros((1, 3, z, 4), np.float32), node_mask=np.ones((1, 3, 3), np.int8),
+                 action_mask=np.ones((1, 3), np.int8))  # fmt: skip
+    pol = AccLcPolicy()
+    his = []
+    for angle in (0.0, -0.26):  # left lane, rear slot, turned towards the ego by 15 deg
+        veh[0, 0, :, 6:] = [-1.6 / 90, 0.0, angle / np.pi, 0.5, 1.8 / 5, -1.5 / 2]
+        his.append(pol._lateral_bounds(pol._features(batch))[1][0])
+    assert his[0] == pytest.approx(-0.5, abs=0.05)
+    assert his[1] == pytest.approx(-0.5 - 2.5 * np.sin(0.26), abs=0.05)
+
+
 def _one_vehicle_batch(v: float, right: list[float], lat_ego: float = 0.0):
     """One ego at speed ``v`` with one front vehicle in the right lane (features in SI)."""
     z, m = 5, 10

@@ -139,7 +139,13 @@ def lateral_bounds(f: Features, c: AccLcConfig) -> tuple[np.ndarray, np.ndarray]
     half = 0.5 * (f["wid"][:, None, None] + f["vwid"])
     # only vehicles beside us (already overlapping laterally is the longitudinal case)
     beside = along & (np.abs(y - d) > half - 0.2)
-    H = half + c.side_margin
+    # a body at an angle to the lane reaches sideways with its corners: two AVs changing into
+    # one lane from both sides met at +-15 deg with their centres 1.8 m apart (SUMO's grid6)
+    course = _current_course(f, c, f["v"], np.maximum(f["v"], 0.5))
+    ego_reach = 0.5 * f["len"] * np.sin(np.minimum(np.abs(course), c.max_body_yaw))
+    other_yaw = np.minimum(np.abs(f["h"][:, None, None] + f["vhdg"]), c.max_body_yaw)
+    other_reach = 0.5 * f["vlen"] * np.sin(other_yaw)
+    H = half + c.side_margin + ego_reach[:, None, None] + other_reach
     hi = np.where(beside & (y > d), y - H, np.inf).min(axis=(1, 2))
     lo = np.where(beside & (y <= d), y + H, -np.inf).max(axis=(1, 2))
     squeezed = lo > hi
