@@ -78,9 +78,8 @@ class AccLcConfig:
     side_margin: float = 0.4
     side_long_margin: float = 2.0
     max_body_yaw: float = 0.5
-    """Largest angle to the lane [rad] at which a body's corners are counted in the clearance to
-    vehicles alongside (beyond it the heading is SUMO's drawing at a junction, not a body
-    across the lane)."""
+    """Largest angle of its course to the lane [rad] at which the ego's corners are counted in
+    its clearance to vehicles alongside."""
     # hidden vehicle: one may sit right ahead of a slower visible neighbour (bumper gap
     # ``hidden_gap``) and pull into our lane; pass slow neighbours only as fast as we could stop
     hidden_gap: float = 1.0

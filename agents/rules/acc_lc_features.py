@@ -13,7 +13,7 @@ Lengths (``len``, ``vlen``, ``h_len``) that fill the observation's 10 m scale ar
 - speed-limit preview (A, 3, k): ``pv_dist`` [m] (inf = none) and ``pv_speed`` [m/s] of the
   drops ahead (k = 0 for an observation without ``limits``);
 - neighbours of the latest frame (A, 3, 2: lane column x front/rear): ``present``, ``vdist``,
-  ``vrel``, ``vhdg`` (heading relative to the ego's), ``vlen``, ``vwid``, ``vlat``;
+  ``vrel``, ``vlen``, ``vwid``, ``vlat``;
 - front vehicles of the last frames since the last lane switch (A, 3, K): ``h_dist`` (extrapolated
   to now), ``h_rel``, ``h_len``, ``h_wid``, ``h_lat``;
 - ``exists`` (A, 3) lanes, ``mask`` (A, 3) allowed decisions, ``light`` (A, 3) majority state
@@ -122,7 +122,6 @@ def _neighbour_features(
     f["present"] = present
     f["vdist"] = np.where(present, vv[..., 0], np.array([np.inf, -np.inf]))
     f["vrel"] = vv[..., 1]
-    f["vhdg"] = vv[..., 2]
     f["vlen"] = vv[..., 3]
     f["vwid"] = vv[..., 4]
     f["vlat"] = vv[..., 5]

@@ -139,15 +139,20 @@ def lateral_bounds(f: Features, c: AccLcConfig) -> tuple[np.ndarray, np.ndarray]
     half = 0.5 * (f["wid"][:, None, None] + f["vwid"])
     # only vehicles beside us (already overlapping laterally is the longitudinal case)
     beside = along & (np.abs(y - d) > half - 0.2)
-    # a body at an angle to the lane reaches sideways with its corners: two AVs changing into
-    # one lane from both sides met at +-15 deg with their centres 1.8 m apart (SUMO's grid6)
+    # at an angle to the lane the ego reaches sideways with its corners: two AVs changing into
+    # one lane from both sides met at +-15 deg with their centres 1.8 m apart (SUMO's grid6).
+    # (Only its own: a neighbour's heading is SUMO's drawing, and a long one's far corner is
+    # not beside us; counting them pushed an AV into the other lane beside a truck.)
     course = _current_course(f, c, f["v"], np.maximum(f["v"], 0.5))
-    ego_reach = 0.5 * f["len"] * np.sin(np.minimum(np.abs(course), c.max_body_yaw))
-    other_yaw = np.minimum(np.abs(f["h"][:, None, None] + f["vhdg"]), c.max_body_yaw)
-    other_reach = 0.5 * f["vlen"] * np.sin(other_yaw)
-    H = half + c.side_margin + ego_reach[:, None, None] + other_reach
+    reach = 0.5 * f["len"] * np.sin(np.minimum(np.abs(course), c.max_body_yaw))
+    H = half + c.side_margin + reach[:, None, None]
     hi = np.where(beside & (y > d), y - H, np.inf).min(axis=(1, 2))
     lo = np.where(beside & (y <= d), y + H, -np.inf).max(axis=(1, 2))
+    # never off the road to keep clear: squeezed against a road edge by a neighbour in a
+    # queue, an AV steered hard into the kerb at walking pace and left the road (A10KW)
+    edge = 0.5 * (c.lane_width_min - f["wid"])
+    hi = np.maximum(hi, np.where(f["exists"][:, 2], -np.inf, -edge))
+    lo = np.minimum(lo, np.where(f["exists"][:, 0], np.inf, edge))
     squeezed = lo > hi
     mid = 0.5 * (np.where(squeezed, lo, 0.0) + np.where(squeezed, hi, 0.0))
     return np.where(squeezed, mid, lo), np.where(squeezed, mid, hi)
