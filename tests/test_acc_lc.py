@@ -109,6 +109,32 @@ def test_keeps_clear_of_a_vehicle_straddling_in_from_the_far_side() -> None:
     assert decision[0] != 0
 
 
+def test_keeps_its_corners_clear_of_a_vehicle_alongside() -> None:
+    """Two AVs changing into one lane from both sides met side by side at +-15 deg (SUMO's
+    grid6): their centres kept the clearance, their corners did not. The clearance to a
+    vehicle alongside counts the corners the ego swings out at an angle to the lane, and
+    stops at the road's edge where there is no lane beyond."""
+    z, m, v, course = 5, 10, 8.0, 0.26
+    ego = np.zeros((1, z, 5), np.float32)
+    ego[..., 0], ego[..., 2], ego[..., 3] = v / 40, 0.5, 1.8 / 5
+    veh = np.zeros((1, 3, z, 12), np.float32)
+    veh[0, 0, :, 6:] = [-1.6 / 90, 0.0, 0.0, 0.5, 1.8 / 5, -1.5 / 2]  # left lane, rear slot
+    batch = dict(ego=ego, lanes=np.zeros((1, 3, z, 4 * m), np.float32), vehicles=veh,
+                 lights=np.zeros((1, 3, z, 4), np.float32), node_mask=np.ones((1, 3, 3), np.int8),
+                 action_mask=np.ones((1, 3), np.int8))  # fmt: skip
+    pol = AccLcPolicy()
+    his = []
+    for angle in (0.0, course):  # heading and lateral motion agree: the ego's course
+        ego[0, :, 1] = angle / np.pi
+        ego[0, :, 4] = (-1.6 + v * np.sin(angle) * 0.1 * (np.arange(z) - z + 1)) / 2
+        his.append(pol._lateral_bounds(pol._features(batch))[1][0])
+    assert his[0] == pytest.approx(-0.5, abs=0.05)
+    assert his[1] == pytest.approx(-0.5 - 2.5 * np.sin(course), abs=0.05)
+    batch["node_mask"][0, 2] = 0  # no lane to the right: better squeezed than in the kerb
+    hi = pol._lateral_bounds(pol._features(batch))[1][0]
+    assert hi == pytest.approx(-0.5 * (pol.c.lane_width_min - 1.8))
+
+
 def _one_vehicle_batch(v: float, right: list[float], lat_ego: float = 0.0):
     """One ego at speed ``v`` with one front vehicle in the right lane (features in SI)."""
     z, m = 5, 10

@@ -104,6 +104,20 @@ def test_a_lane_shift_is_driven_straight() -> None:
     assert m["terminal_off_road"] == 0 and m["terminal_speed_limit"] == 0
 
 
+def test_every_connection_of_a_widening_road_is_a_lane_shift() -> None:
+    """SUMO's A10KW widens a road from one lane to two at a junction: the connection to the
+    new lane jogs 3.7 m sideways at 52 deg. The HD map straightened only the first connection
+    of a lane (its ``conn_to``); read as a curve, the jog sent AVs at 18 m/s off the road or
+    into the next lane."""
+    hd = load_hdmap(GAME / "A10KW" / "osm.net.xml")
+    road = hd.wp_heading[hd.wp_offset[hd.lane_row["256366928#0_1"]]]
+    for jog in (":2620251424_0_1", ":2620251424_0_0"):
+        row = hd.lane_row[jog]
+        w = slice(hd.wp_offset[row], hd.wp_offset[row] + hd.wp_count[row])
+        turn = (hd.wp_heading[w] - road + np.pi) % (2 * np.pi) - np.pi
+        assert np.abs(turn).max() < SHIFT_STRAIGHT, jog
+
+
 def test_the_examples_tool_lists_sumos_networks_and_sums_per_trip() -> None:
     nets = sumo_examples("net")
     assert len(nets) >= 20 and any(p.name.endswith(".net.xml.gz") for p in nets)
@@ -118,6 +132,25 @@ def test_the_examples_tool_lists_sumos_networks_and_sums_per_trip() -> None:
     text = summary(rows)
     assert text.splitlines()[-1] == "all: 2 terminal events in 40 AV trips = 5.0 % per trip"
     assert "no car lane" in text and "error: KeyError: 'x'" in text
+
+
+def test_the_games_check_resumes_and_judges_against_the_bound(tmp_path) -> None:
+    """Issue 42's check: episodes already in ``--out`` are not run again (a job that ran would
+    need SUMO and take minutes), and the verdict compares events per trip with the bound."""
+    from mixed_traffic.experiments.sumo_examples import JOB_KEYS, _run, verdict
+    from mixed_traffic.provenance import write_record_atomic
+
+    jobs = [dict(file=f"game/{g}.sumocfg", seed=s, policy="acc-lc", penetration=0.5,
+                 seconds=300.0, code="abc", path=None) for g in ("a", "b") for s in (7, 8)]  # fmt: skip
+    out = tmp_path / "games.jsonl"
+    for k, j in enumerate(jobs):
+        write_record_atomic(out, {**{key: j[key] for key in JOB_KEYS}, "status": "ok",
+                                  "av_trips": 50, "terminal": {"collision": min(k, 1)}})  # fmt: skip
+    rows = _run(jobs, workers=1, out=out)
+    assert [r["seed"] for r in rows] == [7, 8, 7, 8] and len(out.read_text().splitlines()) == 4
+    ok, line = verdict(rows, "acc-lc", 1.0)
+    assert not ok and line.startswith("FAIL: acc-lc, 3 terminal events in 200 AV trips = 1.50")
+    assert verdict(rows, "auto", 2.0)[0]
 
 
 SHORT_NET = {

@@ -53,7 +53,7 @@ Chunk = dict[str, Any]
 (n,) float32, the expert labels ``labelled`` (n,) float32, ``label_decision`` (n,) int64 and
 ``label_params`` (n, 3, 2) float32 (see :class:`agents.learning.replay.ReplayBuffer`); plus
 ``worker_id``, ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo``
-(decisions in the chunk taken by the demonstrator), ``sim_steps`` (env steps taken),
+(decisions in the chunk taken by the demonstrator), ``sim_steps`` (simulation steps taken),
 ``trips``/``terminals``/``collisions`` (AV trips that ended in the chunk: arrived or terminal;
 terminal events; collisions) and ``episodes`` (list of :func:`episode_stats` dicts of the
 episodes that ended)."""
@@ -257,12 +257,13 @@ class RolloutWorker:
     def _step(self) -> None:
         """One env step for all current agents; closed transitions go to the LocalBuffer."""
         env = self.env
-        agents = list(env.agents)
+        agents, before = list(env.agents), env.sim_time
         if not agents:  # AVs queued upstream: let the simulation run on
             self.obs, *_ = env.step({})
         else:
             self._step_agents(env, agents)
-        self._sim_steps += 1
+        # a step runs on until an AV enters when the last one leaves mid-episode
+        self._sim_steps += round((env.sim_time - before) / env.config.step_length)
         if not env.agents and env.sim_time >= env.config.episode_length - 1e-6:
             self._end_episode(env)
 

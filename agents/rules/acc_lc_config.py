@@ -57,6 +57,11 @@ class AccLcConfig:
     emergency_decel: float = 4.0
     emergency_span: float = 2.0
     speed_factor: float = 0.95
+    long_length: float = 18.75
+    """Length assumed of a vehicle whose observed length fills the observation's scale (10 m;
+    buses of 12 m and trailers of 16.5 m are common in SUMO files): the longest road vehicle
+    the EU allows [m]. Reading such a vehicle as 10 m long put the gap to its rear up to
+    6.5 m further than it was."""
     # lights and junctions
     yellow_stop_decel: float = 3.5
     stop_margin: float = 1.5
@@ -89,6 +94,9 @@ class AccLcConfig:
     # lateral envelope: clearance kept to vehicles alongside (longitudinal overlap)
     side_margin: float = 0.4
     side_long_margin: float = 2.0
+    max_body_yaw: float = 0.5
+    """Largest angle of its course to the lane [rad] at which the ego's corners are counted in
+    its clearance to vehicles alongside."""
     # hidden vehicle: one may sit right ahead of a slower visible neighbour (bumper gap
     # ``hidden_gap``) and pull into our lane; pass slow neighbours only as fast as we could stop
     hidden_gap: float = 1.0
@@ -109,6 +117,9 @@ class AccLcConfig:
     lat_speed: float = 1.0
     lat_gain: float = 0.8
     heading_gain: float = 1.0
+    heading_trust: float = 0.15
+    """SUMO's heading counts as the course while it is within this of the course the measured
+    lateral velocity gives, and not at all beyond twice it [rad]."""
     # in its lane (follow), the course is never steeper than one that can be turned straight
     # at this curvature [1/m] within the remaining offset: creeping in a queue, a course set
     # from the lateral speed alone reached 21 deg, and when the queue moved on the ego swung

@@ -3,6 +3,9 @@
 :func:`features` returns a dict of (A, ...) arrays (the layout of DESIGN §6, normalisation
 constants of ``mixed_traffic.sensing.observation`` via ``mixed_traffic.env.api``):
 
+Lengths (``len``, ``vlen``, ``h_len``) that fill the observation's 10 m scale are read as
+``AccLcConfig.long_length``: the vehicle is at least that long, and its rear may be far behind.
+
 - ego: ``v``, ``h`` (heading), ``len``, ``wid``, ``d`` (lateral offset), ``vlat_hist`` (lateral
   velocity from the offset history, unwrapped across lane switches), ``v_mean`` (speed over
   the observed history frames);
@@ -47,14 +50,18 @@ def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarr
     lights = np.asarray(ob["lights"], np.float64)  # (A, 3, z, 4)
     A = ego.shape[0]
     f, dh, valid = _ego_features(ego, c.dt)
+    f["len"] = _length(ego[:, -1, 2], c)
     m = lanes.shape[-1] // 4
     wp = lanes[:, :, -1].reshape(A, 3, m, 4) * WAYPOINT_SCALE
     f["wp_speed"] = wp[..., 3]  # (A, 3, m)
     f["wp_orient"] = wp[..., 2]
     _preview_features(f, ob, c)
-    scale = np.array([c.lidar_range, SPEED_SCALE, np.pi, 10.0, 5.0, 2.0])
+    scale = np.array([c.lidar_range, SPEED_SCALE, np.pi, EGO_SCALE[2], 5.0, 2.0])
     _neighbour_features(f, veh, scale, A)
     _history_features(f, veh, scale, dh, valid, c.dt)
+    f["vlen"] = _length(veh[:, :, -1].reshape(A, 3, 2, 6)[..., 3], c)
+    K = f["h_len"].shape[-1]
+    f["h_len"] = _length(veh[:, :, -K:, 3], c)
     nm = np.asarray(ob["node_mask"])
     f["exists"] = nm[:, :, 0] > 0
     f["mask"] = np.asarray(ob["action_mask"]) > 0
@@ -65,6 +72,12 @@ def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarr
     # an older observation has no give_way key: every line may then be one
     f["give_way"] = np.asarray(ob["give_way"])[:, 1] > 0 if "give_way" in ob else np.ones(A, bool)
     return f
+
+
+def _length(norm: np.ndarray, c: AccLcConfig) -> np.ndarray:
+    """Lengths [m] of normalised observed lengths (any shape); a full scale (the observation
+    clips longer vehicles to it) reads as ``c.long_length``."""
+    return np.where(norm >= 1.0 - 1e-6, c.long_length, norm * EGO_SCALE[2])
 
 
 def _preview_features(f: dict[str, np.ndarray], ob: Mapping[str, np.ndarray], c: AccLcConfig

@@ -30,7 +30,7 @@ def steer(
         [np.full_like(err, c.lat_speed), c.lat_gain * np.abs(err), np.sqrt(1.6 * np.abs(err))]
     )
     vl_des = np.sign(err) * mag
-    h = _current_course(f, v, vs)
+    h = _current_course(f, c, v, vs)
     vl_now = vs * np.sin(h)
     vl = np.clip(vl_des, vl_now - c.lat_accel * 0.25, vl_now + c.lat_accel * 0.25)
     # (up to 60 deg at walking pace: a change from standstill at a lane's end has little room)
@@ -53,12 +53,19 @@ def steer(
     return np.clip(steer / np.deg2rad(c.max_steer_deg), -1.0, 1.0)
 
 
-def _current_course(f: Features, v: np.ndarray, vs: np.ndarray) -> np.ndarray:
+def _current_course(f: Features, c: AccLcConfig, v: np.ndarray, vs: np.ndarray) -> np.ndarray:
     """(A,) current course [rad]: SUMO's heading trails the lateral path by a body length, so
     at low speed (a lane change from standstill) it lags the course far behind and the ego
-    overshoots into the next lane; there the measured lateral velocity is used."""
+    overshoots into the next lane; there the measured lateral velocity is used. So it is
+    where the two disagree by more than ``heading_trust``: SUMO's heading is the chord of
+    the body along its lane, which on a junction lane that shifts sideways or turns
+    sharply points where the car is not going (SUMO's cross: 50 deg off while the car went
+    straight on), and steering against it built up a yaw that carried the AV into the next
+    lane after the junction."""
     chi_meas = np.arcsin(np.clip(f["vlat_hist"] / vs, -0.9, 0.9))
-    wgt = np.clip((8.0 - v) / 4.0, 0.0, 1.0)
+    slow = np.clip((8.0 - v) / 4.0, 0.0, 1.0)
+    off = np.clip(np.abs(f["h"] - chi_meas) / c.heading_trust - 1.0, 0.0, 1.0)
+    wgt = np.maximum(slow, off)
     return wgt * chi_meas + (1.0 - wgt) * f["h"]
 
 
@@ -132,9 +139,20 @@ def lateral_bounds(f: Features, c: AccLcConfig) -> tuple[np.ndarray, np.ndarray]
     half = 0.5 * (f["wid"][:, None, None] + f["vwid"])
     # only vehicles beside us (already overlapping laterally is the longitudinal case)
     beside = along & (np.abs(y - d) > half - 0.2)
-    H = half + c.side_margin
+    # at an angle to the lane the ego reaches sideways with its corners: two AVs changing into
+    # one lane from both sides met at +-15 deg with their centres 1.8 m apart (SUMO's grid6).
+    # (Only its own: a neighbour's heading is SUMO's drawing, and a long one's far corner is
+    # not beside us; counting them pushed an AV into the other lane beside a truck.)
+    course = _current_course(f, c, f["v"], np.maximum(f["v"], 0.5))
+    reach = 0.5 * f["len"] * np.sin(np.minimum(np.abs(course), c.max_body_yaw))
+    H = half + c.side_margin + reach[:, None, None]
     hi = np.where(beside & (y > d), y - H, np.inf).min(axis=(1, 2))
     lo = np.where(beside & (y <= d), y + H, -np.inf).max(axis=(1, 2))
+    # never off the road to keep clear: squeezed against a road edge by a neighbour in a
+    # queue, an AV steered hard into the kerb at walking pace and left the road (A10KW)
+    edge = 0.5 * (c.lane_width_min - f["wid"])
+    hi = np.maximum(hi, np.where(f["exists"][:, 2], -np.inf, -edge))
+    lo = np.minimum(lo, np.where(f["exists"][:, 0], np.inf, edge))
     squeezed = lo > hi
     mid = 0.5 * (np.where(squeezed, lo, 0.0) + np.where(squeezed, hi, 0.0))
     return np.where(squeezed, mid, lo), np.where(squeezed, mid, hi)

@@ -6,11 +6,12 @@ Agents
     ``possible_agents = av_0 … av_{N-1}``: every AV the episode's demand contains (fixed for a
     config). An AV becomes an agent when it enters the network and stops being one when it
     arrives (terminated, ``event="arrived"``), collides or commits another terminal event;
-    ids are never reused within an episode. ``fixed_fleet=True``: all AVs are agents from
-    reset until truncation; an AV that arrives or fails re-enters upstream under the same id
-    (a failure still gives its penalty and ``event``; on a .sumocfg a pool of agents drives
-    the file's AV trips in turn, ``world.fleet_pool``), and an AV waiting to (re-)enter gets
-    the empty observation (only ``follow`` allowed) and its actions are ignored.
+    ids are never reused within an episode; ``step`` runs on until an AV enters, so ``agents``
+    is empty only at the end. ``fixed_fleet=True``: all AVs are agents from reset until
+    truncation; an AV that arrives or fails re-enters upstream under the same id (a failure
+    still gives its penalty and ``event``; on a .sumocfg a pool of agents drives the file's AV
+    trips in turn, ``world.fleet_pool``); one waiting to (re-)enter gets the empty observation
+    (only ``follow`` allowed) and its actions are ignored.
 Observation
     ``Dict(ego (z,5), lanes (3,z,4m), vehicles (3,z,12), lights (3,z,4), limits (3,k,2),
     give_way (3,), node_mask (3,3), action_mask (3,))``, see ``mixed_traffic.sensing.
@@ -255,7 +256,7 @@ class MixedTrafficEnv(ParallelEnv):
         limit = min(self.sim_time + cfg.reset_wait, end)
         obs: dict[str, dict] = {}
         while not self.agents and self.sim_time < limit - 1e-9:
-            obs, *_ = self.step({})
+            obs, *_ = self._step_once({})
         if not self.agents and not allow_none:
             within = (f"within reset_wait={cfg.reset_wait} s" if limit < end - 1e-9
                       else f"during the {cfg.episode_length} s episode")  # fmt: skip
@@ -278,6 +279,11 @@ class MixedTrafficEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ step
     def step(self, actions: dict[str, Any]):
+        out = self._step_once(actions)
+        return self._idle(*out) if self._idles() else out
+
+    def _step_once(self, actions: dict[str, Any]):
+        """One simulation step: the agents act, SUMO moves, the PettingZoo dicts."""
         self._check_step(actions)
         decision, params = stack_actions(actions, self.agents, self._act_space)  # action
         decision = self._allowed(decision)
@@ -293,6 +299,23 @@ class MixedTrafficEnv(ParallelEnv):
         obs = self._observe(snap, rows, sensed)  # observation
         self._step_truth = (rows, truth)  # reused if agents enter in _finish
         return self._finish(snap, obs, rewards, terms, events)
+
+    def _idles(self) -> bool:
+        """The last agent left mid-episode (one trip per agent, the env drives the AVs)."""
+        return (not self.agents and self._phase == "running" and bool(self.possible_agents)
+                and not self.sumo_drives_avs and not self.config.fixed_fleet)  # fmt: skip
+
+    def _idle(self, obs: dict, rew: dict, term: dict, trunc: dict, infos: dict):
+        """Run on with nobody acting until an AV enters (its entries join the step's dicts)
+        or the episode ends (every info then carries ``"episode"``): ``while env.agents:``."""
+        while not self.agents and self._phase == "running":
+            for mine, theirs in zip((obs, rew, term, trunc, infos), self._step_once({})):
+                mine.update(theirs)
+        if self._phase == "ended":
+            summary = self.episode_metrics()
+            for info in infos.values():
+                info["episode"] = summary
+        return obs, rew, term, trunc, infos
 
     def _check_step(self, actions: Any) -> None:
         """Name the misuse before anything moves."""

@@ -50,6 +50,7 @@ def merge_leaders(
     max_range: float,
     next_edge: np.ndarray | None = None,
     via: np.ndarray | None = None,
+    lead_gap: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The nearest vehicle ahead of each agent that merges into its path at a junction.
 
@@ -57,11 +58,11 @@ def merge_leaders(
     the same normal lane as one of the path's junction lanes. One is ahead when its front is
     nearer that merge point than the agent's front; its bumper gap is then (merge point of the
     agent - the candidate's remaining distance) - its length, at least 0 (side by side, it
-    goes first).
-
-    Returns:
-        (A,) snapshot row of the nearest one (-1 if none); (A,) bumper gap [m] (+inf if none);
-        (A, 4) its ``PATH_GEOMETRY`` (speed, length, width, lateral 0).
+    goes first). With ``lead_gap`` (A,) [m], the bumper gap to the agent's lane leader (+inf:
+    none), only merge points before that leader's rear count: a vehicle merging in enters the
+    path there, so it cannot come between the agent and a leader that has not passed the
+    merge point yet (issue 42: on SUMO's ``cross``, a truck about to merge hid a car queued at
+    a red light in front of the agent, which drove into the car).
     """
     rows = np.asarray(rows, dtype=np.int64)
     A = len(rows)
@@ -96,6 +97,8 @@ def merge_leaders(
     front = h_merge[pa, ph] - c_rem[pc]  # the candidate's front along the agent's path
     on_path = (hops[pa] == vlane[v][:, None]).any(axis=1)
     ahead = (front > 0) & ~on_path & (v != rows[pa])
+    if lead_gap is not None:
+        ahead &= h_merge[pa, ph] < np.asarray(lead_gap, np.float64)[pa]
     if not ahead.any():
         return none
     pa, v, front = pa[ahead], v[ahead], front[ahead]

@@ -229,7 +229,7 @@ def _in_the_way(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np
     on_path, geom = np.zeros(A, bool), np.zeros((A, len(PATH_GEOMETRY)))
     for other, gap, other_geom in (
         path_blockers(snap, hdmap, rows, max_range, next_edge, lead_gap, via),
-        merge_leaders(snap, hdmap, rows, max_range, next_edge, via),
+        merge_leaders(snap, hdmap, rows, max_range, next_edge, via, lead_gap),
         _straddlers(snap, hdmap, rows, lanes, i, pos, srt, max_range),
     ):
         take = (other >= 0) & (gap < lead_gap)

@@ -35,8 +35,9 @@ SHIFT_ANGLE = np.deg2rad(45.0)
 SHIFT_STRAIGHT = np.deg2rad(20.0)
 #: Extra cost of a turnaround in ``HDMap.fastest_path`` [s].
 UTURN_PENALTY = 120.0
-_CACHE_VERSION = "hdmap-v8"  # v2: sumolib; v3: lane permissions; v4: yield links; v5: shifts,
-# turnarounds; v6: internal yields; v7: unsignalised links at signals; v8: fans
+_CACHE_VERSION = "hdmap-v9"  # v2: sumolib; v3: lane permissions; v4: yield links; v5: shifts,
+# turnarounds; v6: internal yields; v7: unsignalised links at signals; v8: fans; v9: the shifts
+# of every connection of a fanning lane
 YIELD_STATES = frozenset("m=swZ")
 """SUMO link states that give way to foes (minor, equal, stop, all-way stop, zipper)."""
 CAR = "passenger"
@@ -375,7 +376,10 @@ def build_hdmap(net_file: str | Path, vclass: str = CAR) -> HDMap:
         wp_heading=np.concatenate([hdg for _, hdg in samples]),
         wp_lane=np.repeat(np.arange(len(lanes), dtype=np.int32), counts),
     )
-    _straighten_shifts(hdmap)
+    row = {lid: i for i, lid in enumerate(lane_ids)}
+    vias = [(row[ln.getID()], row[c.getViaLaneID()]) for ln in lanes for c in ln.getOutgoing()
+            if c.getViaLaneID() in row]  # fmt: skip
+    _straighten_shifts(hdmap, vias)
     return hdmap
 
 
@@ -391,8 +395,11 @@ def _gives_way(c: Any) -> bool:
     return "1" in node._prohibits.get(node.getLinkIndex(c), "")  # sumolib keeps it private
 
 
-def _straighten_shifts(hd: HDMap) -> None:
-    """Give the waypoints of every lane shift the road's heading (in place).
+def _straighten_shifts(hd: HDMap, vias: list[tuple[int, int]]) -> None:
+    """Give the waypoints of every lane shift the road's heading (in place); ``vias``: (lane,
+    junction lane) rows of every connection through a junction lane (``conn_to`` holds one
+    per next edge: SUMO's A10KW widens a road into two lanes through a jog of 52 deg that was
+    left a curve, and the AVs that took it left the road or drifted into the next lane).
 
     A lane shift is a junction lane that leaves the road's direction by more than
     ``SHIFT_ANGLE`` although the road keeps it (within ``SHIFT_STRAIGHT``) across the
@@ -400,10 +407,9 @@ def _straighten_shifts(hd: HDMap) -> None:
     (a 4.8 m jump on a 4.8 m junction lane of SUMO's highway example), and zero-length
     junction lanes have no heading at all. SUMO moves a vehicle across along the lane; read as
     a curve, the kink asked for yaw no car has and sent the AVs off the road."""
-    if not hd.conn_to:
+    if not vias:
         return
-    src = np.fromiter((a for a, _ in hd.conn_to), np.int64, len(hd.conn_to))
-    via = np.fromiter(hd.conn_to.values(), np.int64, len(hd.conn_to))
+    src, via = np.array(vias, dtype=np.int64).reshape(-1, 2).T
     dst = hd.lane_next[via].astype(np.int64)
     ok = (hd.lane_edge[via] < 0) & (dst >= 0)
     ok[ok] &= hd.lane_edge[dst[ok]] >= 0
