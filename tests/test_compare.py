@@ -39,7 +39,7 @@ def _run_folder(tmp: Path) -> Path:
     return run_dir
 
 
-def test_checkpoints_are_ranked_by_their_excess_over_acc_lc(tmp_path: Path) -> None:
+def test_checkpoints_are_ranked_by_their_excess_over_the_tuned_rule(tmp_path: Path) -> None:
     run_dir = _run_folder(tmp_path)
     checkpoints = expand([run_dir])
     assert [c.name for c in checkpoints] == ["000001000.pt", "auto.pt"]
@@ -55,7 +55,7 @@ def test_checkpoints_are_ranked_by_their_excess_over_acc_lc(tmp_path: Path) -> N
 
     for s in scores:  # recomputed from the records on disk
         assert s["unsafe"] == 0
-        assert s["max_excess"] == pytest.approx(100 * (dt_a(s["key"]) / dt_a("acc-lc") - 1))
+        assert s["max_excess"] == pytest.approx(100 * (dt_a(s["key"]) / dt_a(cfg.baseline) - 1))
     assert scores[0]["max_excess"] <= scores[1]["max_excess"]
     assert scores[0]["key"] != scores[1]["key"]  # different weights, different records
 

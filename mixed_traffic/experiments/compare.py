@@ -177,10 +177,10 @@ def rank(scores: list[dict], tie: float) -> list[dict]:
 def run(cfg: CompareConfig, checkpoints: list[Path], progress: bool = True) -> list[dict]:
     """Run the missing episodes; one score dict per checkpoint, best first."""
     base = cfg.baseline
-    key = (
+    base_key = (
         base if base == parse_policy(base).base else hashlib.sha256(base.encode()).hexdigest()[:12]
     )
-    jobs = [(base, None, key)] + [("auto", c, content_key(c)) for c in checkpoints]
+    jobs = [(base, None, base_key)] + [("auto", c, content_key(c)) for c in checkpoints]
     bar = tqdm(total=len(jobs) * len(cfg.scenarios), desc="compare", unit="scenario",
                disable=not progress)  # fmt: skip
     records: dict[str, list[dict]] = {}
@@ -192,7 +192,7 @@ def run(cfg: CompareConfig, checkpoints: list[Path], progress: bool = True) -> l
             records.setdefault(key, []).extend(r for r in read_records(path) if cfg.wanted(r))
             bar.update(1)
     bar.close()
-    acc = cell_means(records[key])
+    acc = cell_means(records[base_key])
     scores = [{"checkpoint": str(c), "key": k, **score(cell_means(records[k]), acc)}
               for _, c, k in jobs[1:]]  # fmt: skip
     return rank(scores, cfg.tie)
