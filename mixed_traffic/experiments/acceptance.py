@@ -31,7 +31,7 @@ from pathlib import Path
 import pandas as pd
 
 from analysis.stats import paired_difference
-from mixed_traffic.experiments.cli import add_config_args, config_from_args
+from mixed_traffic.experiments.cli import add_config_args, check_table, config_from_args
 from mixed_traffic.experiments.compare import content_key
 from mixed_traffic.experiments.runner import check_checkpoint, check_policy
 from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
@@ -162,14 +162,6 @@ def flow_rows(full: pd.DataFrame, ring: pd.DataFrame) -> list[dict]:
     ]  # fmt: skip
 
 
-def table(rows: list[dict]) -> str:
-    """The checks as aligned text, one per line."""
-    head = {"check": "check", "where": "where", "value": "value", "pass": "pass"}
-    cells = [head, *({**r, "pass": "yes" if r["pass"] else "NO"} for r in rows)]
-    widths = {k: max(len(str(c[k])) for c in cells) for k in head}
-    return "\n".join("  ".join(str(c[k]).ljust(widths[k]) for k in head) for c in cells)
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.experiments.acceptance",
@@ -187,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
         rows = eval_checks(cfg) + flow_checks(cfg)
     except FolderBusyError as e:
         p.error(str(e))
-    print(json.dumps(rows, indent=1) if args.json else table(rows))
+    print(json.dumps(rows, indent=1) if args.json else check_table(rows))
     return 0 if all(r["pass"] for r in rows) else 1
 
 

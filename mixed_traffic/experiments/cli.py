@@ -155,3 +155,11 @@ def config_from_args(args: argparse.Namespace, cls: type, **extra: Any) -> Any:
             value = dataclasses.replace(_default(defaults[key]), **value)
         kwargs[key] = value
     return cls(**kwargs)
+
+
+def check_table(rows: list[dict[str, Any]]) -> str:
+    """A check tool's rows (check, where, value, pass) as aligned text, one per line."""
+    head = {"check": "check", "where": "where", "value": "value", "pass": "pass"}
+    cells = [head, *({**r, "pass": "yes" if r["pass"] else "NO"} for r in rows)]
+    widths = {k: max(len(str(c[k])) for c in cells) for k in head}
+    return "\n".join("  ".join(str(c[k]).ljust(widths[k]) for k in head) for c in cells)

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from mixed_traffic.config import RING_LENGTH_RANGE, EnvConfig
-from mixed_traffic.experiments.cli import add_config_args, config_from_args
+from mixed_traffic.experiments.cli import add_config_args, check_table, config_from_args
 from mixed_traffic.experiments.runner import check_policy, run_episode
 from mixed_traffic.provenance import check_writable, write_record_atomic
 from mixed_traffic.schema import TERMINAL_REASONS
@@ -246,7 +246,7 @@ def main(argv: list[str] | None = None) -> int:
     if "road" in cfg.parts:
         cells = road_cells(cfg)
         rows += road_rows(cells, run_cells(cells, cfg.workers, cfg.out))
-    print(table(rows))
+    print(check_table(rows))
     return 0 if all(r["pass"] for r in rows) else 1
 
 
