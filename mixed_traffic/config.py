@@ -297,7 +297,12 @@ class EnvConfig:
     ring_length: tuple[float, ...] = ()
     """Circumference of a ring scenario [m], 150-400: one value scales the ring to it; a (low,
     high) pair draws a length at every reset from the episode's seed. The vehicle count
-    follows density x length. () = the ring as bundled."""
+    follows density x length, or is ``ring_vehicles``. () = the ring as bundled."""
+    ring_vehicles: int | None = None
+    """Vehicles on a ring whatever its length [count] (Flow's ring: 22 on 220-270 m). Each
+    episode's density is then this count / its ring's length, and ``density`` is set to that of
+    the longest ring ``ring_length`` names (a different density is refused). None = density x
+    length."""
     penetration: float = 0.2
     """AV penetration rate p, the fraction of vehicles that are AVs [0-1]."""
     weather: str = "normal"
@@ -360,9 +365,12 @@ class EnvConfig:
                              f"step (step_length={self.step_length!r})")  # fmt: skip
         _check_bool(self, "fixed_fleet")
         _check_bool(self, "v2x")
-        if self.fixed_fleet and len(self.ring_length) == 2:
-            raise ValueError(f"EnvConfig.ring_length={self.ring_length!r} draws a length per "
-                             "reset, which changes the size of a fixed_fleet: give one length")  # fmt: skip
+        if self.ring_vehicles is not None:
+            _check_range(self, "ring_vehicles", 2, 2000, integer=True)
+        if self.fixed_fleet and len(self.ring_length) == 2 and self.ring_vehicles is None:
+            raise ValueError(f"EnvConfig.ring_length={self.ring_length!r} draws a length per reset, "
+                             "which changes the size of a fixed_fleet: give one length or "
+                             "ring_vehicles")  # fmt: skip
         _check_range(self, "lateral_resolution", 0.1, 3.2)
         _check_range(self, "speed_tolerance", 0.0, 1.0)
         _check_range(self, "reset_wait", 0.0, 86400.0)

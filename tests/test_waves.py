@@ -77,6 +77,31 @@ def test_a_drawn_ring_length_is_reproducible_and_sets_the_vehicle_count() -> Non
     assert records_to_frame([record])["ring_length"].tolist() == [lengths[0]]  # group by it
 
 
+def test_ring_vehicles_fix_the_count_over_drawn_lengths() -> None:
+    """Flow's ring: 22 vehicles whatever length a reset draws from 220-270 m, one of them an
+    agent of a fixed fleet; a density that contradicts the count, or a road, is refused."""
+    cfg = EnvConfig(scenario="ring", ring_length=(220.0, 270.0), ring_vehicles=22,
+                    penetration=1 / 22, fixed_fleet=True, episode_length=1.0)  # fmt: skip
+    env = MixedTrafficEnv(config=cfg)
+    try:
+        assert env.config.density == pytest.approx(22 / 0.270)  # the longest ring's
+        assert env.possible_agents == ["av_0"]
+        lengths = set()
+        for seed in (0, 1, 2):
+            env.reset(seed=seed)
+            lengths.add(env.ring_length)
+            assert env._snap.n == 22 and env.agents == ["av_0"]
+        assert len(lengths) == 3  # three lengths, the same count
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="ring_vehicles=22 sets the ring's density"):
+        load_scenario("ring").configure(EnvConfig(scenario="ring", ring_vehicles=22, density=60.0))
+    with pytest.raises(ValueError, match="ring_vehicles=22 applies to ring scenarios only"):
+        load_scenario("straight").configure(EnvConfig(ring_vehicles=22))
+    args = build_parser().parse_args(["--scenario", "ring", "--ring-vehicles", "22"])
+    assert config_from_args(args, EnvConfig).ring_vehicles == 22
+
+
 def test_a_300_m_ring_at_85_veh_per_km_holds_26_vehicles() -> None:
     """85 veh/km x 300.2 m (the loop's lane with its junction lanes) = 25.5 -> 26."""
     cfg = EnvConfig(scenario="ring", ring_length=300.0, density=85.0, penetration=0.05,

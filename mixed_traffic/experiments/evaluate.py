@@ -38,8 +38,8 @@ from mixed_traffic.world.backend import SumoError
 DEFAULT_OUT = Path("results/evaluate/records.jsonl")
 #: EnvConfig fields exposed as options, in help order.
 CONFIG_OPTIONS = [
-    "scenario", "density", "ring_length", "penetration", "weather", "episode_length",
-    "step_length", "lateral_resolution", "backend", "v2x",
+    "scenario", "density", "ring_length", "ring_vehicles", "penetration", "weather",
+    "episode_length", "step_length", "lateral_resolution", "backend", "v2x",
 ]  # fmt: skip
 
 

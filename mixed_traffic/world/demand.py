@@ -132,6 +132,8 @@ class _Plan:
 def _plan(scenario: Scenario, config: EnvConfig) -> _Plan:
     hd = scenario.hdmap
     per_lane = config.density / scenario.lanes / 1000.0  # veh/m per lane
+    if scenario.ring and config.ring_vehicles is not None:  # the count, whatever the length
+        per_lane = config.ring_vehicles / sum(ring_lengths(scenario))
     entry = hd.car_lane_rows(hd.edge_of(scenario.routes[0].entry))
     speed_limit = float(hd.lane_speed[entry[0]])
     v_eq = idm_equilibrium_speed(1.0 / per_lane, speed_limit, cautious(config.human),

@@ -120,6 +120,8 @@ class Scenario:
         self._check_ring_length(config)
         if self.own_vehicles:
             return self._configure_own(config)
+        if config.ring_vehicles is not None:
+            config = replace(config, density=self._ring_density(config))
         if config.density is None:
             config = replace(config, density=self.density)
         self.check_density(config.density)
@@ -145,6 +147,25 @@ class Scenario:
         if config.ring_length and not (self.ring and self.source is not None):
             raise ValueError(f"ring_length={list(config.ring_length)} applies to the bundled ring "
                              f"scenarios only, and {self.name!r} is none")  # fmt: skip
+
+    def _ring_density(self, config: EnvConfig) -> float:
+        """The density [veh/km] of ``config.ring_vehicles`` on the longest ring of the config
+        (``ValueError`` off a ring, or against another density given with it)."""
+        if not self.ring:
+            raise ValueError(f"ring_vehicles={config.ring_vehicles} applies to ring scenarios "
+                             f"only, and {self.name!r} is none")  # fmt: skip
+        hd = self.hdmap
+        loop = sum(
+            float(hd.edge_length[hd.edge_of(e)]) for e in dict.fromkeys(self.routes[0].edges)
+        )
+        density = (
+            1000.0 * config.ring_vehicles / (config.ring_length[-1] if config.ring_length else loop)
+        )
+        if config.density is not None and abs(config.density - density) > 1e-6:
+            raise ValueError(f"ring_vehicles={config.ring_vehicles} sets the ring's density "
+                             f"({density:.2f} veh/km): give it or density={config.density:g}, "
+                             "not both")  # fmt: skip
+        return density
 
     def check_density(self, density: float) -> None:
         """Raise ``ValueError`` unless 0 < ``density`` [veh/km] <= the jam density."""
