@@ -1,0 +1,41 @@
+"""The env as a benchmark: versioned tasks with a system-level reward and a normalised score.
+
+    from mixed_traffic.benchmark import TASKS, parallel_env
+    env = parallel_env("ring-v0")                    # the task's training config
+    env = parallel_env("ring-v0", split="eval", index=1)   # its second held-out config
+    env = parallel_env("merge-v0", fixed_fleet=True) # any EnvConfig field overrides
+
+- ``tasks``: ``Task``, ``TASKS``, ``get_task``, the task reward.
+- ``score``: the score's references (the ring's uniform-flow speed) and normalisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+from mixed_traffic.benchmark.tasks import TASKS, Task, get_task
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.env.parallel import MixedTrafficEnv
+
+__all__ = ["TASKS", "Task", "get_task", "parallel_env", "task_config"]
+
+
+def task_config(task: str, split: str = "train", index: int = 0, **overrides: Any) -> EnvConfig:
+    """The ``EnvConfig`` of ``task``'s ``split`` ("train" or "eval", the eval's ``index``-th
+    config), with ``overrides`` (EnvConfig fields) applied. ``ValueError`` on a bad name,
+    split or index."""
+    t = get_task(task)
+    if split not in ("train", "eval"):
+        raise ValueError(f"split={split!r}: give 'train' or 'eval'")
+    configs = (t.train,) if split == "train" else t.eval
+    if not 0 <= index < len(configs):
+        raise ValueError(f"index={index}: task {t.name} has {len(configs)} {split} config(s)")
+    return replace(configs[index], **overrides)
+
+
+def parallel_env(
+    task: str, split: str = "train", index: int = 0, **overrides: Any
+) -> MixedTrafficEnv:
+    """The PettingZoo ParallelEnv of a task (see :func:`task_config`)."""
+    return MixedTrafficEnv(config=task_config(task, split, index, **overrides))
