@@ -1,0 +1,201 @@
+"""The benchmark table: every task's eval configs x controllers x seeds, and their scores.
+
+    python -m mixed_traffic.benchmark                      # every task, the bundled controllers
+    python -m mixed_traffic.benchmark --tasks ring-v0 --policies idm follower-stopper
+
+Each episode (task, eval config, policy, seed) runs through the one episode runner and is
+appended atomically to ``out`` as it ends, tagged ``benchmark``; a re-run skips the episodes
+the same code already recorded (also after kill -9). ``idm`` (all human) is always run: it is
+the score's 0. The score of a policy on a seed is the mean over the task's eval configs of
+``(v - v_human) / (v_ref - v_human)`` on its metric (the fleet's mean speed), with ``v_ref``
+the ring's uniform flow or, elsewhere, the best mean of the controllers in the table without a
+terminal event; the table gives its mean over seeds with a 95 % t-interval, next to the mean
+speed, speed std, fuel, DT-TF and terminal events.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from analysis.stats import t_quantile_975
+from mixed_traffic.benchmark import TASKS, get_task, task_config
+from mixed_traffic.benchmark.score import normalised, uniform_flow_speed
+from mixed_traffic.experiments.cli import add_config_args, config_from_args
+from mixed_traffic.experiments.runner import check_policy, run_episode
+from mixed_traffic.provenance import (
+    atomic_write,
+    check_writable,
+    current_code_key,
+    read_records,
+    write_record_atomic,
+)
+from mixed_traffic.schema import TERMINAL_REASONS
+
+#: Columns next to the score: record metrics averaged over eval configs and seeds.
+COLUMNS = ("mean_speed", "speed_std", "fuel", "dt_tf")
+
+
+@dataclass(frozen=True)
+class BenchmarkConfig:
+    """What the table runs. The CLI is built from it."""
+
+    tasks: tuple[str, ...] = ()
+    """Task ids (default: every task of ``TASKS``)."""
+    policies: tuple[str, ...] = ("acc-lc-tuned", "follower-stopper", "pi-saturation", "auto")
+    """Controllers scored (``idm``, all human, always runs as the score's 0)."""
+    seeds: tuple[int, ...] = (0, 1, 2)
+    """Root seeds, one episode per eval config each."""
+    episode_length: float = 0.0
+    """Simulated time per episode [s]; 0 = each task's horizon."""
+    workers: int = 2
+    """Parallel worker processes."""
+    out: Path = Path("results/benchmark/records.jsonl")
+    """Records (one JSON line per episode); the scores go next to it as ``scores.json``."""
+
+    def __post_init__(self) -> None:
+        names = tuple(get_task(t).name for t in self.tasks) or tuple(TASKS)
+        object.__setattr__(self, "tasks", names)
+        policies = tuple(dict.fromkeys(("idm", *map(check_policy, self.policies))))
+        object.__setattr__(self, "policies", policies)
+        if not self.seeds or any(s < 0 for s in self.seeds):
+            raise ValueError(f"--seeds={list(self.seeds)}: give seeds >= 0")
+        if self.episode_length < 0 or self.workers < 1:
+            raise ValueError("--episode-length must be >= 0 and --workers >= 1")
+        check_writable(self.out)
+
+
+def _key(task: str, index: int, policy: str, seed: int, length: float) -> tuple:
+    return (task, index, policy, seed, length)
+
+
+def jobs(cfg: BenchmarkConfig) -> list[tuple]:
+    """Every (task, eval index, policy, seed, episode length) of the table."""
+    out = []
+    for name in cfg.tasks:
+        for index in range(len(TASKS[name].eval)):
+            out += [_key(name, index, p, s, cfg.episode_length)
+                    for p in cfg.policies for s in cfg.seeds]  # fmt: skip
+    return out
+
+
+def run_job(job: tuple) -> dict[str, Any]:
+    """The record of one episode, tagged with its job."""
+    name, index, policy, seed, length = job
+    extra = {"episode_length": length} if length else {}
+    config = task_config(name, "eval", index, seed=seed, **extra)
+    record = run_episode(config, policy, TASKS[name].warmup)
+    record["benchmark"] = {"task": name, "index": index, "policy": policy, "seed": seed,
+                           "episode_length": length}  # fmt: skip
+    return record
+
+
+def _done(cfg: BenchmarkConfig) -> dict[tuple, dict[str, Any]]:
+    """This code's finished records of ``out`` by job."""
+    code = current_code_key()
+    found = {}
+    for r in read_records(cfg.out):
+        b = r.get("benchmark")
+        if b and r.get("code") == code and r.get("status") == "ok":
+            found[_key(b["task"], b["index"], b["policy"], b["seed"], b["episode_length"])] = r
+    return found
+
+
+def run_table(cfg: BenchmarkConfig, progress: bool = True) -> dict[tuple, dict[str, Any]]:
+    """Run the missing episodes (``workers`` at a time); every job's record."""
+    done = _done(cfg)
+    todo = [j for j in jobs(cfg) if j not in done]
+    with ProcessPoolExecutor(max_workers=cfg.workers) as pool:
+        for k, (job, record) in enumerate(zip(todo, pool.map(run_job, todo)), 1):
+            write_record_atomic(cfg.out, record)
+            done[job] = record
+            if progress:
+                print(f"  [{k}/{len(todo)}] {job[0]} eval {job[1]}, {job[2]}, seed {job[3]}: "
+                      f"{record['status']}", file=sys.stderr)  # fmt: skip
+    return {j: done[j] for j in jobs(cfg)}
+
+
+def _terminal(record: dict[str, Any]) -> int:
+    m = record.get("metrics") or {}
+    return int(
+        sum(m.get(f"terminal_{r}") or 0 for r in TERMINAL_REASONS) + (m.get("collisions") or 0)
+    )
+
+
+def _metric(record: dict[str, Any], name: str) -> float:
+    value = (record.get("metrics") or {}).get(name)
+    return math.nan if value is None else float(value)
+
+
+def _mean(values: list[float]) -> float:
+    """Mean of the finite values (NaN if none: DT-TF on a ring, where nobody crosses)."""
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else math.nan
+
+
+def scores(cfg: BenchmarkConfig, records: dict[tuple, dict[str, Any]]) -> list[dict[str, Any]]:
+    """One row per task and controller: score (mean, 95 % half-width, seeds), the columns'
+    means and the terminal events."""
+    rows = []
+    L = cfg.episode_length
+    for name in cfg.tasks:
+        task, n = TASKS[name], len(TASKS[name].eval)
+        value = {(i, p, s): _metric(records[_key(name, i, p, s, L)], task.metric)
+                 for i in range(n) for p in cfg.policies for s in cfg.seeds}  # fmt: skip
+        events = {p: sum(_terminal(records[_key(name, i, p, s, L)]) for i in range(n)
+                         for s in cfg.seeds) for p in cfg.policies}  # fmt: skip
+        refs = [_reference(task, i, cfg, value, events) for i in range(n)]
+        for p in cfg.policies:
+            per_seed = np.array([np.mean([normalised(value[i, p, s], value[i, "idm", s], refs[i])
+                                          for i in range(n)]) for s in cfg.seeds])  # fmt: skip
+            half = (t_quantile_975(len(per_seed) - 1) * per_seed.std(ddof=1) / math.sqrt(len(per_seed))
+                    if len(per_seed) > 1 else math.nan)  # fmt: skip
+            cols = {c: _mean([_metric(records[_key(name, i, p, s, L)], c)
+                              for i in range(n) for s in cfg.seeds]) for c in COLUMNS}  # fmt: skip
+            rows.append({"task": name, "policy": p, "score": float(per_seed.mean()),
+                         "score_half_width": half, "seeds": len(per_seed), **cols,
+                         "terminal_events": events[p], "references": refs})  # fmt: skip
+    return rows
+
+
+def _reference(task, index: int, cfg: BenchmarkConfig, value: dict, events: dict) -> float:
+    """Score 1 of one eval config: the ring's uniform flow, or the best controller's mean."""
+    if task.reference == "uniform-flow":
+        config = task.eval[index]
+        return uniform_flow_speed(config, config.ring_length[0])
+    safe = [p for p in cfg.policies if p != "idm" and events[p] == 0] or ["idm"]
+    return max(float(np.mean([value[index, p, s] for s in cfg.seeds])) for p in safe)
+
+
+def markdown(rows: list[dict[str, Any]]) -> str:
+    """The table as Markdown."""
+    head = "| task | controller | score [95 % CI] | mean speed [m/s] | speed std [m/s] | fuel [l/100 km] | DT-TF [s] | terminal |"
+    lines = [head, "|" + "---|" * 8]
+    for r in rows:
+        ci = f"{r['score']:.2f} ± {r['score_half_width']:.2f}"
+        cols = " | ".join("n/a" if math.isnan(r[c]) else f"{r[c]:.2f}" for c in COLUMNS)
+        lines.append(f"| {r['task']} | {r['policy']} | {ci} | {cols} | {r['terminal_events']} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m mixed_traffic.benchmark",
+                                description=__doc__.split("\n\n")[0])  # fmt: skip
+    add_config_args(p, BenchmarkConfig)
+    try:
+        cfg = config_from_args(p.parse_args(argv), BenchmarkConfig)
+    except ValueError as e:
+        p.error(str(e))
+    rows = scores(cfg, run_table(cfg))
+    text = json.dumps(rows, indent=1).encode()
+    atomic_write(cfg.out.with_name("scores.json"), lambda f: f.write(text))
+    print(markdown(rows))
+    return 0
