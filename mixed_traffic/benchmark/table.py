@@ -26,11 +26,12 @@ from typing import Any
 
 import numpy as np
 
-from analysis.stats import t_quantile_975
-from mixed_traffic.benchmark import TASKS, get_task, task_config
+from analysis.results import mean_ci
+from mixed_traffic.benchmark import TASKS, Task, get_task, task_config
 from mixed_traffic.benchmark.score import normalised, uniform_flow_speed
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
 from mixed_traffic.experiments.runner import check_policy, run_episode
+from mixed_traffic.experiments.safety_matrix import terminal_events
 from mixed_traffic.provenance import (
     atomic_write,
     check_writable,
@@ -38,7 +39,6 @@ from mixed_traffic.provenance import (
     read_records,
     write_record_atomic,
 )
-from mixed_traffic.schema import TERMINAL_REASONS
 
 #: Columns next to the score: record metrics averaged over eval configs and seeds.
 COLUMNS = ("mean_speed", "speed_std", "fuel", "dt_tf")
@@ -124,21 +124,14 @@ def run_table(cfg: BenchmarkConfig, progress: bool = True) -> dict[tuple, dict[s
 
 
 def _terminal(record: dict[str, Any]) -> int:
+    """Terminal events and collisions of an episode."""
     m = record.get("metrics") or {}
-    return int(
-        sum(m.get(f"terminal_{r}") or 0 for r in TERMINAL_REASONS) + (m.get("collisions") or 0)
-    )
+    return sum(terminal_events(m).values()) + int(m.get("collisions") or 0)
 
 
 def _metric(record: dict[str, Any], name: str) -> float:
     value = (record.get("metrics") or {}).get(name)
     return math.nan if value is None else float(value)
-
-
-def _mean(values: list[float]) -> float:
-    """Mean of the finite values (NaN if none: DT-TF on a ring, where nobody crosses)."""
-    finite = [v for v in values if math.isfinite(v)]
-    return float(np.mean(finite)) if finite else math.nan
 
 
 def scores(cfg: BenchmarkConfig, records: dict[tuple, dict[str, Any]]) -> list[dict[str, Any]]:
@@ -154,19 +147,18 @@ def scores(cfg: BenchmarkConfig, records: dict[tuple, dict[str, Any]]) -> list[d
                          for s in cfg.seeds) for p in cfg.policies}  # fmt: skip
         refs = [_reference(task, i, cfg, value, events) for i in range(n)]
         for p in cfg.policies:
-            per_seed = np.array([np.mean([normalised(value[i, p, s], value[i, "idm", s], refs[i])
-                                          for i in range(n)]) for s in cfg.seeds])  # fmt: skip
-            half = (t_quantile_975(len(per_seed) - 1) * per_seed.std(ddof=1) / math.sqrt(len(per_seed))
-                    if len(per_seed) > 1 else math.nan)  # fmt: skip
-            cols = {c: _mean([_metric(records[_key(name, i, p, s, L)], c)
-                              for i in range(n) for s in cfg.seeds]) for c in COLUMNS}  # fmt: skip
-            rows.append({"task": name, "policy": p, "score": float(per_seed.mean()),
-                         "score_half_width": half, "seeds": len(per_seed), **cols,
+            per_seed = [np.mean([normalised(value[i, p, s], value[i, "idm", s], refs[i])
+                                 for i in range(n)]) for s in cfg.seeds]  # fmt: skip
+            score, half, seeds = mean_ci(per_seed)
+            cols = {c: mean_ci([_metric(records[_key(name, i, p, s, L)], c)
+                                for i in range(n) for s in cfg.seeds])[0] for c in COLUMNS}  # fmt: skip
+            rows.append({"task": name, "policy": p, "score": score,
+                         "score_half_width": half, "seeds": seeds, **cols,
                          "terminal_events": events[p], "references": refs})  # fmt: skip
     return rows
 
 
-def _reference(task, index: int, cfg: BenchmarkConfig, value: dict, events: dict) -> float:
+def _reference(task: Task, index: int, cfg: BenchmarkConfig, value: dict, events: dict) -> float:
     """Score 1 of one eval config: the ring's uniform flow, or the best controller's mean."""
     if task.reference == "uniform-flow":
         config = task.eval[index]

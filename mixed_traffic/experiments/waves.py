@@ -29,8 +29,8 @@ import numpy as np
 from mixed_traffic.config import RING_LENGTH_RANGE, EnvConfig
 from mixed_traffic.experiments.cli import add_config_args, check_table, config_from_args
 from mixed_traffic.experiments.runner import check_policy, run_episode
+from mixed_traffic.experiments.safety_matrix import terminal_events
 from mixed_traffic.provenance import check_writable, write_record_atomic
-from mixed_traffic.schema import TERMINAL_REASONS
 from mixed_traffic.world.demand import av_count
 from mixed_traffic.world.registry import load_scenario
 from mixed_traffic.world.ring import scaled_ring
@@ -167,7 +167,7 @@ def _spread(values: list[float]) -> str:
 
 
 def _terminal(metrics: dict[str, Any]) -> int:
-    return int(sum(metrics.get(f"terminal_{r}") or 0 for r in TERMINAL_REASONS))
+    return sum(terminal_events(metrics).values())
 
 
 def ring_rows(cells: list[Cell], records: list[dict[str, Any]]) -> list[dict[str, Any]]:
