@@ -20,6 +20,8 @@ from agents.rules.spec import RULE_CONFIGS, PolicySpec, build_config, parse_poli
 from mixed_traffic.schema import STUDY_POLICIES
 
 SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "auto.pt"
+PPO_RING = SHIPPED_CHECKPOINT.parent / "ppo_ring.zip"
+"""The shipped PPO policy of the benchmark's ring task (``--policy ppo-ring``)."""
 STUDY_CHECKPOINTS = SHIPPED_CHECKPOINT.parent / "study"
 """Checkpoints of the study policies (``mixed_traffic.schema.STUDY_POLICIES``), <name>.pt."""
 
@@ -64,9 +66,15 @@ class RandomPolicy:
 
 def checkpoint_path(name: str, checkpoint: str | Path | None = None) -> Path:
     """The weights learned policy ``name`` runs: ``checkpoint`` if given, else the shipped
-    AUTO (auto, auto-raw) or the study's ``STUDY_CHECKPOINTS/<name>.pt``."""
+    AUTO (auto, auto-raw), the shipped ring PPO (ppo-ring) or the study's
+    ``STUDY_CHECKPOINTS/<name>.pt``; ``ValueError`` for ``ppo`` without a checkpoint."""
     if checkpoint is not None:
         return Path(checkpoint)
+    if name == "ppo":
+        raise ValueError("policy 'ppo' needs --checkpoint: a .zip written by "
+                         "python -m mixed_traffic.benchmark.ppo")  # fmt: skip
+    if name == "ppo-ring":
+        return PPO_RING
     return SHIPPED_CHECKPOINT if name in ("auto", "auto-raw") else STUDY_CHECKPOINTS / f"{name}.pt"
 
 
@@ -119,6 +127,13 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
         return RandomPolicy(seed)
     if base in RULE_CONFIGS:
         return _rule(spec, dt, family)
+    if base in ("ppo", "ppo-ring"):
+        from agents.ppo_policy import PpoPolicy
+        from agents.rules.tuned import cap_factor
+
+        ppo = PpoPolicy(checkpoint_path(base, checkpoint), dt=dt, name=base)
+        ppo.interface.cap_factor = cap_factor(family)
+        return ppo
     if base in ("auto", "auto-raw") or base in STUDY_POLICIES:
         from agents.rules.tuned import cap_factor
 

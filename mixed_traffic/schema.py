@@ -93,12 +93,12 @@ ABLATIONS = ("auto-noimp", "auto-novec", "auto-nostar", "auto-nolane", "auto-noh
 STUDY_POLICIES = ("rbp-dqn", *BASELINES, *ABLATIONS)
 """Policies of ``python -m mixed_traffic.study``, each its own checkpoint in
 agents/checkpoints/study/; rbp-dqn is AUTO's training pipeline at the study's budget."""
-LEARNED = ("auto", "auto-raw", *STUDY_POLICIES)
+LEARNED = ("auto", "auto-raw", "ppo", "ppo-ring", *STUDY_POLICIES)
 """Policies that load a checkpoint."""
 POLICIES = (
     "auto", "auto-raw", "acc-lc", "acc-lc-tuned", "acc-lc-conservative", "idm", "random",
     "follower-stopper",
-    "pi-saturation", *STUDY_POLICIES,
+    "pi-saturation", "ppo", "ppo-ring", *STUDY_POLICIES,
 )  # fmt: skip
 
 

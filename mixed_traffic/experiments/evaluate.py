@@ -131,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
         configs = [config_from_args(args, EnvConfig, seed=s) for s in args.seeds]
         configs = [validate(c, args.warmup, args.policy) for c in configs]
         if args.checkpoint is not None and args.policy not in LEARNED:
-            raise ValueError(f"--checkpoint is used by a learned policy (auto, auto-raw or a "
+            raise ValueError(f"--checkpoint is used by a learned policy (auto, auto-raw, ppo, ppo-ring or a "
                              f"study policy), not {args.policy!r}")  # fmt: skip
         if args.policy in LEARNED:  # before any episode, not as a failed record after it
             check_checkpoint(checkpoint_path(args.policy, args.checkpoint))

@@ -55,7 +55,12 @@ def check_policy(policy: str) -> str:
 
 
 def check_checkpoint(path: str | Path) -> None:
-    """Raise ``ValueError`` naming ``path`` unless it is a readable RBP-DQN checkpoint."""
+    """Raise ``ValueError`` naming ``path`` unless it is a readable RBP-DQN checkpoint (or, for
+    a ``.zip``, a PPO one)."""
+    if Path(path).suffix == ".zip":
+        from agents.ppo_policy import check_ppo_checkpoint
+
+        return check_ppo_checkpoint(path)
     from agents.checkpoint import read_checkpoint  # torch only when a checkpoint is named
 
     read_checkpoint(path)

@@ -1,0 +1,184 @@
+"""The longitudinal interface of a learner that sets only the acceleration (as Flow's ring AV):
+a compact observation of the lane ahead and behind, one action, and ACC-LC for everything else.
+
+An outside RL library (``mixed_traffic.benchmark.ppo``) trains on it through
+:class:`mixed_traffic.benchmark.interface.LongitudinalWrapper`, and the trained policy drives
+through :class:`agents.ppo_policy.PpoPolicy`; both use this one class, so training and
+evaluation see the same features and the same mapping.
+
+Observation (A, 8) float32, from the env's (noisy, perceived) observation decoded by ACC-LC::
+
+    0 v / 10 m/s                 own speed
+    1 (v_lead - v) / 10 m/s      leader's relative speed (0 without a leader)
+    2 gap / 50 m                 bumper gap to the leader, at most 2 (100 m; also without one)
+    3 (v_rear - v) / 10 m/s      follower's relative speed (0 without a follower)
+    4 rear gap / 50 m            gap to the follower, at most 2
+    5 U / 10 m/s                 own mean speed over ``window`` (Stern et al.'s U)
+    6 a_prev / accel_scale       the acceleration commanded last [m/s² / scale]
+    7 cap / accel_scale          ACC-LC's speed cap: the road's rules (limit, lower limits
+                                 ahead, red lights) as an acceleration bound, within [-1, 1]
+
+Action: one number ``x`` in [-1, 1]: the acceleration ``x · accel_scale`` [m/s²], bounded by
+ACC-LC's speed cap (as FollowerStopper is) and the vehicle's limits, held for ``hold`` env
+steps. Lane keeping, and driving wherever the lane must be left (follow masked), is ACC-LC's.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+
+from agents.rules.acc_lc import AccLcPolicy
+from agents.rules.acc_lc_config import FOLLOW
+from agents.rules.acc_lc_config import LANE_C as CURRENT
+from agents.rules.acc_lc_features import features
+from agents.rules.acc_lc_lateral import lateral_bounds, steer
+from agents.rules.acc_lc_longitudinal import speed_cap
+from mixed_traffic.config import VehicleConfig
+from mixed_traffic.env.api import to_accel_brake
+
+#: Feature names in observation order.
+FEATURES = ("speed", "lead_rel_speed", "lead_gap", "rear_rel_speed", "rear_gap", "mean_speed",
+            "last_accel", "speed_cap")  # fmt: skip
+N_FEATURES = len(FEATURES)
+#: Features are clipped to [-BOUND, BOUND].
+BOUND = 5.0
+
+
+@dataclass(frozen=True)
+class LongitudinalConfig:
+    """The interface's constants (a checkpoint stores them; evaluation uses the stored ones)."""
+
+    dt: float = 0.1
+    """Env step [s]."""
+    hold: int = 5
+    """Env steps an action is held: the learner decides every ``hold · dt`` seconds."""
+    window: float = 38.0
+    """Time over which the own mean speed U is taken [s] (Stern et al. 2018)."""
+    accel_scale: float = 3.0
+    """Acceleration of action ±1 [m/s²]."""
+    speed_scale: float = 10.0
+    """Speed normalisation [m/s]."""
+    gap_scale: float = 50.0
+    """Gap normalisation [m]; gaps beyond 2 x this read as 2."""
+
+    def __post_init__(self) -> None:
+        for name in ("dt", "window", "accel_scale", "speed_scale", "gap_scale"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"LongitudinalConfig.{name}={getattr(self, name)!r} must be > 0")
+        if not (isinstance(self.hold, int) and 1 <= self.hold <= 100):
+            raise ValueError(f"LongitudinalConfig.hold={self.hold!r} must be an integer in 1-100")
+
+
+class _Plan(NamedTuple):
+    features: dict[str, np.ndarray]
+    decision: np.ndarray
+    """(A,) ACC-LC's decision (follow wherever it is allowed)."""
+    params: np.ndarray
+    """(A, 3, 2) float32 with ACC-LC's follow steering (its whole plan where follow is masked)."""
+    cap: np.ndarray
+    """(A,) ACC-LC's speed cap [m/s²]."""
+
+
+class LongitudinalInterface:
+    """Features for a batch of agents, and their env actions from the learner's accelerations.
+
+    Call :meth:`observe` once per env step (it advances each agent's speed memory), then
+    :meth:`command` with the held actions of the same agents.
+    """
+
+    def __init__(self, config: LongitudinalConfig | None = None,
+                 vehicle: VehicleConfig | None = None) -> None:  # fmt: skip
+        self.c = config or LongitudinalConfig()
+        self.vehicle = vehicle or VehicleConfig()
+        self.rule = AccLcPolicy(dt=self.c.dt)
+        self._steps = max(1, round(self.c.window / self.c.dt))
+        self._speeds: dict[str, list[float]] = {}
+        self._last: dict[str, float] = {}
+        self._plan: _Plan | None = None
+        self._agents: list[str] = []
+        self.cap_factor = 1.0
+        """Speed cap as a share of the limit (a learned policy caps where the tuned ACC-LC
+        aims: ``agents.rules.tuned.cap_factor``)."""
+
+    @property
+    def agents(self) -> list[str]:
+        """The agents last observed, in feature row order."""
+        return self._agents
+
+    def reset(self) -> None:
+        """Forget every agent (a new episode)."""
+        self._speeds.clear()
+        self._last.clear()
+        self._plan, self._agents = None, []
+
+    def observe(self, obs: Mapping[str, np.ndarray], agents: Sequence[str]) -> np.ndarray:
+        """Stacked (A, ...) env observations of ``agents`` -> (A, 8) float32 features."""
+        self._agents = list(agents)
+        self._plan = plan = self._lane_keeping(obs)
+        f, c = plan.features, self.c
+        v = f["v"]
+        mean = self._mean_speed(v)
+        out = np.zeros((len(v), N_FEATURES))
+        for col, k in ((1, 0), (3, 1)):  # leader, follower
+            present = f["present"][:, CURRENT, k]
+            dist = np.abs(f["vdist"][:, CURRENT, k])
+            gap = dist - (f["vlen"][:, CURRENT, 0] if k == 0 else f["len"])
+            out[:, col] = np.where(present, f["vrel"][:, CURRENT, k], 0.0) / c.speed_scale
+            out[:, col + 1] = np.where(present, np.clip(gap, 0.0, None), np.inf) / c.gap_scale
+        out[:, 0] = v / c.speed_scale
+        out[:, 5] = mean / c.speed_scale
+        out[:, 6] = [self._last.get(a, 0.0) / c.accel_scale for a in self._agents]
+        out[:, 7] = np.clip(plan.cap, -c.accel_scale, c.accel_scale) / c.accel_scale
+        out[:, (2, 4)] = np.minimum(out[:, (2, 4)], 2.0)
+        return np.clip(out, -BOUND, BOUND).astype(np.float32)
+
+    def command(self, action: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(A,) actions in [-1, 1] of the agents last observed -> (decision (A,), params
+        (A, 3, 2)): follow at the bounded acceleration, or ACC-LC's action where follow is
+        masked."""
+        plan = self._plan
+        if plan is None:
+            raise RuntimeError("LongitudinalInterface.command before observe")
+        x = np.asarray(action, np.float64).reshape(-1)
+        if x.shape != (len(self._agents),) or not np.all(np.isfinite(x)):
+            raise ValueError(f"longitudinal actions {x!r}: expected {len(self._agents)} finite "
+                             "values, one per observed agent")  # fmt: skip
+        accel = np.minimum(np.clip(x, -1.0, 1.0) * self.c.accel_scale, plan.cap)
+        accel = np.clip(accel, -self.vehicle.max_decel, self.vehicle.max_accel)
+        follow = plan.features["mask"][:, FOLLOW]
+        decision = np.where(follow, FOLLOW, plan.decision)
+        params = plan.params.copy()
+        rows = np.flatnonzero(follow)
+        params[rows, FOLLOW, 1] = to_accel_brake(accel[rows], self.vehicle)
+        self._last = {a: float(accel[i]) for i, a in enumerate(self._agents)}
+        return decision, params
+
+    def _lane_keeping(self, obs: Mapping[str, np.ndarray]) -> _Plan:
+        """ACC-LC's lane keeping and speed cap; its whole plan only where follow is masked."""
+        c = self.rule.c
+        f = features(obs, c)
+        cap = speed_cap(f, c, factor=self.cap_factor)
+        if not f["mask"][:, FOLLOW].all():
+            plan = self.rule.plan(obs)
+            return _Plan(f, plan.decision, np.array(plan.params, np.float32), cap)
+        lo, hi = lateral_bounds(f, c)
+        params = np.zeros((len(f["v"]), 3, 2), np.float32)
+        params[:, FOLLOW, 0] = steer(f, c, np.clip(0.0, lo, hi), c.follow_curvature)
+        return _Plan(f, np.full(len(f["v"]), FOLLOW), params, cap)
+
+    def _mean_speed(self, v: np.ndarray) -> np.ndarray:
+        """Add this step's speeds (A,) [m/s]; (A,) each agent's mean over the window."""
+        alive = set(self._agents)
+        for a in [a for a in self._speeds if a not in alive]:  # agents that left
+            del self._speeds[a]
+        out = np.empty(len(v))
+        for i, (a, speed) in enumerate(zip(self._agents, v.tolist())):
+            hist = self._speeds.setdefault(a, [])
+            hist.append(speed)
+            del hist[: max(0, len(hist) - self._steps)]
+            out[i] = sum(hist) / len(hist)
+        return out

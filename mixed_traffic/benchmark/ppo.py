@@ -1,0 +1,280 @@
+"""Train Stable-Baselines3's PPO on a benchmark task, in legs that resume.
+
+    pip install -e ".[ppo]"
+    python -m mixed_traffic.benchmark.ppo --task ring-v0 --seed 0 --steps 400000
+    python -m mixed_traffic.evaluate --policy ppo --checkpoint agents/checkpoints/ppo/ring-v0-s0/model.zip
+
+One policy is shared by every AV (parameter sharing through SuperSuit's PettingZoo-to-vector-env
+conversion: each AV is one row of SB3's batch). The AVs act through the longitudinal interface
+(:mod:`mixed_traffic.benchmark.interface`: 8 features, one acceleration held for 0.5 s) and
+are rewarded with the task's reward. After every leg of ``leg`` decisions the weights and
+the optimiser go to ``out/model.zip`` (atomically; no rollout buffer is kept, PPO has no replay),
+its metadata to ``model.json``, and one row to ``curves.csv``: the leg's training returns and a
+greedy evaluation on the task's held-out configs through the one episode runner (fleet speed
+std and mean speed against all-human traffic on the same seed). A re-run continues from
+``model.zip`` (also after kill -9: at most one leg is lost) until ``steps`` decisions.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+import json
+import multiprocessing
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agents.longitudinal import LongitudinalConfig
+from agents.ppo_policy import meta_path
+from mixed_traffic.benchmark import get_task, task_config
+from mixed_traffic.benchmark.interface import LongitudinalWrapper
+from mixed_traffic.env.parallel import MixedTrafficEnv
+from mixed_traffic.experiments.cli import add_config_args, config_from_args
+from mixed_traffic.experiments.runner import run_episode
+from mixed_traffic.provenance import atomic_write, git_revision, sumo_version
+
+CURVE_FIELDS = ("leg", "timesteps", "env_steps", "train_seconds", "episodes", "mean_return",
+                "eval_std_ratio", "eval_speed_ratio", "eval_collisions")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class PpoConfig:
+    """One training run. The CLI is built from it; SB3's PPO defaults where not named."""
+
+    task: str = "ring-v0"
+    """Benchmark task id (``mixed_traffic.benchmark.TASKS``)."""
+    seed: int = 0
+    """Seeds the env (its episodes' demand, SUMO, noise, ring lengths), numpy and torch."""
+    steps: int = 400_000
+    """Decisions (SB3 timesteps, one per AV and 0.5 s) to train in all legs together."""
+    leg: int = 20_480
+    """Decisions per leg: a checkpoint and a curve row after each."""
+    n_steps: int = 2048
+    """Decisions per rollout before each PPO update."""
+    batch_size: int = 256
+    """Minibatch size of the updates."""
+    n_epochs: int = 10
+    """Passes over each rollout."""
+    learning_rate: float = 3e-4
+    """Adam step size."""
+    gamma: float = 0.99
+    """Discount per decision (0.5 s): a horizon of about 50 s, a ring wave's period."""
+    gae_lambda: float = 0.95
+    """GAE lambda."""
+    log_std_init: float = -1.0
+    """Initial log std of the Gaussian actions (e^-1 x 3 m/s² = 1.1 m/s² of exploration)."""
+    hidden: tuple[int, ...] = (64, 64)
+    """Hidden layer widths of the actor and of the critic (tanh)."""
+    eval_seed: int = 1000
+    """Seed of the per-leg evaluation on each held-out config (the same every leg)."""
+    out: Path = field(default=Path())
+    """Folder of the run; default ``agents/checkpoints/ppo/<task>-s<seed>``."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "task", get_task(self.task).name)
+        if not self.out.parts:
+            default = Path("agents/checkpoints/ppo") / f"{self.task}-s{self.seed}"
+            object.__setattr__(self, "out", default)
+        for name in ("steps", "leg", "n_steps", "batch_size", "n_epochs"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"--{name.replace('_', '-')}={getattr(self, name)} must be >= 1")
+        if self.seed < 0 or not 0 < self.gamma <= 1 or not 0 < self.learning_rate < 1:
+            raise ValueError("--seed must be >= 0, --gamma in (0, 1], --learning-rate in (0, 1)")
+        if not self.hidden or min(self.hidden) < 1:
+            raise ValueError(f"--hidden={list(self.hidden)}: give layer widths >= 1")
+
+
+def training_env(cfg: PpoConfig) -> Any:
+    """SB3 VecEnv of the task's training config: one row per AV, episodes reset by SuperSuit.
+    A ring keeps its one AV (an AV that collides ends the episode); elsewhere the fleet is
+    fixed (``fixed_fleet``: AVs re-enter upstream) so the batch keeps its width."""
+    import supersuit as ss
+    from stable_baselines3.common.vec_env import VecMonitor
+
+    from agents.rules.tuned import cap_factor
+
+    base = task_config(cfg.task, seed=cfg.seed)
+    env = MixedTrafficEnv(config=task_config(cfg.task, seed=cfg.seed,
+                                             fixed_fleet=base.scenario != "ring"))  # fmt: skip
+    wrapped = LongitudinalWrapper(env)
+    wrapped.interface.cap_factor = cap_factor(env.scenario.family)  # as in evaluation
+    venv = ss.pettingzoo_env_to_vec_env_v1(wrapped)
+    venv = ss.concat_vec_envs_v1(venv, 1, num_cpus=0, base_class="stable_baselines3")
+    venv.seed = lambda seed=None: [None]  # the env seeds its episodes from config.seed
+    return VecMonitor(venv)
+
+
+def _model(cfg: PpoConfig, venv: Any) -> Any:
+    """A new PPO, or the run's last checkpoint with ``venv`` attached."""
+    from stable_baselines3 import PPO
+
+    path = cfg.out / "model.zip"
+    if path.is_file():
+        return PPO.load(str(path), env=venv, device="cpu")
+    arch = list(cfg.hidden)
+    return PPO("MlpPolicy", venv, n_steps=cfg.n_steps, batch_size=cfg.batch_size,
+               n_epochs=cfg.n_epochs, learning_rate=cfg.learning_rate, gamma=cfg.gamma,
+               gae_lambda=cfg.gae_lambda, seed=cfg.seed, device="cpu", verbose=0,
+               policy_kwargs={"log_std_init": cfg.log_std_init,
+                              "net_arch": {"pi": arch, "vf": arch}})  # fmt: skip
+
+
+def _returns_callback(returns: list[float]) -> Any:
+    """An SB3 callback appending each finished episode's return (VecMonitor's) to ``returns``."""
+    from stable_baselines3.common.callbacks import BaseCallback
+
+    class Returns(BaseCallback):
+        def _on_step(self) -> bool:
+            returns.extend(i["episode"]["r"] for i in self.locals["infos"] if "episode" in i)
+            return True
+
+    return Returns()
+
+
+def _save(cfg: PpoConfig, model: Any, meta: dict[str, Any]) -> None:
+    """Write ``model.zip`` and ``model.json`` atomically (the json last: it names the zip's
+    timesteps, so a crash between them leaves an older json, never a missing one)."""
+    buf = io.BytesIO()
+    model.save(buf)
+    atomic_write(cfg.out / "model.zip", lambda f: f.write(buf.getvalue()))
+    text = json.dumps(meta, indent=1).encode()
+    atomic_write(meta_path(cfg.out / "model.zip"), lambda f: f.write(text))
+
+
+def _eval_metrics(task: str, seed: int, policy: str, checkpoint: Path | None) -> list[dict]:
+    """Metrics of one episode per held-out config of ``task`` under ``policy``."""
+    t = get_task(task)
+    return [run_episode(task_config(task, "eval", i, seed=seed), policy, t.warmup,
+                        checkpoint=checkpoint)["metrics"] for i in range(len(t.eval))]  # fmt: skip
+
+
+def _in_child(*args: Any) -> list[dict]:
+    """:func:`_eval_metrics` in a fresh process: libsumo runs one simulation per process,
+    and the training env holds this one's."""
+    ctx = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
+        return pool.submit(_eval_metrics, *args).result()
+
+
+def _evaluate(cfg: PpoConfig, human: list[dict[str, float]]) -> dict[str, float]:
+    """Greedy policy on each held-out config (seed ``eval_seed``) against the all-human
+    ``human`` metrics: mean ratios of speed std and of mean speed, and collisions."""
+    std, speed, collisions = [], [], 0
+    runs = _in_child(cfg.task, cfg.eval_seed, "ppo", cfg.out / "model.zip")
+    for m, base in zip(runs, human):
+        std.append(m["speed_std"] / base["speed_std"])
+        speed.append(m["mean_speed"] / base["mean_speed"])
+        collisions += int(m.get("collisions") or 0)
+    return {"eval_std_ratio": float(np.mean(std)), "eval_speed_ratio": float(np.mean(speed)),
+            "eval_collisions": collisions}  # fmt: skip
+
+
+def _human(cfg: PpoConfig) -> list[dict[str, float]]:
+    """All-human metrics of each held-out config at ``eval_seed`` (cached in the run folder)."""
+    path = cfg.out / "human.json"
+    if path.is_file():
+        return json.loads(path.read_text())
+    out = _in_child(cfg.task, cfg.eval_seed, "idm", None)
+    text = json.dumps(out).encode()
+    atomic_write(path, lambda f: f.write(text))
+    return out
+
+
+def read_curves(folder: Path) -> list[dict[str, float]]:
+    """The rows of ``folder/curves.csv`` (none if it does not exist)."""
+    path = Path(folder) / "curves.csv"
+    if not path.is_file():
+        return []
+    with path.open() as f:
+        return [{k: _number(v) for k, v in row.items()} for row in csv.DictReader(f)]
+
+
+def _number(text: str) -> float:
+    value = float(text)
+    return int(value) if value.is_integer() else value
+
+
+def _append_curve(cfg: PpoConfig, row: dict[str, float]) -> None:
+    rows = [*read_curves(cfg.out), row]
+    buf = io.StringIO()
+    writer = csv.DictWriter(buf, CURVE_FIELDS, lineterminator="\n")
+    writer.writeheader()
+    writer.writerows(rows)
+    atomic_write(cfg.out / "curves.csv", lambda f: f.write(buf.getvalue().encode()))
+
+
+def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
+    """Run legs until ``cfg.steps`` decisions; the metadata of the last checkpoint."""
+    cfg.out.mkdir(parents=True, exist_ok=True)
+    human = _human(cfg)
+    venv = training_env(cfg)
+    model = _model(cfg, venv)
+    curves = read_curves(cfg.out)
+    seconds = curves[-1]["train_seconds"] if curves else 0.0
+    interface = LongitudinalConfig(dt=task_config(cfg.task).step_length)
+    meta: dict[str, Any] = {}
+    while model.num_timesteps < cfg.steps:
+        returns: list[float] = []
+        start = time.monotonic()
+        leg = min(cfg.leg, cfg.steps - model.num_timesteps)
+        model.learn(leg, callback=_returns_callback(returns), reset_num_timesteps=False)
+        seconds += time.monotonic() - start
+        meta = {"task": cfg.task, "seed": cfg.seed, "timesteps": int(model.num_timesteps),
+                "train_seconds": round(seconds, 1), "interface": asdict(interface),
+                "config": {k: (str(v) if isinstance(v, Path) else v)
+                           for k, v in asdict(cfg).items()},
+                "revision": git_revision(), "sumo": sumo_version(),
+                "library": _library()}  # fmt: skip
+        _save(cfg, model, meta)
+        row = {"leg": len(curves) + 1, "timesteps": model.num_timesteps,
+               "env_steps": model.num_timesteps * interface.hold, "train_seconds": round(seconds, 1),
+               "episodes": len(returns),
+               "mean_return": float(np.mean(returns)) if returns else float("nan"),
+               **_evaluate(cfg, human)}  # fmt: skip
+        _append_curve(cfg, row)
+        curves.append(row)
+        if progress:
+            print(f"leg {row['leg']}: {row['timesteps']} decisions, {seconds / 60:.1f} min, "
+                  f"return {row['mean_return']:.2f}, eval std x{row['eval_std_ratio']:.2f} "
+                  f"speed x{row['eval_speed_ratio']:.2f}, collisions {row['eval_collisions']}",
+                  file=sys.stderr)  # fmt: skip
+    venv.close()
+    return meta
+
+
+def _library() -> dict[str, str]:
+    import stable_baselines3
+    import supersuit
+    import torch
+
+    return {"stable_baselines3": stable_baselines3.__version__,
+            "supersuit": supersuit.__version__, "torch": torch.__version__}  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="python -m mixed_traffic.benchmark.ppo",
+                                description=__doc__.split("\n\n")[0])  # fmt: skip
+    add_config_args(p, PpoConfig)
+    try:
+        cfg = config_from_args(p.parse_args(argv), PpoConfig)
+        import stable_baselines3  # noqa: F401  (the named extra, before any work)
+    except ImportError:
+        p.error("PPO training needs Stable-Baselines3: pip install 'mixed-traffic[ppo]'")
+    except ValueError as e:
+        p.error(str(e))
+    import torch
+
+    torch.set_num_threads(1)  # one core per run: SUMO is single-threaded, runs go side by side
+    train(cfg)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
