@@ -7,7 +7,9 @@ import json
 from pathlib import Path
 
 import pytest
+from pypdf import PdfReader
 
+from analysis.benchmark_report import README_BEGIN, README_END
 from mixed_traffic.benchmark import table
 from mixed_traffic.benchmark.score import uniform_flow_speed
 from mixed_traffic.provenance import read_records
@@ -15,9 +17,18 @@ from mixed_traffic.provenance import read_records
 
 def test_the_table_scores_a_task_and_a_rerun_runs_nothing(tmp_path: Path, capsys) -> None:
     out = tmp_path / "records.jsonl"
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# x\n{README_BEGIN}\nold\n{README_END}\nafter\n")
+    report = tmp_path / "reports" / "benchmark.pdf"
     argv = ["--tasks", "ring", "--policies", "follower-stopper", "--seeds", "0", "1",
-            "--episode-length", "20", "--out", str(out)]  # fmt: skip
+            "--episode-length", "20", "--out", str(out), "--report", str(report),
+            "--readme", str(readme), "--runs", str(tmp_path / "no-runs")]  # fmt: skip
     assert table.main(argv) == 0
+    text = readme.read_text()
+    assert "old" not in text and "| ring-v0 | follower-stopper |" in text and "after" in text
+    pdf = "".join(p.extract_text() for p in PdfReader(report).pages)
+    assert "ring-v0" in pdf and "follower-stopper" in pdf
+    assert (tmp_path / "reports" / "benchmark-scores.png").is_file()
     records = read_records(out)
     assert len(records) == 2 * 2 * 2  # eval configs x (idm, follower-stopper) x seeds
     rows = json.loads((tmp_path / "scores.json").read_text())

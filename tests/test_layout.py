@@ -14,7 +14,7 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 COMMANDS = ("sweep", "study", "evaluate", "train", "compare", "bench", "report", "scenario",
-            "experiments.safety_matrix", "experiments.fleet")  # fmt: skip
+            "experiments.safety_matrix", "experiments.fleet", "benchmark", "benchmark.ppo")  # fmt: skip
 
 
 def _python(*args: str) -> subprocess.CompletedProcess:

@@ -63,10 +63,13 @@ def test_rllib_trains_one_ppo_iteration_on_the_recipe() -> None:
     assert np.isfinite(result["learners"]["shared"]["total_loss"])
 
 
-def test_the_supersuit_example_in_docs_runs(capsys) -> None:
-    """The REINFORCE loop of docs/marl.md, executed as written."""
+def test_the_ppo_recipe_in_docs_runs() -> None:
+    """The SB3 + SuperSuit recipe of docs/marl.md, executed as written."""
+    pytest.importorskip("stable_baselines3")
     text = (Path(__file__).parents[1] / "docs" / "marl.md").read_text()
     code = text.split("```python\n")[1].split("```")[0]
-    exec(compile(code, "docs/marl.md", "exec"), {})
-    updates = [line for line in capsys.readouterr().out.splitlines() if line.startswith("update")]
-    assert [line.split(":")[0] for line in updates] == [f"update {k}" for k in range(3)]
+    space: dict = {}
+    exec(compile(code, "docs/marl.md", "exec"), space)
+    model = space["model"]
+    assert model.num_timesteps >= 128 and model.observation_space.shape == (8,)
+    assert len(model.ep_info_buffer) >= 1, "an episode of 30 s ended within 128 decisions"

@@ -25,7 +25,7 @@ import multiprocessing
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -72,6 +72,8 @@ class PpoConfig:
     """Initial log std of the Gaussian actions (e^-1 x 3 m/s² = 1.1 m/s² of exploration)."""
     hidden: tuple[int, ...] = (64, 64)
     """Hidden layer widths of the actor and of the critic (tanh)."""
+    episode_length: float = 0.0
+    """Simulated time per training and evaluation episode [s]; 0 = the task's horizon."""
     eval_seed: int = 1000
     """Seed of the per-leg evaluation on each held-out config (the same every leg)."""
     out: Path = field(default=Path())
@@ -85,10 +87,19 @@ class PpoConfig:
         for name in ("steps", "leg", "n_steps", "batch_size", "n_epochs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')}={getattr(self, name)} must be >= 1")
+        if self.episode_length < 0:
+            raise ValueError(f"--episode-length={self.episode_length} must be >= 0")
         if self.seed < 0 or not 0 < self.gamma <= 1 or not 0 < self.learning_rate < 1:
             raise ValueError("--seed must be >= 0, --gamma in (0, 1], --learning-rate in (0, 1)")
         if not self.hidden or min(self.hidden) < 1:
             raise ValueError(f"--hidden={list(self.hidden)}: give layer widths >= 1")
+
+
+def _config(cfg: PpoConfig, split: str = "train", index: int = 0, **overrides: Any):
+    """The task's config with the run's seed and episode length."""
+    if cfg.episode_length:
+        overrides["episode_length"] = cfg.episode_length
+    return task_config(cfg.task, split, index, seed=cfg.seed, **overrides)
 
 
 def training_env(cfg: PpoConfig) -> Any:
@@ -100,9 +111,8 @@ def training_env(cfg: PpoConfig) -> Any:
 
     from agents.rules.tuned import cap_factor
 
-    base = task_config(cfg.task, seed=cfg.seed)
-    env = MixedTrafficEnv(config=task_config(cfg.task, seed=cfg.seed,
-                                             fixed_fleet=base.scenario != "ring"))  # fmt: skip
+    ring = _config(cfg).scenario == "ring"
+    env = MixedTrafficEnv(config=_config(cfg, fixed_fleet=not ring))
     wrapped = LongitudinalWrapper(env)
     wrapped.interface.cap_factor = cap_factor(env.scenario.family)  # as in evaluation
     venv = ss.pettingzoo_env_to_vec_env_v1(wrapped)
@@ -148,11 +158,11 @@ def _save(cfg: PpoConfig, model: Any, meta: dict[str, Any]) -> None:
     atomic_write(meta_path(cfg.out / "model.zip"), lambda f: f.write(text))
 
 
-def _eval_metrics(task: str, seed: int, policy: str, checkpoint: Path | None) -> list[dict]:
-    """Metrics of one episode per held-out config of ``task`` under ``policy``."""
-    t = get_task(task)
-    return [run_episode(task_config(task, "eval", i, seed=seed), policy, t.warmup,
-                        checkpoint=checkpoint)["metrics"] for i in range(len(t.eval))]  # fmt: skip
+def _eval_metrics(cfg: PpoConfig, policy: str, checkpoint: Path | None) -> list[dict]:
+    """Metrics of one episode per held-out config of the task (seed ``eval_seed``)."""
+    t = get_task(cfg.task)
+    configs = [replace(_config(cfg, "eval", i), seed=cfg.eval_seed) for i in range(len(t.eval))]
+    return [run_episode(c, policy, t.warmup, checkpoint=checkpoint)["metrics"] for c in configs]
 
 
 def _in_child(*args: Any) -> list[dict]:
@@ -167,7 +177,7 @@ def _evaluate(cfg: PpoConfig, human: list[dict[str, float]]) -> dict[str, float]
     """Greedy policy on each held-out config (seed ``eval_seed``) against the all-human
     ``human`` metrics: mean ratios of speed std and of mean speed, and collisions."""
     std, speed, collisions = [], [], 0
-    runs = _in_child(cfg.task, cfg.eval_seed, "ppo", cfg.out / "model.zip")
+    runs = _in_child(cfg, "ppo", cfg.out / "model.zip")
     for m, base in zip(runs, human):
         std.append(m["speed_std"] / base["speed_std"])
         speed.append(m["mean_speed"] / base["mean_speed"])
@@ -181,7 +191,7 @@ def _human(cfg: PpoConfig) -> list[dict[str, float]]:
     path = cfg.out / "human.json"
     if path.is_file():
         return json.loads(path.read_text())
-    out = _in_child(cfg.task, cfg.eval_seed, "idm", None)
+    out = _in_child(cfg, "idm", None)
     text = json.dumps(out).encode()
     atomic_write(path, lambda f: f.write(text))
     return out
@@ -218,7 +228,7 @@ def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
     model = _model(cfg, venv)
     curves = read_curves(cfg.out)
     seconds = curves[-1]["train_seconds"] if curves else 0.0
-    interface = LongitudinalConfig(dt=task_config(cfg.task).step_length)
+    interface = LongitudinalConfig(dt=_config(cfg).step_length)
     meta: dict[str, Any] = {}
     while model.num_timesteps < cfg.steps:
         returns: list[float] = []

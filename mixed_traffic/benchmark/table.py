@@ -26,6 +26,7 @@ from typing import Any
 
 import numpy as np
 
+from analysis.benchmark_report import build, markdown, update_readme
 from analysis.results import mean_ci
 from mixed_traffic.benchmark import TASKS, Task, get_task, task_config
 from mixed_traffic.benchmark.score import normalised, uniform_flow_speed
@@ -37,8 +38,12 @@ from mixed_traffic.provenance import (
     check_writable,
     current_code_key,
     read_records,
+    sumo_version,
     write_record_atomic,
 )
+
+#: Where ``python -m mixed_traffic.benchmark.ppo`` keeps its runs.
+PPO_RUNS = Path(__file__).resolve().parents[2] / "agents" / "checkpoints" / "ppo"
 
 #: Columns next to the score: record metrics averaged over eval configs and seeds.
 COLUMNS = ("mean_speed", "speed_std", "fuel", "dt_tf")
@@ -50,7 +55,8 @@ class BenchmarkConfig:
 
     tasks: tuple[str, ...] = ()
     """Task ids (default: every task of ``TASKS``)."""
-    policies: tuple[str, ...] = ("acc-lc-tuned", "follower-stopper", "pi-saturation", "auto")
+    policies: tuple[str, ...] = ("acc-lc-tuned", "follower-stopper", "pi-saturation", "auto",
+                                 "ppo-ring")  # fmt: skip
     """Controllers scored (``idm``, all human, always runs as the score's 0)."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Root seeds, one episode per eval config each."""
@@ -60,6 +66,13 @@ class BenchmarkConfig:
     """Parallel worker processes."""
     out: Path = Path("results/benchmark/records.jsonl")
     """Records (one JSON line per episode); the scores go next to it as ``scores.json``."""
+    report: Path = Path("reports/benchmark.pdf")
+    """The PDF report (its PNGs beside it)."""
+    readme: Path = Path("README.md")
+    """README whose table between the benchmark markers is replaced (left alone without them)."""
+    runs: tuple[Path, ...] = ()
+    """PPO run folders whose training curves the report shows (default: every folder of
+    agents/checkpoints/ppo)."""
 
     def __post_init__(self) -> None:
         names = tuple(get_task(t).name for t in self.tasks) or tuple(TASKS)
@@ -71,6 +84,10 @@ class BenchmarkConfig:
         if self.episode_length < 0 or self.workers < 1:
             raise ValueError("--episode-length must be >= 0 and --workers >= 1")
         check_writable(self.out)
+        if not self.runs:
+            object.__setattr__(
+                self, "runs", tuple(sorted(p for p in PPO_RUNS.glob("*") if p.is_dir()))
+            )
 
 
 def _key(task: str, index: int, policy: str, seed: int, length: float) -> tuple:
@@ -167,17 +184,6 @@ def _reference(task: Task, index: int, cfg: BenchmarkConfig, value: dict, events
     return max(float(np.mean([value[index, p, s] for s in cfg.seeds])) for p in safe)
 
 
-def markdown(rows: list[dict[str, Any]]) -> str:
-    """The table as Markdown."""
-    head = "| task | controller | score [95 % CI] | mean speed [m/s] | speed std [m/s] | fuel [l/100 km] | DT-TF [s] | terminal |"
-    lines = [head, "|" + "---|" * 8]
-    for r in rows:
-        ci = f"{r['score']:.2f} ± {r['score_half_width']:.2f}"
-        cols = " | ".join("n/a" if math.isnan(r[c]) else f"{r[c]:.2f}" for c in COLUMNS)
-        lines.append(f"| {r['task']} | {r['policy']} | {ci} | {cols} | {r['terminal_events']} |")
-    return "\n".join(lines)
-
-
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m mixed_traffic.benchmark",
                                 description=__doc__.split("\n\n")[0])  # fmt: skip
@@ -189,5 +195,22 @@ def main(argv: list[str] | None = None) -> int:
     rows = scores(cfg, run_table(cfg))
     text = json.dumps(rows, indent=1).encode()
     atomic_write(cfg.out.with_name("scores.json"), lambda f: f.write(text))
-    print(markdown(rows))
+    table = markdown(rows)
+    build(rows, cfg.runs, cfg.report, notes=[_provenance(cfg)])
+    if cfg.readme.is_file() and update_readme(cfg.readme, table):
+        print(f"updated the table in {cfg.readme}", file=sys.stderr)
+    print(table)
+    print(f"report: {cfg.report}", file=sys.stderr)
     return 0
+
+
+def _provenance(cfg: BenchmarkConfig) -> str:
+    """One line: what the table ran, on which code and SUMO."""
+    return (
+        f"Seeds {list(cfg.seeds)}, each task's horizon"
+        f"{'' if not cfg.episode_length else f' cut to {cfg.episode_length:g} s'}; code "
+        f"{current_code_key()}, SUMO {sumo_version()}. Score: 0 = all-human traffic, 1 = the "
+        "ring's uniform flow or elsewhere the best controller without a terminal event; "
+        "mean over each task's held-out configs, then over seeds with a 95 % t-interval. "
+        "Columns: means over configs and seeds; terminal events summed."
+    )

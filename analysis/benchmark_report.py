@@ -1,0 +1,133 @@
+"""The benchmark report: the table of tasks x controllers (``scores.json`` of
+``python -m mixed_traffic.benchmark``), its figures, the PPO training curves, a PDF and the
+README's table (no SUMO, no torch).
+
+Figures: the score per task and controller with 95 % t-intervals over seeds, the fleet speed
+std, and each PPO run's held-out evaluation over training time.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+from reportlab.platypus import Spacer
+
+from analysis.figures import new_figure, save_figure
+from analysis.pdf import figure, grid, make_styles, para, write_pdf
+from analysis.style import order_policies, policy_palette
+from mixed_traffic.provenance import atomic_write
+
+#: The README's table sits between these lines.
+README_BEGIN = "<!-- benchmark-table: begin (written by python -m mixed_traffic.benchmark) -->"
+README_END = "<!-- benchmark-table: end -->"
+COLUMNS = (("mean_speed", "mean speed [m/s]"), ("speed_std", "speed std [m/s]"),
+           ("fuel", "fuel [l/100 km]"), ("dt_tf", "DT-TF [s]"))  # fmt: skip
+
+
+def _fmt(value: Any, digits: int = 2) -> str:
+    return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"  # fmt: skip
+
+
+def table_rows(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
+    """Header + one row per task and controller."""
+    head = ["task", "controller", "score [95 % CI]", *(c[1] for c in COLUMNS), "terminal events"]
+    body = [[r["task"], r["policy"], f"{_fmt(r['score'])} ± {_fmt(r['score_half_width'])}",
+             *(_fmt(r[c]) for c, _ in COLUMNS), str(r["terminal_events"])] for r in rows]  # fmt: skip
+    return [head, *body]
+
+
+def markdown(rows: Sequence[dict[str, Any]]) -> str:
+    """The table as Markdown."""
+    table = table_rows(rows)
+    lines = ["| " + " | ".join(table[0]) + " |", "|" + "---|" * len(table[0])]
+    return "\n".join(lines + ["| " + " | ".join(r) + " |" for r in table[1:]])
+
+
+def plot_scores(rows: Sequence[dict[str, Any]], out: Path) -> Path:
+    """Score and speed std per task (groups) and controller (bars), score with its CI."""
+    df = pd.DataFrame(rows)
+    tasks = list(dict.fromkeys(df["task"]))
+    policies = order_policies(df["policy"])
+    palette = policy_palette(policies)
+    fig, axes = new_figure(11, 4.2, ncols=2)
+    width = 0.8 / len(policies)
+    for ax, (col, err, label) in zip(axes, (("score", "score_half_width", "score [-] (0 = all "
+                                             "human, 1 = reference)"),
+                                            ("speed_std", None, "fleet speed std [m/s]"))):  # fmt: skip
+        for i, p in enumerate(policies):
+            sub = df[df["policy"] == p].set_index("task").reindex(tasks)
+            xs = np.arange(len(tasks)) + (i - (len(policies) - 1) / 2) * width
+            yerr = np.nan_to_num(sub[err].to_numpy(float)) if err else None
+            ax.bar(xs, sub[col].to_numpy(float), width * 0.95, yerr=yerr, capsize=2,
+                   color=palette[p], label=p)  # fmt: skip
+        ax.set_xticks(range(len(tasks)), tasks)
+        ax.set_xlabel("task")
+        ax.set_ylabel(label)
+    axes[0].axhline(0, color="black", lw=0.6)
+    axes[0].axhline(1, color="black", lw=0.6, ls=":")
+    axes[1].legend(fontsize=7)
+    return save_figure(fig, out)
+
+
+def plot_training(curves: dict[str, pd.DataFrame], out: Path) -> Path | None:
+    """Each PPO run's held-out speed std and mean speed (ratios to all human) over training
+    hours; ``None`` without runs."""
+    if not curves:
+        return None
+    fig, axes = new_figure(11, 3.8, ncols=2)
+    for name, df in curves.items():
+        hours = df["train_seconds"] / 3600
+        axes[0].plot(hours, df["eval_std_ratio"], marker=".", label=name)
+        axes[1].plot(hours, df["eval_speed_ratio"], marker=".", label=name)
+    axes[0].axhline(0.5, color="black", lw=0.8, ls="--", label="half the all-human std")
+    axes[0].set_ylabel("speed std / all-human std [-]")
+    axes[1].axhline(1.0, color="black", lw=0.6, ls=":")
+    axes[1].set_ylabel("mean speed / all-human [-]")
+    for ax in axes:
+        ax.set_xlabel("training time [h] (one core)")
+    axes[0].legend(fontsize=7)
+    return save_figure(fig, out)
+
+
+def read_curves(folders: Sequence[Path]) -> dict[str, pd.DataFrame]:
+    """``curves.csv`` of each PPO run folder that has one, by folder name."""
+    return {f.name: pd.read_csv(f / "curves.csv") for f in folders if (f / "curves.csv").is_file()}
+
+
+def update_readme(readme: Path, table: str) -> bool:
+    """Replace the text between the README's markers by ``table``; False if it has none."""
+    text = readme.read_text()
+    pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)
+    if not pattern.search(text):
+        return False
+    new = pattern.sub(lambda _: f"{README_BEGIN}\n{table}\n{README_END}", text)
+    atomic_write(readme, lambda f: f.write(new.encode()))
+    return True
+
+
+def build(rows: Sequence[dict[str, Any]], runs: Sequence[Path], out_pdf: Path,
+          notes: Sequence[str] = ()) -> Path:  # fmt: skip
+    """Write the PDF (and its PNGs beside it) atomically; its path."""
+    out_pdf.parent.mkdir(parents=True, exist_ok=True)
+    styles = make_styles()
+    story: list[Any] = [para("mixed_traffic benchmark", styles["title"])]
+    story += [para(n, styles["body"]) for n in notes]
+    story += [Spacer(1, 4), grid(table_rows(rows), styles), Spacer(1, 6)]
+    png = plot_scores(rows, out_pdf.with_name(f"{out_pdf.stem}-scores.png"))
+    story.append(figure(png, "Score (bars: mean over seeds, whiskers: 95 % t-interval) and fleet "
+                        "speed std of each controller on each task's held-out configs.", styles))  # fmt: skip
+    curves = read_curves(runs)
+    png = plot_training(curves, out_pdf.with_name(f"{out_pdf.stem}-ppo.png"))
+    if png is not None:
+        story.append(figure(png, "PPO (Stable-Baselines3) on ring-v0: greedy evaluation after "
+                            "each leg on the held-out 210 and 280 m rings (seed 1000), as ratios "
+                            "to all-human traffic on the same seed; one line per training seed.",
+                            styles))  # fmt: skip
+    write_pdf(story, out_pdf, "mixed_traffic benchmark")
+    return out_pdf

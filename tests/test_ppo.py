@@ -1,0 +1,128 @@
+"""The benchmark's learner interface and the SB3 PPO recipe, on real SUMO rings."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test
+
+from agents.longitudinal import LongitudinalConfig, LongitudinalInterface
+from agents.rules.acc_lc import FOLLOW, AccLcPolicy
+from agents.rules.obs_batch import stack_obs
+from analysis import benchmark_report
+from mixed_traffic.benchmark import parallel_env, task_config
+from mixed_traffic.benchmark.interface import LongitudinalWrapper
+
+pytest.importorskip("stable_baselines3")
+
+
+def test_features_read_the_ring_and_actions_keep_acc_lc_lane_keeping() -> None:
+    env = parallel_env("ring-v0", split="eval", index=0, episode_length=5.0)  # 22 on 210 m
+    try:
+        obs, _ = env.reset(seed=3)
+        agents = list(obs)
+        batch = stack_obs(obs, agents)
+        iface = LongitudinalInterface()
+        f = iface.observe(batch, agents)[0]
+        assert f[0] == pytest.approx(obs[agents[0]]["ego"][-1, 0] * 40 / 10), "speed / 10 m/s"
+        gap = f[2] * 50
+        assert 1.0 < gap < 210 / 22, "a bumper gap shorter than the mean spacing of 9.5 m"
+        assert f[5] == pytest.approx(f[0]), "the mean speed of one observed step is the speed"
+        assert f[6] == 0 and f[7] == pytest.approx(1.0), "nothing commanded, no road cap at 30 m/s"
+        decision, params = iface.command(np.array([1.0]))
+        rule = AccLcPolicy().plan(batch)
+        assert decision[0] == FOLLOW
+        assert params[0, FOLLOW, 0] == pytest.approx(rule.params[0, FOLLOW, 0]), "ACC-LC steers"
+        assert params[0, FOLLOW, 1] == pytest.approx(1.0), "+1 -> +3 m/s², the env's full throttle"
+        _, params = iface.command(np.array([-1.0]))
+        assert params[0, FOLLOW, 1] == pytest.approx(-0.5), "-1 -> -3 m/s² of the env's -6"
+        assert iface.observe(batch, agents)[0, 6] == pytest.approx(-1.0), "the last command"
+        with pytest.raises(ValueError, match="finite"):
+            iface.command(np.array([np.nan]))
+    finally:
+        env.close()
+
+
+def test_wrapper_holds_each_action_for_half_a_second() -> None:
+    env = LongitudinalWrapper(parallel_env("ring-v0", episode_length=3.0))
+    try:
+        obs, _ = env.reset(seed=0)
+        assert env.observation_space("av_0").contains(obs["av_0"])
+        t0 = env.unwrapped.sim_time
+        obs, rew, *_ = env.step({"av_0": np.array([0.2], np.float32)})
+        assert env.unwrapped.sim_time == pytest.approx(t0 + 0.5)
+        assert rew["av_0"] != 0 and obs["av_0"][6] == pytest.approx(0.2), "held, summed"
+        with pytest.raises(ValueError, match="av_0"):
+            env.step({})
+    finally:
+        env.close()
+
+
+@pytest.mark.parametrize("task", ["ring-v0", "merge-v0"])
+def test_wrapped_tasks_pass_the_parallel_api_test(task: str) -> None:
+    parallel_api_test(LongitudinalWrapper(parallel_env(task, episode_length=20.0)), num_cycles=60)
+
+
+def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> None:
+    from agents.policies import make_policy
+    from mixed_traffic.benchmark.ppo import PpoConfig, read_curves, train
+    from mixed_traffic.experiments.runner import run_episode
+
+    small = dict(steps=128, leg=64, n_steps=64, batch_size=32, n_epochs=2, episode_length=15.0,
+                 out=tmp_path / "run")  # fmt: skip
+    train(PpoConfig(**small), progress=False)
+    meta = train(PpoConfig(**{**small, "steps": 192}), progress=False)  # resumes
+    rows = read_curves(tmp_path / "run")
+    assert [r["timesteps"] for r in rows] == [64, 128, 192] and meta["timesteps"] == 192
+    assert rows[-1]["train_seconds"] > rows[0]["train_seconds"] > 0
+    assert all(np.isfinite(r["eval_std_ratio"]) and r["eval_std_ratio"] > 0 for r in rows)
+    assert json.loads((tmp_path / "run" / "model.json").read_text())["interface"]["hold"] == 5
+    curves = benchmark_report.read_curves([tmp_path / "run", tmp_path / "none"])
+    assert list(curves) == ["run"]
+    assert benchmark_report.plot_training(curves, tmp_path / "ppo.png").stat().st_size > 0
+
+    ckpt = tmp_path / "run" / "model.zip"
+    policy = make_policy("ppo", checkpoint=ckpt, family="ring")
+    calls = []
+    predict = policy.model.predict
+    policy.model.predict = lambda x, **kw: (calls.append(len(x)), predict(x, **kw))[1]
+    env = parallel_env("ring-v0", episode_length=2.0)
+    try:
+        obs, _ = env.reset(seed=1)
+        while env.agents:
+            agents = list(obs)
+            decision, params = policy.act(stack_obs(obs, agents), agents)
+            obs, *_ = env.step({a: {"decision": int(decision[i]), "params": params[i]}
+                                for i, a in enumerate(agents)})  # fmt: skip
+    finally:
+        env.close()
+    assert len(calls) == 4, "20 env steps, one decision every 5"
+    config = task_config("ring-v0", "eval", episode_length=15.0)
+    record = run_episode(config, "ppo", 0.0, checkpoint=ckpt)
+    assert record["status"] == "ok" and record["metrics"]["mean_speed"] > 0
+
+
+def test_bad_ppo_checkpoints_and_configs_are_named(tmp_path) -> None:
+    from agents.policies import make_policy
+    from agents.ppo_policy import check_ppo_checkpoint
+    from mixed_traffic.benchmark.ppo import main
+
+    with pytest.raises(ValueError, match="needs --checkpoint"):
+        make_policy("ppo")
+    bad = tmp_path / "model.zip"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(ValueError, match=r"model\.json"):
+        check_ppo_checkpoint(bad)
+    bad.with_suffix(".json").write_text(json.dumps({"interface": {}}))
+    with pytest.raises(ValueError, match="unreadable"):
+        check_ppo_checkpoint(bad)
+    bad.with_suffix(".json").write_text(json.dumps({"interface": {"hold": 0}}))
+    with pytest.raises(ValueError, match="hold"):
+        check_ppo_checkpoint(bad)
+    with pytest.raises(ValueError, match="hold"):
+        LongitudinalConfig(hold=0)
+    with pytest.raises(SystemExit):
+        main(["--steps", "0", "--out", str(tmp_path / "x")])
+    assert not (tmp_path / "x").exists(), "nothing is written for a bad config"
