@@ -37,6 +37,7 @@ from mixed_traffic.provenance import (
     atomic_write,
     check_writable,
     current_code_key,
+    file_digest,
     read_records,
     sumo_version,
     write_record_atomic,
@@ -115,13 +116,21 @@ def run_job(job: tuple) -> dict[str, Any]:
     return record
 
 
+def _current(record: dict[str, Any]) -> bool:
+    """The record ran this code and, for a learned policy, the weights now at its checkpoint
+    path (a retrained ``ppo_ring.zip`` runs again)."""
+    path = record.get("checkpoint")
+    if path and (not Path(path).is_file() or file_digest(path) != record.get("checkpoint_sha")):
+        return False
+    return record.get("code") == current_code_key() and record.get("status") == "ok"
+
+
 def _done(cfg: BenchmarkConfig) -> dict[tuple, dict[str, Any]]:
     """This code's finished records of ``out`` by job."""
-    code = current_code_key()
     found = {}
     for r in read_records(cfg.out):
         b = r.get("benchmark")
-        if b and r.get("code") == code and r.get("status") == "ok":
+        if b and _current(r):
             found[_key(b["task"], b["index"], b["policy"], b["seed"], b["episode_length"])] = r
     return found
 
