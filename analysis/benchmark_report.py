@@ -34,11 +34,17 @@ def _fmt(value: Any, digits: int = 2) -> str:
     return "n/a" if value is None or (isinstance(value, float) and math.isnan(value)) else f"{value:.{digits}f}"  # fmt: skip
 
 
+def _ci(mean: float, half: float) -> str:
+    return f"{_fmt(mean)} ± {_fmt(half)}"
+
+
 def table_rows(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
     """Header + one row per task and controller."""
-    head = ["task", "controller", "score [95 % CI]", *(c[1] for c in COLUMNS), "terminal events"]
-    body = [[r["task"], r["policy"], f"{_fmt(r['score'])} ± {_fmt(r['score_half_width'])}",
-             *(_fmt(r[c]) for c, _ in COLUMNS), str(r["terminal_events"])] for r in rows]  # fmt: skip
+    head = ["task", "controller", "score [95 % CI]", *(c[1] for c in COLUMNS),
+            "speed std / all human [95 % CI]", "terminal events"]  # fmt: skip
+    body = [[r["task"], r["policy"], _ci(r["score"], r["score_half_width"]),
+             *(_fmt(r[c]) for c, _ in COLUMNS), _ci(r["std_ratio"], r["std_ratio_half_width"]),
+             str(r["terminal_events"])] for r in rows]  # fmt: skip
     return [head, *body]
 
 

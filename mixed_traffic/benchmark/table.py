@@ -162,13 +162,16 @@ def _metric(record: dict[str, Any], name: str) -> float:
 
 def scores(cfg: BenchmarkConfig, records: dict[tuple, dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per task and controller: score (mean, 95 % half-width, seeds), the columns'
-    means and the terminal events."""
+    means, the speed std as a share of all-human traffic's on the same seed and config (mean,
+    95 % half-width) and the terminal events."""
     rows = []
     L = cfg.episode_length
     for name in cfg.tasks:
         task, n = TASKS[name], len(TASKS[name].eval)
         value = {(i, p, s): _metric(records[_key(name, i, p, s, L)], task.metric)
                  for i in range(n) for p in cfg.policies for s in cfg.seeds}  # fmt: skip
+        std = {(i, p, s): _metric(records[_key(name, i, p, s, L)], "speed_std")
+               for i in range(n) for p in cfg.policies for s in cfg.seeds}  # fmt: skip
         events = {p: sum(_terminal(records[_key(name, i, p, s, L)]) for i in range(n)
                          for s in cfg.seeds) for p in cfg.policies}  # fmt: skip
         refs = [_reference(task, i, cfg, value, events) for i in range(n)]
@@ -178,8 +181,11 @@ def scores(cfg: BenchmarkConfig, records: dict[tuple, dict[str, Any]]) -> list[d
             score, half, seeds = mean_ci(per_seed)
             cols = {c: mean_ci([_metric(records[_key(name, i, p, s, L)], c)
                                 for i in range(n) for s in cfg.seeds])[0] for c in COLUMNS}  # fmt: skip
+            ratio, ratio_half, _ = mean_ci([np.mean([std[i, p, s] / std[i, "idm", s]
+                                                     for i in range(n)]) for s in cfg.seeds])  # fmt: skip
             rows.append({"task": name, "policy": p, "score": score,
                          "score_half_width": half, "seeds": seeds, **cols,
+                         "std_ratio": ratio, "std_ratio_half_width": ratio_half,
                          "terminal_events": events[p], "references": refs})  # fmt: skip
     return rows
 
