@@ -13,7 +13,7 @@ from mixed_traffic.world.registry import load_scenario
 
 
 def test_tasks_are_versioned_and_named_one_line_errors() -> None:
-    assert set(TASKS) == {"ring-v0", "wave-highway-v0", "merge-v0", "bottleneck-v0"}
+    assert set(TASKS) == {"ring-v0", "wave-highway-v1", "merge-v1", "bottleneck-v1"}
     assert get_task("ring") is TASKS["ring-v0"]  # a bare family: its newest version
     with pytest.raises(ValueError, match=r"unknown benchmark task 'figure-eight'; known: \["):
         get_task("figure-eight")
@@ -21,7 +21,7 @@ def test_tasks_are_versioned_and_named_one_line_errors() -> None:
         task_config("ring-v0", "eval", 2)
     with pytest.raises(ValueError, match="split='test'"):
         task_config("ring-v0", "test")
-    assert task_config("merge-v0", fixed_fleet=True).fixed_fleet  # overrides apply
+    assert task_config("merge-v1", fixed_fleet=True).fixed_fleet  # overrides apply
 
 
 def test_each_task_trains_and_is_scored_on_other_configs() -> None:
@@ -51,7 +51,7 @@ def test_the_ring_reference_is_its_uniform_flow() -> None:
     with pytest.raises(ValueError, match="no scale"):
         normalised(1.0, 2.0, 2.0)
     with pytest.raises(ValueError, match="needs a ring"):
-        uniform_flow_speed(task_config("merge-v0"), 260.0)
+        uniform_flow_speed(task_config("merge-v1"), 260.0)
 
 
 def test_the_ring_task_keeps_22_vehicles_and_its_reward_is_the_system_terms() -> None:

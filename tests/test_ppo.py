@@ -60,7 +60,7 @@ def test_wrapper_holds_each_action_for_half_a_second() -> None:
         env.close()
 
 
-@pytest.mark.parametrize("task", ["ring-v0", "merge-v0"])
+@pytest.mark.parametrize("task", ["ring-v0", "merge-v1"])
 def test_wrapped_tasks_pass_the_parallel_api_test(task: str) -> None:
     parallel_api_test(LongitudinalWrapper(parallel_env(task, episode_length=20.0)), num_cycles=60)
 
@@ -126,3 +126,15 @@ def test_bad_ppo_checkpoints_and_configs_are_named(tmp_path) -> None:
     with pytest.raises(SystemExit):
         main(["--steps", "0", "--out", str(tmp_path / "x")])
     assert not (tmp_path / "x").exists(), "nothing is written for a bad config"
+
+
+def test_the_shipped_ring_policy_loads_with_its_lineage() -> None:
+    from agents.policies import PPO_RING, make_policy
+    from mixed_traffic.experiments.runner import check_checkpoint
+
+    check_checkpoint(PPO_RING)
+    policy = make_policy("ppo-ring", family="ring")
+    assert policy.params["task"] == "ring-v0" and policy.params["timesteps"] > 0
+    assert policy.interface.cap_factor == pytest.approx(0.95), "the tuned ring rule's cap"
+    meta = json.loads(PPO_RING.with_suffix(".json").read_text())
+    assert {"revision", "sumo", "library", "train_seconds", "config"} <= set(meta)

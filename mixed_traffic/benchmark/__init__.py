@@ -3,7 +3,7 @@
     from mixed_traffic.benchmark import TASKS, parallel_env
     env = parallel_env("ring-v0")                    # the task's training config
     env = parallel_env("ring-v0", split="eval", index=1)   # its second held-out config
-    env = parallel_env("merge-v0", fixed_fleet=True) # any EnvConfig field overrides
+    env = parallel_env("merge-v1", fixed_fleet=True) # any EnvConfig field overrides
 
 - ``tasks``: ``Task``, ``TASKS``, ``get_task``, the task reward.
 - ``score``: the score's references (the ring's uniform-flow speed) and normalisation.

@@ -2,8 +2,12 @@
 
 On the ring the reference is the uniform flow of its human drivers: every vehicle at the IDM
 equilibrium speed for the ring's spacing (the human model's T and s0, the limit as desired
-speed), the speed a perfect smoother could reach. Elsewhere it is the best bundled controller's
-measured value, given by the caller.
+speed), the speed a perfect smoother could reach. On an open road it is the free flow of the
+measurement segment: every vehicle at its desired speed, the limit (the human drivers' speed
+factor has mean 1), length-weighted over the segment's edges. Both come from the scenario and
+the human model alone, never from a measured controller: a "best controller" reference
+collapses where no controller beats all-human traffic (then the scale is noise, or has the
+wrong sign).
 """
 
 from __future__ import annotations
@@ -25,6 +29,17 @@ def uniform_flow_speed(config: EnvConfig, ring_length: float) -> float:
     limit = float(hd.lane_speed[hd.car_lane_rows(hd.edge_of(scenario.routes[0].entry))].max())
     spacing = ring_length * scenario.lanes / config.ring_vehicles
     return idm_equilibrium_speed(spacing, limit, config.human, config.vehicle.length)
+
+
+def free_flow_speed(config: EnvConfig) -> float:
+    """Length-weighted mean [m/s] over the measurement segment's edges of their fastest car
+    lane's limit: the segment's mean speed without any congestion."""
+    scenario = load_scenario(config.scenario)
+    hd = scenario.hdmap
+    edges = [hd.edge_of(e) for e in scenario.measurement]
+    limits = [float(hd.lane_speed[hd.car_lane_rows(e)].max()) for e in edges]
+    lengths = [float(hd.edge_length[e]) for e in edges]
+    return sum(v * n for v, n in zip(limits, lengths)) / sum(lengths)
 
 
 def normalised(value: float, human: float, reference: float) -> float:

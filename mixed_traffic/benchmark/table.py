@@ -8,8 +8,8 @@ appended atomically to ``out`` as it ends, tagged ``benchmark``; a re-run skips 
 the same code already recorded (also after kill -9). ``idm`` (all human) is always run: it is
 the score's 0. The score of a policy on a seed is the mean over the task's eval configs of
 ``(v - v_human) / (v_ref - v_human)`` on its metric (the fleet's mean speed), with ``v_ref``
-the ring's uniform flow or, elsewhere, the best mean of the controllers in the table without a
-terminal event; the table gives its mean over seeds with a 95 % t-interval, next to the mean
+the ring's uniform flow or, elsewhere, the free flow of the measured road
+(:mod:`mixed_traffic.benchmark.score`); the table gives its mean over seeds with a 95 % t-interval, next to the mean
 speed, speed std, fuel, DT-TF and terminal events.
 """
 
@@ -29,7 +29,7 @@ import numpy as np
 from analysis.benchmark_report import build, markdown, update_readme
 from analysis.results import mean_ci
 from mixed_traffic.benchmark import TASKS, Task, get_task, task_config
-from mixed_traffic.benchmark.score import normalised, uniform_flow_speed
+from mixed_traffic.benchmark.score import free_flow_speed, normalised, uniform_flow_speed
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
 from mixed_traffic.experiments.runner import check_policy, run_episode
 from mixed_traffic.experiments.safety_matrix import terminal_events
@@ -174,7 +174,7 @@ def scores(cfg: BenchmarkConfig, records: dict[tuple, dict[str, Any]]) -> list[d
                for i in range(n) for p in cfg.policies for s in cfg.seeds}  # fmt: skip
         events = {p: sum(_terminal(records[_key(name, i, p, s, L)]) for i in range(n)
                          for s in cfg.seeds) for p in cfg.policies}  # fmt: skip
-        refs = [_reference(task, i, cfg, value, events) for i in range(n)]
+        refs = [_reference(task, i) for i in range(n)]
         for p in cfg.policies:
             per_seed = [np.mean([normalised(value[i, p, s], value[i, "idm", s], refs[i])
                                  for i in range(n)]) for s in cfg.seeds]  # fmt: skip
@@ -190,13 +190,12 @@ def scores(cfg: BenchmarkConfig, records: dict[tuple, dict[str, Any]]) -> list[d
     return rows
 
 
-def _reference(task: Task, index: int, cfg: BenchmarkConfig, value: dict, events: dict) -> float:
-    """Score 1 of one eval config: the ring's uniform flow, or the best controller's mean."""
+def _reference(task: Task, index: int) -> float:
+    """Score 1 of one eval config: the ring's uniform flow or the road's free flow."""
+    config = task.eval[index]
     if task.reference == "uniform-flow":
-        config = task.eval[index]
         return uniform_flow_speed(config, config.ring_length[0])
-    safe = [p for p in cfg.policies if p != "idm" and events[p] == 0] or ["idm"]
-    return max(float(np.mean([value[index, p, s] for s in cfg.seeds])) for p in safe)
+    return free_flow_speed(config)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -225,7 +224,7 @@ def _provenance(cfg: BenchmarkConfig) -> str:
         f"Seeds {list(cfg.seeds)}, each task's horizon"
         f"{'' if not cfg.episode_length else f' cut to {cfg.episode_length:g} s'}; code "
         f"{current_code_key()}, SUMO {sumo_version()}. Score: 0 = all-human traffic, 1 = the "
-        "ring's uniform flow or elsewhere the best controller without a terminal event; "
+        "ring's uniform flow or elsewhere the free flow of the measured road (its limit); "
         "mean over each task's held-out configs, then over seeds with a 95 % t-interval. "
         "Columns: means over configs and seeds; terminal events summed."
     )

@@ -24,8 +24,8 @@ TASK_REWARD = RewardConfig(
 )
 #: Observation tiers: the paper's sensors, or those plus the downstream (V2X) feed.
 TIERS = ("paper", "v2x")
-#: What a score of 1 means: the ring's uniform flow, or the best bundled controller.
-REFERENCES = ("uniform-flow", "best-controller")
+#: What a score of 1 means: the ring's uniform flow, or the free flow of the measured road.
+REFERENCES = ("uniform-flow", "free-flow")
 
 
 @dataclass(frozen=True)
@@ -80,13 +80,13 @@ def _tasks() -> dict[str, Task]:
     tasks = (
         Task("ring-v0", "one AV among 22 vehicles on a ring of 220-270 m (eval 210 and 280 m): "
              "damp the stop-and-go waves", ring, ring_eval, 0.0, "paper", "uniform-flow"),
-        Task("wave-highway-v0", "5 % AVs on one lane upstream of a slow zone, with the V2X "
+        Task("wave-highway-v1", "5 % AVs on one lane upstream of a slow zone, with the V2X "
              "feed: damp the waves it sends upstream", wave, wave_eval, 120.0, "v2x",
-             "best-controller"),
-        Task("merge-v0", "10 % AVs on a highway with an on-ramp", merge, merge_eval, 60.0,
-             "paper", "best-controller"),
-        Task("bottleneck-v0", "10 % AVs through a lane drop", neck, neck_eval, 60.0, "paper",
-             "best-controller"),
+             "free-flow"),
+        Task("merge-v1", "10 % AVs on a highway with an on-ramp", merge, merge_eval, 60.0,
+             "paper", "free-flow"),
+        Task("bottleneck-v1", "10 % AVs through a lane drop", neck, neck_eval, 60.0, "paper",
+             "free-flow"),
     )  # fmt: skip
     return {t.name: t for t in tasks}
 
