@@ -150,9 +150,11 @@ def run_table(cfg: BenchmarkConfig, progress: bool = True) -> dict[tuple, dict[s
 
 
 def _terminal(record: dict[str, Any]) -> int:
-    """Terminal events and collisions of an episode."""
+    """AV trips ended by a terminal event, plus collisions without an AV (each collision once:
+    an AV's is also its ``terminal_collision``)."""
     m = record.get("metrics") or {}
-    return sum(terminal_events(m).values()) + int(m.get("collisions") or 0)
+    events = terminal_events(m)
+    return sum(events.values()) + max(0, int(m.get("collisions") or 0) - events.get("collision", 0))
 
 
 def _metric(record: dict[str, Any], name: str) -> float:
