@@ -37,6 +37,7 @@ from agents.rules.acc_lc_config import LANE_C as CURRENT
 from agents.rules.acc_lc_features import features
 from agents.rules.acc_lc_lateral import lateral_bounds, steer
 from agents.rules.acc_lc_longitudinal import speed_cap
+from agents.rules.stern import SpeedMemory
 from mixed_traffic.config import VehicleConfig
 from mixed_traffic.env.api import to_accel_brake
 
@@ -95,8 +96,7 @@ class LongitudinalInterface:
         self.c = config or LongitudinalConfig()
         self.vehicle = vehicle or VehicleConfig()
         self.rule = AccLcPolicy(dt=self.c.dt)
-        self._steps = max(1, round(self.c.window / self.c.dt))
-        self._speeds: dict[str, list[float]] = {}
+        self._memory = SpeedMemory(max(1, round(self.c.window / self.c.dt)))
         self._last: dict[str, float] = {}
         self._plan: _Plan | None = None
         self._agents: list[str] = []
@@ -111,7 +111,7 @@ class LongitudinalInterface:
 
     def reset(self) -> None:
         """Forget every agent (a new episode)."""
-        self._speeds.clear()
+        self._memory = SpeedMemory(self._memory.steps)
         self._last.clear()
         self._plan, self._agents = None, []
 
@@ -121,7 +121,7 @@ class LongitudinalInterface:
         self._plan = plan = self._lane_keeping(obs)
         f, c = plan.features, self.c
         v = f["v"]
-        mean = self._mean_speed(v)
+        mean = self._memory.mean(self._agents, v)
         out = np.zeros((len(v), N_FEATURES))
         for col, k in ((1, 0), (3, 1)):  # leader, follower
             present = f["present"][:, CURRENT, k]
@@ -169,16 +169,3 @@ class LongitudinalInterface:
         params = np.zeros((len(f["v"]), 3, 2), np.float32)
         params[:, FOLLOW, 0] = steer(f, c, np.clip(0.0, lo, hi), c.follow_curvature)
         return _Plan(f, np.full(len(f["v"]), FOLLOW), params, cap)
-
-    def _mean_speed(self, v: np.ndarray) -> np.ndarray:
-        """Add this step's speeds (A,) [m/s]; (A,) each agent's mean over the window."""
-        alive = set(self._agents)
-        for a in [a for a in self._speeds if a not in alive]:  # agents that left
-            del self._speeds[a]
-        out = np.empty(len(v))
-        for i, (a, speed) in enumerate(zip(self._agents, v.tolist())):
-            hist = self._speeds.setdefault(a, [])
-            hist.append(speed)
-            del hist[: max(0, len(hist) - self._steps)]
-            out[i] = sum(hist) / len(hist)
-        return out

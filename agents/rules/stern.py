@@ -63,7 +63,7 @@ class SternConfig:
         check_rule_fields(self, ("window", "gamma", "dt", "decel"))
 
 
-class _SpeedMemory:
+class SpeedMemory:
     """Each agent's speeds over the last ``window`` seconds, and its last command."""
 
     def __init__(self, steps: int) -> None:
@@ -95,7 +95,7 @@ class _SternPolicy:
         self.c = config or SternConfig()
         self.vehicle = vehicle or VehicleConfig()
         self.rule = AccLcPolicy(dt=self.c.dt)
-        self.memory = _SpeedMemory(max(1, round(self.c.window / self.c.dt)))
+        self.memory = SpeedMemory(max(1, round(self.c.window / self.c.dt)))
 
     def act(self, obs: Mapping[str, np.ndarray], agents: Sequence[str] | None = None):
         """Batched (A, ...) observations of ``agents`` -> (decision (A,), params (A, 3, 2))."""

@@ -116,21 +116,23 @@ def run_job(job: tuple) -> dict[str, Any]:
     return record
 
 
-def _current(record: dict[str, Any]) -> bool:
+def _current(record: dict[str, Any], digests: dict[str, str]) -> bool:
     """The record ran this code and, for a learned policy, the weights now at its checkpoint
-    path (a retrained ``ppo_ring.zip`` runs again)."""
+    path (a retrained ``ppo_ring.zip`` runs again); ``digests`` caches each file's digest."""
     path = record.get("checkpoint")
-    if path and (not Path(path).is_file() or file_digest(path) != record.get("checkpoint_sha")):
+    if path and path not in digests:
+        digests[path] = file_digest(path) if Path(path).is_file() else ""
+    if path and digests[path] != record.get("checkpoint_sha"):
         return False
     return record.get("code") == current_code_key() and record.get("status") == "ok"
 
 
 def _done(cfg: BenchmarkConfig) -> dict[tuple, dict[str, Any]]:
     """This code's finished records of ``out`` by job."""
-    found = {}
+    found, digests = {}, {}
     for r in read_records(cfg.out):
         b = r.get("benchmark")
-        if b and _current(r):
+        if b and _current(r, digests):
             found[_key(b["task"], b["index"], b["policy"], b["seed"], b["episode_length"])] = r
     return found
 
