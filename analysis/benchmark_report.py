@@ -131,7 +131,7 @@ def build(rows: Sequence[dict[str, Any]], runs: Sequence[Path], out_pdf: Path,
     curves = read_curves(runs)
     png = plot_training(curves, out_pdf.with_name(f"{out_pdf.stem}-ppo.png"))
     if png is not None:
-        story.append(figure(png, "PPO (Stable-Baselines3) on ring-v0: greedy evaluation after "
+        story.append(figure(png, "PPO (Stable-Baselines3) on ring-v1: greedy evaluation after "
                             "each leg on the held-out 210 and 280 m rings (seed 1000), as ratios "
                             "to all-human traffic on the same seed; one line per training seed.",
                             styles))  # fmt: skip

@@ -8,28 +8,30 @@ from pettingzoo.test import parallel_api_test
 
 from mixed_traffic.benchmark import TASKS, get_task, parallel_env, task_config
 from mixed_traffic.benchmark.score import normalised, uniform_flow_speed
-from mixed_traffic.benchmark.tasks import TASK_REWARD
+from mixed_traffic.benchmark.tasks import RING_REWARD, TASK_REWARD
 from mixed_traffic.world.registry import load_scenario
 
 
 def test_tasks_are_versioned_and_named_one_line_errors() -> None:
-    assert set(TASKS) == {"ring-v0", "wave-highway-v1", "merge-v1", "bottleneck-v1"}
-    assert get_task("ring") is TASKS["ring-v0"]  # a bare family: its newest version
+    assert set(TASKS) == {"ring-v1", "wave-highway-v1", "merge-v1", "bottleneck-v1"}
+    assert get_task("ring") is TASKS["ring-v1"]  # a bare family: its newest version
     with pytest.raises(ValueError, match=r"unknown benchmark task 'figure-eight'; known: \["):
         get_task("figure-eight")
-    with pytest.raises(ValueError, match="task ring-v0 has 2 eval config"):
-        task_config("ring-v0", "eval", 2)
+    with pytest.raises(ValueError, match="task ring-v1 has 2 eval config"):
+        task_config("ring-v1", "eval", 2)
     with pytest.raises(ValueError, match="split='test'"):
-        task_config("ring-v0", "test")
+        task_config("ring-v1", "test")
     assert task_config("merge-v1", fixed_fleet=True).fixed_fleet  # overrides apply
 
 
 def test_each_task_trains_and_is_scored_on_other_configs() -> None:
     for t in TASKS.values():
-        assert t.train.reward == TASK_REWARD and all(c.reward == TASK_REWARD for c in t.eval)
+        reward = RING_REWARD if t.train.scenario == "ring" else TASK_REWARD
+        assert t.train.reward == reward and all(c.reward == reward for c in t.eval)
         assert t.eval and all(c != t.train for c in t.eval)
         assert t.train.v2x == (t.tier == "v2x")
-    ring = TASKS["ring-v0"]
+    ring = TASKS["ring-v1"]
+    assert RING_REWARD.w_follower_comfort > 0 == TASK_REWARD.w_follower_comfort  # the wake pays
     lo, hi = ring.train.ring_length
     assert (lo, hi) == (220.0, 270.0) and ring.train.ring_vehicles == 22
     assert all(not lo <= c.ring_length[0] <= hi for c in ring.eval)  # lengths never trained on
@@ -38,7 +40,7 @@ def test_each_task_trains_and_is_scored_on_other_configs() -> None:
 def test_the_ring_reference_is_its_uniform_flow() -> None:
     """About 4 m/s for 22 cars on 260 m with s0 = 2 m and T = 1.2 s (issue 43), rising with
     the length; the score maps all human to 0 and the reference to 1."""
-    cfg = task_config("ring-v0")
+    cfg = task_config("ring-v1")
     speeds = [uniform_flow_speed(cfg, x) for x in (210.0, 260.0, 280.0)]
     assert speeds[1] == pytest.approx(4.0, abs=0.1)
     assert speeds[0] < speeds[1] < speeds[2]
@@ -55,7 +57,7 @@ def test_the_ring_reference_is_its_uniform_flow() -> None:
 
 
 def test_the_ring_task_keeps_22_vehicles_and_its_reward_is_the_system_terms() -> None:
-    env = parallel_env("ring-v0", episode_length=5.0)
+    env = parallel_env("ring-v1", episode_length=5.0)
     try:
         for seed in (0, 1):
             obs, infos = env.reset(seed=seed)
@@ -64,11 +66,12 @@ def test_the_ring_task_keeps_22_vehicles_and_its_reward_is_the_system_terms() ->
         for _ in range(10):
             _, rew, _, _, infos = env.step({"av_0": env.action_space("av_0").sample()})
         t = infos["av_0"]["reward_terms"]
-        w = TASK_REWARD
+        w = RING_REWARD
         expected = (w.w_safety * (t["r1_ttc"] + t["r1_lane"] + t["r1_terminal"])
-                    + w.w_comfort * t["r3_comfort"] + w.w_local_speed * t["r5_local_speed"])  # fmt: skip
+                    + w.w_comfort * t["r3_comfort"] + w.w_local_speed * t["r5_local_speed"]
+                    + w.w_follower_comfort * t["r6_follower_comfort"])  # fmt: skip
         assert rew["av_0"] == pytest.approx(expected, rel=1e-6, abs=1e-9)
-        assert 0.0 < t["r5_local_speed"] < 1.3
+        assert 0.0 < t["r5_local_speed"] < 1.3 and -9.0 <= t["r6_follower_comfort"] <= 0.0
     finally:
         env.close()
 

@@ -19,7 +19,7 @@ pytest.importorskip("stable_baselines3")
 
 
 def test_features_read_the_ring_and_actions_keep_acc_lc_lane_keeping() -> None:
-    env = parallel_env("ring-v0", split="eval", index=0, episode_length=5.0)  # 22 on 210 m
+    env = parallel_env("ring-v1", split="eval", index=0, episode_length=5.0)  # 22 on 210 m
     try:
         obs, _ = env.reset(seed=3)
         agents = list(obs)
@@ -46,7 +46,7 @@ def test_features_read_the_ring_and_actions_keep_acc_lc_lane_keeping() -> None:
 
 
 def test_wrapper_holds_each_action_for_half_a_second() -> None:
-    env = LongitudinalWrapper(parallel_env("ring-v0", episode_length=3.0))
+    env = LongitudinalWrapper(parallel_env("ring-v1", episode_length=3.0))
     try:
         obs, _ = env.reset(seed=0)
         assert env.observation_space("av_0").contains(obs["av_0"])
@@ -60,7 +60,7 @@ def test_wrapper_holds_each_action_for_half_a_second() -> None:
         env.close()
 
 
-@pytest.mark.parametrize("task", ["ring-v0", "merge-v1"])
+@pytest.mark.parametrize("task", ["ring-v1", "merge-v1"])
 def test_wrapped_tasks_pass_the_parallel_api_test(task: str) -> None:
     parallel_api_test(LongitudinalWrapper(parallel_env(task, episode_length=20.0)), num_cycles=60)
 
@@ -88,7 +88,7 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     calls = []
     predict = policy.model.predict
     policy.model.predict = lambda x, **kw: (calls.append(len(x)), predict(x, **kw))[1]
-    env = parallel_env("ring-v0", episode_length=2.0)
+    env = parallel_env("ring-v1", episode_length=2.0)
     try:
         obs, _ = env.reset(seed=1)
         while env.agents:
@@ -99,7 +99,7 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     finally:
         env.close()
     assert len(calls) == 4, "20 env steps, one decision every 5"
-    config = task_config("ring-v0", "eval", episode_length=15.0)
+    config = task_config("ring-v1", "eval", episode_length=15.0)
     record = run_episode(config, "ppo", 0.0, checkpoint=ckpt)
     assert record["status"] == "ok" and record["metrics"]["mean_speed"] > 0
 
@@ -134,7 +134,7 @@ def test_the_shipped_ring_policy_loads_with_its_lineage() -> None:
 
     check_checkpoint(PPO_RING)
     policy = make_policy("ppo-ring", family="ring")
-    assert policy.params["task"] == "ring-v0" and policy.params["timesteps"] > 0
+    assert policy.params["task"] == "ring-v1" and policy.params["timesteps"] > 0
     assert policy.interface.cap_factor == pytest.approx(0.95), "the tuned ring rule's cap"
     meta = json.loads(PPO_RING.with_suffix(".json").read_text())
     assert {"revision", "sumo", "library", "train_seconds", "config"} <= set(meta)

@@ -1,8 +1,8 @@
 """Train Stable-Baselines3's PPO on a benchmark task, in legs that resume.
 
     pip install -e ".[ppo]"
-    python -m mixed_traffic.benchmark.ppo --task ring-v0 --seed 0 --steps 400000
-    python -m mixed_traffic.evaluate --policy ppo --checkpoint agents/checkpoints/ppo/ring-v0-s0/model.zip
+    python -m mixed_traffic.benchmark.ppo --task ring-v1 --seed 0 --steps 400000
+    python -m mixed_traffic.evaluate --policy ppo --checkpoint agents/checkpoints/ppo/ring-v1-s0/model.zip
 
 One policy is shared by every AV (parameter sharing through SuperSuit's PettingZoo-to-vector-env
 conversion: each AV is one row of SB3's batch). The AVs act through the longitudinal interface
@@ -48,7 +48,7 @@ CURVE_FIELDS = ("leg", "timesteps", "env_steps", "train_seconds", "episodes", "m
 class PpoConfig:
     """One training run. The CLI is built from it; SB3's PPO defaults where not named."""
 
-    task: str = "ring-v0"
+    task: str = "ring-v1"
     """Benchmark task id (``mixed_traffic.benchmark.TASKS``)."""
     seed: int = 0
     """Seeds the env (its episodes' demand, SUMO, noise, ring lengths), numpy and torch."""

@@ -4,12 +4,15 @@ A task is what two papers must share to compare numbers on this env (as Flow's b
 ring, merge and bottleneck): the training config (scenario, AV share, horizon, reward, the
 observation tier), the warm-up before metrics count, the eval configs it is scored on, and the
 reference its score is normalised to (:mod:`mixed_traffic.benchmark.score`). Ids carry a
-version (``ring-v0``): a change to any of these makes a new version, never a silent edit.
+version (``ring-v1``): a change to any of these makes a new version, never a silent edit.
 
 The task reward is system level, as Flow's: ``r5_local_speed`` (the mean speed of the traffic
 around the AV as a share of the limit; the whole ring on a ring) with the AV's own comfort
 ``r3_comfort`` (its acceleration changes) and safety ``r1`` terms; the paper's efficiency and
-impact terms are off. Every term stays in ``infos[agent]["reward_terms"]``.
+impact terms are off. The ring adds ``r6_follower_comfort`` (the squared accelerations of the
+AV's five followers, CIRCLES' way of judging an AV by its wake): ring-v1 paid for the mean speed
+alone, and PPO settled at the humans' speed without damping their waves. Every term stays in
+``infos[agent]["reward_terms"]``.
 """
 
 from __future__ import annotations
@@ -22,6 +25,8 @@ from mixed_traffic.config import EnvConfig, RewardConfig
 TASK_REWARD = RewardConfig(
     w_safety=1.0, w_efficiency=0.0, w_comfort=0.1, w_impact=0.0, w_local_speed=1.0
 )
+#: The ring task's reward: the task reward plus w6 = 1 on the AV's followers' comfort.
+RING_REWARD = replace(TASK_REWARD, w_follower_comfort=1.0)
 #: Observation tiers: the paper's sensors, or those plus the downstream (V2X) feed.
 TIERS = ("paper", "v2x")
 #: What a score of 1 means: the ring's uniform flow, or the free flow of the measured road.
@@ -68,7 +73,7 @@ def _road(scenario: str, eval_scenario: str, share: float, horizon: float, v2x: 
 
 def _ring() -> tuple:
     train = EnvConfig(scenario="ring", ring_length=(220.0, 270.0), ring_vehicles=22,
-                      penetration=1 / 22, episode_length=300.0, reward=TASK_REWARD)  # fmt: skip
+                      penetration=1 / 22, episode_length=300.0, reward=RING_REWARD)  # fmt: skip
     return train, tuple(replace(train, ring_length=(x,)) for x in (210.0, 280.0))
 
 
@@ -78,7 +83,7 @@ def _tasks() -> dict[str, Task]:
     merge, merge_eval = _road("merge", "merge-eval", 0.1, 300.0, v2x=False)
     neck, neck_eval = _road("bottleneck", "bottleneck-eval", 0.1, 300.0, v2x=False)
     tasks = (
-        Task("ring-v0", "one AV among 22 vehicles on a ring of 220-270 m (eval 210 and 280 m): "
+        Task("ring-v1", "one AV among 22 vehicles on a ring of 220-270 m (eval 210 and 280 m): "
              "damp the stop-and-go waves", ring, ring_eval, 0.0, "paper", "uniform-flow"),
         Task("wave-highway-v1", "5 % AVs on one lane upstream of a slow zone, with the V2X "
              "feed: damp the waves it sends upstream", wave, wave_eval, 120.0, "v2x",
@@ -96,7 +101,7 @@ TASKS: dict[str, Task] = _tasks()
 
 
 def get_task(name: str) -> Task:
-    """The task ``name`` (an id such as ``ring-v0``; a bare family means its newest version).
+    """The task ``name`` (an id such as ``ring-v1``; a bare family means its newest version).
     ``ValueError`` names the known ids."""
     if name in TASKS:
         return TASKS[name]
