@@ -35,7 +35,7 @@ from agents.rules.acc_lc import AccLcPolicy
 from agents.rules.acc_lc_config import FOLLOW
 from agents.rules.acc_lc_config import LANE_C as CURRENT
 from agents.rules.acc_lc_features import features
-from agents.rules.acc_lc_lateral import lateral_bounds, steer
+from agents.rules.acc_lc_lateral import follow_steering, lateral_bounds
 from agents.rules.acc_lc_longitudinal import speed_cap
 from agents.rules.stern import SpeedMemory
 from mixed_traffic.config import VehicleConfig
@@ -167,5 +167,5 @@ class LongitudinalInterface:
             return _Plan(f, plan.decision, np.array(plan.params, np.float32), cap)
         lo, hi = lateral_bounds(f, c)
         params = np.zeros((len(f["v"]), 3, 2), np.float32)
-        params[:, FOLLOW, 0] = steer(f, c, np.clip(0.0, lo, hi), c.follow_curvature)
+        params[:, FOLLOW, 0] = follow_steering(f, c, lo, hi)
         return _Plan(f, np.full(len(f["v"]), FOLLOW), params, cap)

@@ -69,7 +69,7 @@ from agents.rules.acc_lc_config import LANE_C as _C
 from agents.rules.acc_lc_config import LANE_L as _L
 from agents.rules.acc_lc_config import LANE_R as _R
 from agents.rules.acc_lc_features import features, lane_curvature
-from agents.rules.acc_lc_lateral import forced_ok, lateral_bounds, safe, steer
+from agents.rules.acc_lc_lateral import follow_steering, forced_ok, lateral_bounds, safe, steer
 from agents.rules.acc_lc_longitudinal import (
     LaneCall,
     hidden_cap,
@@ -342,11 +342,10 @@ def _params(
     A = len(f["v"])
     t_l, t_r = targets
     acc_f, acc_l, acc_r = accels
-    t_f = np.clip(np.zeros(A), lo, hi)
     t_l = np.clip(t_l, lo, hi)
     t_r = np.clip(t_r, lo, hi)
     params = np.empty((A, 3, 2), dtype=np.float32)
-    params[:, FOLLOW, 0] = steer(f, c, t_f, c.follow_curvature)
+    params[:, FOLLOW, 0] = follow_steering(f, c, lo, hi)
     params[:, LEFT, 0] = steer(f, c, t_l)
     params[:, RIGHT, 0] = steer(f, c, t_r)
     params[:, FOLLOW, 1] = to_ab(acc_f, c)

@@ -156,3 +156,9 @@ def lateral_bounds(f: Features, c: AccLcConfig) -> tuple[np.ndarray, np.ndarray]
     squeezed = lo > hi
     mid = 0.5 * (np.where(squeezed, lo, 0.0) + np.where(squeezed, hi, 0.0))
     return np.where(squeezed, mid, lo), np.where(squeezed, mid, hi)
+
+
+def follow_steering(f: Features, c: AccLcConfig, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(A,) steering that keeps the lane centre (clipped to the lateral bounds ``[lo, hi]``
+    [m]), along the lane's curvature."""
+    return steer(f, c, np.clip(np.zeros(len(f["v"])), lo, hi), c.follow_curvature)
