@@ -65,7 +65,8 @@ class PpoConfig:
     learning_rate: float = 3e-4
     """Adam step size."""
     gamma: float = 0.99
-    """Discount per decision (0.5 s): a horizon of about 50 s, a ring wave's period."""
+    """Discount per decision (0.5 s): a horizon of about 50 s, longer than a ring wave's period
+    (about 30 s)."""
     gae_lambda: float = 0.95
     """GAE lambda."""
     log_std_init: float = -1.0
