@@ -31,7 +31,7 @@ def test_each_task_trains_and_is_scored_on_other_configs() -> None:
         assert t.eval and all(c != t.train for c in t.eval)
         assert t.train.v2x == (t.tier == "v2x")
     ring = TASKS["ring-v1"]
-    assert RING_REWARD.w_follower_comfort > 0 == TASK_REWARD.w_follower_comfort  # the wake pays
+    assert RING_REWARD.w_accel > 0 == TASK_REWARD.w_accel  # Flow's acceleration penalty
     lo, hi = ring.train.ring_length
     assert (lo, hi) == (220.0, 270.0) and ring.train.ring_vehicles == 22
     assert all(not lo <= c.ring_length[0] <= hi for c in ring.eval)  # lengths never trained on
@@ -69,9 +69,9 @@ def test_the_ring_task_keeps_22_vehicles_and_its_reward_is_the_system_terms() ->
         w = RING_REWARD
         expected = (w.w_safety * (t["r1_ttc"] + t["r1_lane"] + t["r1_terminal"])
                     + w.w_comfort * t["r3_comfort"] + w.w_local_speed * t["r5_local_speed"]
-                    + w.w_follower_comfort * t["r6_follower_comfort"])  # fmt: skip
+                    + w.w_accel * t["r7_accel"])  # fmt: skip
         assert rew["av_0"] == pytest.approx(expected, rel=1e-6, abs=1e-9)
-        assert 0.0 < t["r5_local_speed"] < 1.3 and -9.0 <= t["r6_follower_comfort"] <= 0.0
+        assert 0.0 < t["r5_local_speed"] < 1.3 and -3.0 <= t["r7_accel"] <= 0.0
     finally:
         env.close()
 

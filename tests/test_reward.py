@@ -129,6 +129,14 @@ def test_jerk() -> None:
     assert t["r3_comfort"][0] == pytest.approx(-0.5)
 
 
+def test_own_acceleration_is_penalised_only_with_its_weight() -> None:
+    # r7 = -|a| / acc_thr: braking at 1.5 m/s² is -0.5; w7 = 0 keeps the paper's sum
+    t = terms(accel=np.array([-1.5]), prev_accel=np.array([-1.5]))
+    assert t["r7_accel"][0] == pytest.approx(-0.5)
+    flow = RewardConfig(w_accel=2.0)
+    assert total_reward(t, flow)[0] - total_reward(t, CFG)[0] == pytest.approx(-1.0)
+
+
 def test_rear_deceleration() -> None:
     # C2 20 -> 19.4 m/s in 0.1 s: -0.6 / (2 * 3 * 0.1) = -1
     t = terms(rear_speed_prev=np.array([20.0]), rear_speed_now=np.array([19.4]))

@@ -9,10 +9,11 @@ version (``ring-v1``): a change to any of these makes a new version, never a sil
 The task reward is system level, as Flow's: ``r5_local_speed`` (the mean speed of the traffic
 around the AV as a share of the limit; the whole ring on a ring) with the AV's own comfort
 ``r3_comfort`` (its acceleration changes) and safety ``r1`` terms; the paper's efficiency and
-impact terms are off. The ring adds ``r6_follower_comfort`` (the squared accelerations of the
-AV's five followers, CIRCLES' way of judging an AV by its wake): ring-v1 paid for the mean speed
-alone, and PPO settled at the humans' speed without damping their waves. Every term stays in
-``infos[agent]["reward_terms"]``.
+impact terms are off. The ring's reward is Flow's ring reward: the mean speed of the ring
+and a penalty on the AV's own acceleration magnitude ``r7_accel``, weighted as Flow's (a
+penalty per m/s² 20 times the reward per m/s of mean speed), so that the AV drives steadily.
+ring-v0 paid for the mean speed alone, and PPO settled at the humans' speed without damping
+their waves. Every term stays in ``infos[agent]["reward_terms"]``.
 """
 
 from __future__ import annotations
@@ -25,8 +26,10 @@ from mixed_traffic.config import EnvConfig, RewardConfig
 TASK_REWARD = RewardConfig(
     w_safety=1.0, w_efficiency=0.0, w_comfort=0.1, w_impact=0.0, w_local_speed=1.0
 )
-#: The ring task's reward: the task reward plus w6 = 1 on the AV's followers' comfort.
-RING_REWARD = replace(TASK_REWARD, w_follower_comfort=1.0)
+#: The ring task's reward: the task reward plus Flow's acceleration penalty. r5 is v/30 m/s and
+#: r7 is -|a|/3 m/s², so w7 = 2 costs 0.67 per m/s² against 1/30 per m/s: Flow's ratio of 20 s
+#: (4 |a| against 4 v / 20 m/s).
+RING_REWARD = replace(TASK_REWARD, w_accel=2.0)
 #: Observation tiers: the paper's sensors, or those plus the downstream (V2X) feed.
 TIERS = ("paper", "v2x")
 #: What a score of 1 means: the ring's uniform flow, or the free flow of the measured road.

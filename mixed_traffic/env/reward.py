@@ -19,11 +19,12 @@ Terms (``reward_terms`` returns them by these names)::
     r3_comfort     -|a_t - a_{t-1}| / (2 acc_thr)
     r4_impact      (v_C2(t+1) - v_C2(t)) / (2 acc_thr dt) if the same rear vehicle C2 slowed by
                    more than v_thr, else 0
+    r7_accel       -|a_t| / acc_thr: the agent's own acceleration (Flow's ring penalty)
 
 ``total_reward = w1 (r1_ttc + r1_lane + r1_terminal) + w2 (r2_speed + r2_lane_change)
-+ w3 r3_comfort + w4 r4_impact (+ w5 r5_local_speed + w6 r6_follower_comfort)``; r5 and r6,
-the traffic around the agent, come from :mod:`mixed_traffic.env.traffic_terms` (weights 0 by
-default: the paper's reward).
++ w3 r3_comfort + w4 r4_impact (+ w5 r5_local_speed + w6 r6_follower_comfort + w7 r7_accel)``;
+r5 and r6, the traffic around the agent, come from :mod:`mixed_traffic.env.traffic_terms`
+(w5-w7 are 0 by default: the paper's reward).
 """
 
 from __future__ import annotations
@@ -50,6 +51,7 @@ TERM_NAMES = (
     "r3_comfort",
     "r4_impact",
     *TRAFFIC_TERMS,
+    "r7_accel",
 )
 #: Smallest bumper gap used in the lane-change ratio [m] (avoids dividing by ~0).
 MIN_GAP = 0.5
@@ -209,12 +211,13 @@ def reward_terms(
         "r4_impact": r4_impact(
             rear_speed_prev, rear_speed_now, rear_same, cfg.acc_threshold, cfg.rear_speed_drop, dt
         ),
+        "r7_accel": -np.abs(np.asarray(accel, float)) / cfg.acc_threshold,
     }
 
 
 def total_reward(terms: Mapping[str, np.ndarray], cfg: RewardConfig) -> np.ndarray:
-    """(A,) w1·r1 + w2·r2 + w3·r3 + w4·r4 (+ w5·r5 + w6·r6 where their weights are not 0)
-    from the named terms."""
+    """(A,) w1·r1 + w2·r2 + w3·r3 + w4·r4 (+ w5·r5 + w6·r6 + w7·r7 where their weights are
+    not 0) from the named terms."""
     r1 = terms["r1_ttc"] + terms["r1_lane"] + terms["r1_terminal"]
     r2 = terms["r2_speed"] + terms["r2_lane_change"]
     total = (
@@ -223,7 +226,8 @@ def total_reward(terms: Mapping[str, np.ndarray], cfg: RewardConfig) -> np.ndarr
         + cfg.w_comfort * terms["r3_comfort"]
         + cfg.w_impact * terms["r4_impact"]
     )
-    for name, w in zip(TRAFFIC_TERMS, (cfg.w_local_speed, cfg.w_follower_comfort)):
+    extra = (*TRAFFIC_TERMS, "r7_accel")
+    for name, w in zip(extra, (cfg.w_local_speed, cfg.w_follower_comfort, cfg.w_accel)):
         if w:  # weight 0: the paper's sum, bit for bit
             total = total + w * terms[name]
     return total
