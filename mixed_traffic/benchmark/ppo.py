@@ -79,6 +79,9 @@ class PpoConfig:
     """Seed of the per-leg evaluation on each held-out config (the same every leg)."""
     out: Path = field(default=Path())
     """Folder of the run; default ``agents/checkpoints/ppo/<task>-s<seed>``."""
+    init: Path = field(default=Path())
+    """A curriculum: a new run starts from this ``model.zip`` (weights, optimiser and decision
+    count of another run, e.g. of an earlier task version) instead of random weights."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "task", get_task(self.task).name)
@@ -92,6 +95,9 @@ class PpoConfig:
             raise ValueError(f"--episode-length={self.episode_length} must be >= 0")
         if self.seed < 0 or not 0 < self.gamma <= 1 or not 0 < self.learning_rate < 1:
             raise ValueError("--seed must be >= 0, --gamma in (0, 1], --learning-rate in (0, 1)")
+        if self.init.parts and not (self.init.suffix == ".zip" and self.init.is_file()
+                                    and meta_path(self.init).is_file()):  # fmt: skip
+            raise ValueError(f"--init={self.init}: not a PPO run's model.zip with its .json")
         if not self.hidden or min(self.hidden) < 1:
             raise ValueError(f"--hidden={list(self.hidden)}: give layer widths >= 1")
 
@@ -123,12 +129,12 @@ def training_env(cfg: PpoConfig) -> Any:
 
 
 def _model(cfg: PpoConfig, venv: Any) -> Any:
-    """A new PPO, or the run's last checkpoint with ``venv`` attached."""
+    """A new PPO, or the run's last checkpoint (else ``cfg.init``) with ``venv`` attached."""
     from stable_baselines3 import PPO
 
     path = cfg.out / "model.zip"
-    if path.is_file():
-        return PPO.load(str(path), env=venv, device="cpu")
+    if path.is_file() or cfg.init.parts:
+        return PPO.load(str(path if path.is_file() else cfg.init), env=venv, device="cpu")
     arch = list(cfg.hidden)
     return PPO("MlpPolicy", venv, n_steps=cfg.n_steps, batch_size=cfg.batch_size,
                n_epochs=cfg.n_epochs, learning_rate=cfg.learning_rate, gamma=cfg.gamma,
@@ -228,7 +234,7 @@ def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
     venv = training_env(cfg)
     model = _model(cfg, venv)
     curves = read_curves(cfg.out)
-    seconds = curves[-1]["train_seconds"] if curves else 0.0
+    seconds = curves[-1]["train_seconds"] if curves else _init_seconds(cfg)
     interface = LongitudinalConfig(dt=_config(cfg).step_length)
     meta: dict[str, Any] = {}
     while model.num_timesteps < cfg.steps:
@@ -258,6 +264,14 @@ def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
                   file=sys.stderr)  # fmt: skip
     venv.close()
     return meta
+
+
+def _init_seconds(cfg: PpoConfig) -> float:
+    """Training time [s] behind ``cfg.init`` (its run's metadata), 0 without one: a curriculum's
+    time counts from its first stage."""
+    if not cfg.init.parts:
+        return 0.0
+    return float(json.loads(meta_path(cfg.init).read_text()).get("train_seconds", 0.0))
 
 
 def _library() -> dict[str, str]:
