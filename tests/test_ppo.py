@@ -79,6 +79,11 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     assert rows[-1]["train_seconds"] > rows[0]["train_seconds"] > 0
     assert all(np.isfinite(r["eval_std_ratio"]) and r["eval_std_ratio"] > 0 for r in rows)
     assert json.loads((tmp_path / "run" / "model.json").read_text())["interface"]["hold"] == 5
+    # a curriculum: a new run from the first one's weights keeps its decisions and time
+    meta = train(PpoConfig(**{**small, "steps": 256, "out": tmp_path / "next",
+                              "init": tmp_path / "run" / "model.zip"}), progress=False)  # fmt: skip
+    assert [r["timesteps"] for r in read_curves(tmp_path / "next")] == [256]
+    assert meta["train_seconds"] > rows[-1]["train_seconds"]
     curves = benchmark_report.read_curves([tmp_path / "run", tmp_path / "none"])
     assert list(curves) == ["run"]
     assert benchmark_report.plot_training(curves, tmp_path / "ppo.png").stat().st_size > 0
@@ -125,6 +130,8 @@ def test_bad_ppo_checkpoints_and_configs_are_named(tmp_path) -> None:
         LongitudinalConfig(hold=0)
     with pytest.raises(SystemExit):
         main(["--steps", "0", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        main(["--init", str(bad.with_suffix(".zip.x")), "--out", str(tmp_path / "x")])
     assert not (tmp_path / "x").exists(), "nothing is written for a bad config"
 
 
