@@ -141,7 +141,7 @@ def test_the_shipped_ring_policy_loads_with_its_lineage() -> None:
 
     check_checkpoint(PPO_RING)
     policy = make_policy("ppo-ring", family="ring")
-    assert policy.params["task"] == "ring-v1" and policy.params["timesteps"] > 0
+    assert policy.params["task"].startswith("ring-v") and policy.params["timesteps"] > 0
     assert policy.interface.cap_factor == pytest.approx(0.95), "the tuned ring rule's cap"
     meta = json.loads(PPO_RING.with_suffix(".json").read_text())
     assert {"revision", "sumo", "library", "train_seconds", "config"} <= set(meta)
