@@ -131,9 +131,10 @@ def build(rows: Sequence[dict[str, Any]], runs: Sequence[Path], out_pdf: Path,
     curves = read_curves(runs)
     png = plot_training(curves, out_pdf.with_name(f"{out_pdf.stem}-ppo.png"))
     if png is not None:
-        story.append(figure(png, "PPO (Stable-Baselines3) on ring-v1: greedy evaluation after "
-                            "each leg on the held-out 210 and 280 m rings (seed 1000), as ratios "
-                            "to all-human traffic on the same seed; one line per training seed.",
+        story.append(figure(png, "PPO (Stable-Baselines3) runs, one line per run folder (task "
+                            "and training seed; a run started from another's weights goes on from "
+                            "its time): greedy evaluation after each leg on the task's held-out "
+                            "configs (seed 1000), as ratios to all-human traffic on the same seed.",
                             styles))  # fmt: skip
     write_pdf(story, out_pdf, "mixed_traffic benchmark")
     return out_pdf
