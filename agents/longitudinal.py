@@ -97,7 +97,6 @@ class LongitudinalInterface:
         self.vehicle = vehicle or VehicleConfig()
         self.rule = AccLcPolicy(dt=self.c.dt)
         self._memory = SpeedMemory(max(1, round(self.c.window / self.c.dt)))
-        self._last: dict[str, float] = {}
         self._plan: _Plan | None = None
         self._agents: list[str] = []
         self.cap_factor = 1.0
@@ -112,7 +111,6 @@ class LongitudinalInterface:
     def reset(self) -> None:
         """Forget every agent (a new episode)."""
         self._memory = SpeedMemory(self._memory.steps)
-        self._last.clear()
         self._plan, self._agents = None, []
 
     def observe(self, obs: Mapping[str, np.ndarray], agents: Sequence[str]) -> np.ndarray:
@@ -131,7 +129,8 @@ class LongitudinalInterface:
             out[:, col + 1] = np.where(present, np.clip(gap, 0.0, None), np.inf) / c.gap_scale
         out[:, 0] = v / c.speed_scale
         out[:, 5] = mean / c.speed_scale
-        out[:, 6] = [self._last.get(a, 0.0) / c.accel_scale for a in self._agents]
+        last = self._memory.command  # the last command of each agent still present
+        out[:, 6] = [last.get(a, 0.0) / c.accel_scale for a in self._agents]
         out[:, 7] = np.clip(plan.cap, -c.accel_scale, c.accel_scale) / c.accel_scale
         out[:, (2, 4)] = np.minimum(out[:, (2, 4)], 2.0)
         return np.clip(out, -BOUND, BOUND).astype(np.float32)
@@ -154,7 +153,7 @@ class LongitudinalInterface:
         params = plan.params.copy()
         rows = np.flatnonzero(follow)
         params[rows, FOLLOW, 1] = to_accel_brake(accel[rows], self.vehicle)
-        self._last = {a: float(accel[i]) for i, a in enumerate(self._agents)}
+        self._memory.command.update(zip(self._agents, accel.tolist()))
         return decision, params
 
     def _lane_keeping(self, obs: Mapping[str, np.ndarray]) -> _Plan:

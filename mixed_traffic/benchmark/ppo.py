@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from agents.longitudinal import LongitudinalConfig
-from agents.ppo_policy import meta_path
+from agents.ppo_policy import meta_path, read_meta
 from mixed_traffic.benchmark import get_task, task_config
 from mixed_traffic.benchmark.interface import LongitudinalWrapper
 from mixed_traffic.env.parallel import MixedTrafficEnv
@@ -95,9 +95,8 @@ class PpoConfig:
             raise ValueError(f"--episode-length={self.episode_length} must be >= 0")
         if self.seed < 0 or not 0 < self.gamma <= 1 or not 0 < self.learning_rate < 1:
             raise ValueError("--seed must be >= 0, --gamma in (0, 1], --learning-rate in (0, 1)")
-        if self.init.parts and not (self.init.suffix == ".zip" and self.init.is_file()
-                                    and meta_path(self.init).is_file()):  # fmt: skip
-            raise ValueError(f"--init={self.init}: not a PPO run's model.zip with its .json")
+        if self.init.parts:
+            read_meta(self.init)  # ValueError naming a --init that is not a PPO run's model.zip
         if not self.hidden or min(self.hidden) < 1:
             raise ValueError(f"--hidden={list(self.hidden)}: give layer widths >= 1")
 
@@ -271,7 +270,7 @@ def _init_seconds(cfg: PpoConfig) -> float:
     time counts from its first stage."""
     if not cfg.init.parts:
         return 0.0
-    return float(json.loads(meta_path(cfg.init).read_text()).get("train_seconds", 0.0))
+    return float(read_meta(cfg.init).get("train_seconds", 0.0))
 
 
 def _library() -> dict[str, str]:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.world.demand import idm_equilibrium_speed
+from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.registry import load_scenario
 
 
@@ -26,7 +27,7 @@ def uniform_flow_speed(config: EnvConfig, ring_length: float) -> float:
             f"uniform_flow_speed needs a ring with ring_vehicles, not {config.scenario!r}"
         )
     hd = scenario.hdmap
-    limit = float(hd.lane_speed[hd.car_lane_rows(hd.edge_of(scenario.routes[0].entry))].max())
+    limit = _limit(hd, scenario.routes[0].entry)
     spacing = ring_length * scenario.lanes / config.ring_vehicles
     return idm_equilibrium_speed(spacing, limit, config.human, config.vehicle.length)
 
@@ -36,10 +37,14 @@ def free_flow_speed(config: EnvConfig) -> float:
     lane's limit: the segment's mean speed without any congestion."""
     scenario = load_scenario(config.scenario)
     hd = scenario.hdmap
-    edges = [hd.edge_of(e) for e in scenario.measurement]
-    limits = [float(hd.lane_speed[hd.car_lane_rows(e)].max()) for e in edges]
-    lengths = [float(hd.edge_length[e]) for e in edges]
+    limits = [_limit(hd, e) for e in scenario.measurement]
+    lengths = [float(hd.edge_length[hd.edge_of(e)]) for e in scenario.measurement]
     return sum(v * n for v, n in zip(limits, lengths)) / sum(lengths)
+
+
+def _limit(hd: HDMap, edge: str) -> float:
+    """The limit [m/s] of the fastest car lane of the edge named ``edge``."""
+    return float(hd.lane_speed[hd.car_lane_rows(hd.edge_of(edge))].max())
 
 
 def normalised(value: float, human: float, reference: float) -> float:

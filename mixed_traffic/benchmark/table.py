@@ -9,8 +9,8 @@ the same code already recorded (also after kill -9). ``idm`` (all human) is alwa
 the score's 0. The score of a policy on a seed is the mean over the task's eval configs of
 ``(v - v_human) / (v_ref - v_human)`` on its metric (the fleet's mean speed), with ``v_ref``
 the ring's uniform flow or, elsewhere, the free flow of the measured road
-(:mod:`mixed_traffic.benchmark.score`); the table gives its mean over seeds with a 95 % t-interval, next to the mean
-speed, speed std, fuel, DT-TF and terminal events.
+(:mod:`mixed_traffic.benchmark.score`); the table gives its mean over seeds with a 95 %
+t-interval, next to the mean speed, speed std, fuel, DT-TF and terminal events.
 """
 
 from __future__ import annotations
