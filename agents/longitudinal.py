@@ -19,8 +19,14 @@ Observation (A, 8) float32, from the env's (noisy, perceived) observation decode
                                  ahead, red lights) as an acceleration bound, within [-1, 1]
 
 Action: one number ``x`` in [-1, 1]: the acceleration ``x · accel_scale`` [m/s²], bounded by
-ACC-LC's speed cap (as FollowerStopper is) and the vehicle's limits, held for ``hold`` env
-steps. Lane keeping, and driving wherever the lane must be left (follow masked), is ACC-LC's.
+ACC-LC's speed cap (as FollowerStopper is), by the failsafe where ``reaction > 0`` and by the
+vehicle's limits, held for ``hold`` env steps (the bounds are re-applied every env step). Lane
+keeping, and driving wherever the lane must be left (follow masked), is ACC-LC's.
+
+The failsafe is Flow's for its ring AV (SUMO's safe speed): the AV may not be faster than
+Gipps's safe speed ``-b·τ + sqrt((b·τ)² + v_lead² + 2·b·gap)``, from which it can still stop
+behind its (perceived) leader if both brake at the vehicle's ``max_decel`` b after a reaction
+time τ.
 """
 
 from __future__ import annotations
@@ -65,11 +71,16 @@ class LongitudinalConfig:
     """Speed normalisation [m/s]."""
     gap_scale: float = 50.0
     """Gap normalisation [m]; gaps beyond 2 x this read as 2."""
+    reaction: float = 0.0
+    """Reaction time τ of the failsafe [s] (module docstring); 0 = no failsafe (the runs before
+    ``ring-v2``)."""
 
     def __post_init__(self) -> None:
         for name in ("dt", "window", "accel_scale", "speed_scale", "gap_scale"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"LongitudinalConfig.{name}={getattr(self, name)!r} must be > 0")
+        if not 0 <= self.reaction <= 10:
+            raise ValueError(f"LongitudinalConfig.reaction={self.reaction!r} must be in 0-10 s")
         if not (isinstance(self.hold, int) and 1 <= self.hold <= 100):
             raise ValueError(f"LongitudinalConfig.hold={self.hold!r} must be an integer in 1-100")
 
@@ -81,7 +92,7 @@ class _Plan(NamedTuple):
     params: np.ndarray
     """(A, 3, 2) float32 with ACC-LC's follow steering (its whole plan where follow is masked)."""
     cap: np.ndarray
-    """(A,) ACC-LC's speed cap [m/s²]."""
+    """(A,) The acceleration bound [m/s²]: ACC-LC's speed cap and the failsafe."""
 
 
 class LongitudinalInterface:
@@ -156,11 +167,23 @@ class LongitudinalInterface:
         self._memory.command.update(zip(self._agents, accel.tolist()))
         return decision, params
 
+    def _failsafe(self, f: dict[str, np.ndarray]) -> np.ndarray:
+        """(A,) the acceleration [m/s²] that reaches Gipps's safe speed in one env step
+        (+inf without a leader)."""
+        b, tau = self.vehicle.max_decel, self.c.reaction
+        present = f["present"][:, CURRENT, 0]
+        gap = np.abs(f["vdist"][:, CURRENT, 0]) - f["vlen"][:, CURRENT, 0]
+        lead = np.maximum(f["v"] + f["vrel"][:, CURRENT, 0], 0.0)
+        safe = -b * tau + np.sqrt((b * tau) ** 2 + lead**2 + 2 * b * np.maximum(gap, 0.0))
+        return np.where(present, (safe - f["v"]) / self.c.dt, np.inf)
+
     def _lane_keeping(self, obs: Mapping[str, np.ndarray]) -> _Plan:
         """ACC-LC's lane keeping and speed cap; its whole plan only where follow is masked."""
         c = self.rule.c
         f = features(obs, c)
         cap = speed_cap(f, c, factor=self.cap_factor)
+        if self.c.reaction > 0:
+            cap = np.minimum(cap, self._failsafe(f))
         if not f["mask"][:, FOLLOW].all():
             plan = self.rule.plan(obs)
             return _Plan(f, plan.decision, np.array(plan.params, np.float32), cap)

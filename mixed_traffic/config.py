@@ -143,6 +143,10 @@ class RewardConfig:
     w_accel: float = 0.0
     """w7, weight of r7_accel, the agent's own acceleration magnitude [-] (Flow's ring reward
     penalises it; 0 = the paper's reward)."""
+    w_uniform: float = 0.0
+    """w8, weight of r8_uniform_flow, how near the traffic around the agent is to the uniform
+    flow of a ring or the free flow of a road [-] (Flow's desired-velocity reward; 0 = the
+    paper's reward)."""
     local_upstream: float = 200.0
     """How far behind the agent, along its route, r5 counts vehicles and r6 looks for
     followers [m] (on a ring r5 counts the whole ring)."""
@@ -158,7 +162,7 @@ class RewardConfig:
 
     def __post_init__(self) -> None:
         for name in ("w_safety", "w_efficiency", "w_comfort", "w_impact", "w_local_speed",
-                     "w_follower_comfort", "w_accel"):  # fmt: skip
+                     "w_follower_comfort", "w_accel", "w_uniform"):  # fmt: skip
             _check_range(self, name, 0.0, 10.0)
         _check_range(self, "local_upstream", 0.0, 10000.0)
         _check_range(self, "local_downstream", 0.0, 10000.0)

@@ -1,8 +1,8 @@
 """The env as a benchmark: versioned tasks with a system-level reward and a normalised score.
 
     from mixed_traffic.benchmark import TASKS, parallel_env
-    env = parallel_env("ring-v1")                    # the task's training config
-    env = parallel_env("ring-v1", split="eval", index=1)   # its second held-out config
+    env = parallel_env("ring-v2")                    # the task's training config
+    env = parallel_env("ring-v2", split="eval", index=1)   # its second held-out config
     env = parallel_env("merge-v1", fixed_fleet=True) # any EnvConfig field overrides
 
 - ``tasks``: ``Task``, ``TASKS``, ``get_task``, the task reward.

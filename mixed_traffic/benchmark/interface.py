@@ -8,7 +8,7 @@ of the last env step).
 
     from mixed_traffic.benchmark import parallel_env
     from mixed_traffic.benchmark.interface import LongitudinalWrapper
-    env = LongitudinalWrapper(parallel_env("ring-v1", fixed_fleet=True))
+    env = LongitudinalWrapper(parallel_env("ring-v2", fixed_fleet=True))
 """
 
 from __future__ import annotations

@@ -1,8 +1,8 @@
 """Train Stable-Baselines3's PPO on a benchmark task, in legs that resume.
 
     pip install -e ".[ppo]"
-    python -m mixed_traffic.benchmark.ppo --task ring-v1 --seed 0 --steps 400000
-    python -m mixed_traffic.evaluate --policy ppo --checkpoint agents/checkpoints/ppo/ring-v1-s0/model.zip
+    python -m mixed_traffic.benchmark.ppo --task ring-v2 --seed 0 --steps 400000
+    python -m mixed_traffic.evaluate --policy ppo --checkpoint agents/checkpoints/ppo/ring-v2-s0/model.zip
 
 One policy is shared by every AV (parameter sharing through SuperSuit's PettingZoo-to-vector-env
 conversion: each AV is one row of SB3's batch). The AVs act through the longitudinal interface
@@ -48,7 +48,7 @@ CURVE_FIELDS = ("leg", "timesteps", "env_steps", "train_seconds", "episodes", "m
 class PpoConfig:
     """One training run. The CLI is built from it; SB3's PPO defaults where not named."""
 
-    task: str = "ring-v1"
+    task: str = "ring-v2"
     """Benchmark task id (``mixed_traffic.benchmark.TASKS``)."""
     seed: int = 0
     """Seeds the env (its episodes' demand, SUMO, noise, ring lengths), numpy and torch."""
@@ -108,6 +108,11 @@ def _config(cfg: PpoConfig, split: str = "train", index: int = 0, **overrides: A
     return task_config(cfg.task, split, index, seed=cfg.seed, **overrides)
 
 
+def interface_config(cfg: PpoConfig) -> LongitudinalConfig:
+    """The learner interface of the run: the task's step and failsafe."""
+    return LongitudinalConfig(dt=_config(cfg).step_length, reaction=get_task(cfg.task).reaction)
+
+
 def training_env(cfg: PpoConfig) -> Any:
     """SB3 VecEnv of the task's training config: one row per AV, episodes reset by SuperSuit.
     A ring keeps its one AV (an AV that collides ends the episode); elsewhere the fleet is
@@ -119,7 +124,7 @@ def training_env(cfg: PpoConfig) -> Any:
 
     ring = _config(cfg).scenario == "ring"
     env = MixedTrafficEnv(config=_config(cfg, fixed_fleet=not ring))
-    wrapped = LongitudinalWrapper(env)
+    wrapped = LongitudinalWrapper(env, interface_config(cfg))
     wrapped.interface.cap_factor = cap_factor(env.scenario.family)  # as in evaluation
     venv = ss.pettingzoo_env_to_vec_env_v1(wrapped)
     venv = ss.concat_vec_envs_v1(venv, 1, num_cpus=0, base_class="stable_baselines3")
@@ -234,7 +239,7 @@ def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
     model = _model(cfg, venv)
     curves = read_curves(cfg.out)
     seconds = curves[-1]["train_seconds"] if curves else _init_seconds(cfg)
-    interface = LongitudinalConfig(dt=_config(cfg).step_length)
+    interface = interface_config(cfg)
     meta: dict[str, Any] = {}
     while model.num_timesteps < cfg.steps:
         returns: list[float] = []

@@ -13,8 +13,8 @@ wrong sign).
 from __future__ import annotations
 
 from mixed_traffic.config import EnvConfig
-from mixed_traffic.world.demand import idm_equilibrium_speed
-from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.demand import fastest_limit
+from mixed_traffic.world.demand import uniform_flow_speed as ring_uniform_flow
 from mixed_traffic.world.registry import load_scenario
 
 
@@ -26,10 +26,7 @@ def uniform_flow_speed(config: EnvConfig, ring_length: float) -> float:
         raise ValueError(
             f"uniform_flow_speed needs a ring with ring_vehicles, not {config.scenario!r}"
         )
-    hd = scenario.hdmap
-    limit = _limit(hd, scenario.routes[0].entry)
-    spacing = ring_length * scenario.lanes / config.ring_vehicles
-    return idm_equilibrium_speed(spacing, limit, config.human, config.vehicle.length)
+    return ring_uniform_flow(scenario, config, ring_length)
 
 
 def free_flow_speed(config: EnvConfig) -> float:
@@ -37,14 +34,9 @@ def free_flow_speed(config: EnvConfig) -> float:
     lane's limit: the segment's mean speed without any congestion."""
     scenario = load_scenario(config.scenario)
     hd = scenario.hdmap
-    limits = [_limit(hd, e) for e in scenario.measurement]
+    limits = [fastest_limit(hd, e) for e in scenario.measurement]
     lengths = [float(hd.edge_length[hd.edge_of(e)]) for e in scenario.measurement]
     return sum(v * n for v, n in zip(limits, lengths)) / sum(lengths)
-
-
-def _limit(hd: HDMap, edge: str) -> float:
-    """The limit [m/s] of the fastest car lane of the edge named ``edge``."""
-    return float(hd.lane_speed[hd.car_lane_rows(hd.edge_of(edge))].max())
 
 
 def normalised(value: float, human: float, reference: float) -> float:

@@ -1,7 +1,7 @@
 """The benchmark table: every task's eval configs x controllers x seeds, and their scores.
 
     python -m mixed_traffic.benchmark                      # every task, the bundled controllers
-    python -m mixed_traffic.benchmark --tasks ring-v1 --policies idm follower-stopper
+    python -m mixed_traffic.benchmark --tasks ring-v2 --policies idm follower-stopper
 
 Each episode (task, eval config, policy, seed) runs through the one episode runner and is
 appended atomically to ``out`` as it ends, tagged ``benchmark``; a re-run skips the episodes

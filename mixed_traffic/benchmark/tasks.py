@@ -4,16 +4,20 @@ A task is what two papers must share to compare numbers on this env (as Flow's b
 ring, merge and bottleneck): the training config (scenario, AV share, horizon, reward, the
 observation tier), the warm-up before metrics count, the eval configs it is scored on, and the
 reference its score is normalised to (:mod:`mixed_traffic.benchmark.score`). Ids carry a
-version (``ring-v1``): a change to any of these makes a new version, never a silent edit.
+version (``ring-v2``): a change to any of these makes a new version, never a silent edit.
 
 The task reward is system level, as Flow's: ``r5_local_speed`` (the mean speed of the traffic
 around the AV as a share of the limit; the whole ring on a ring) with the AV's own comfort
 ``r3_comfort`` (its acceleration changes) and safety ``r1`` terms; the paper's efficiency and
-impact terms are off. The ring's reward is Flow's ring reward: the mean speed of the ring
-and a penalty on the AV's own acceleration magnitude ``r7_accel``, weighted as Flow's (a
-penalty per m/s² 20 times the reward per m/s of mean speed), so that the AV drives steadily.
-ring-v0 paid for the mean speed alone, and PPO settled at the humans' speed without damping
-their waves. Every term stays in ``infos[agent]["reward_terms"]``.
+impact terms are off. The ring pays for the state its score calls 1, with the safety terms:
+``r8_uniform_flow``, Flow's desired-velocity reward at the ring's uniform-flow speed, which
+falls with the speeds' spread (the waves) as with their mean's shortfall (a crawl), and its AV obeys the learner interface's failsafe (as Flow's ring AV obeys
+SUMO's safe speed). A task reward must rank the known wave dampers (FollowerStopper, PI with
+saturation) above all-human traffic on the training rings (tests/test_benchmark.py checks
+it). ring-v0 paid for the mean speed with the AV's comfort, and PPO settled at the humans'
+speed; ring-v1 added Flow's penalty on the AV's own acceleration, which ranks the dampers last
+(their commands change by about 2 m/s² every step). Every term stays in
+``infos[agent]["reward_terms"]``.
 """
 
 from __future__ import annotations
@@ -26,10 +30,11 @@ from mixed_traffic.config import EnvConfig, RewardConfig
 TASK_REWARD = RewardConfig(
     w_safety=1.0, w_efficiency=0.0, w_comfort=0.1, w_impact=0.0, w_local_speed=1.0
 )
-#: The ring task's reward: the task reward plus Flow's acceleration penalty. r5 is v/30 m/s and
-#: r7 is -|a|/3 m/s², so w7 = 2 costs 0.67 per m/s² against 1/30 per m/s: Flow's ratio of 20 s
-#: (4 |a| against 4 v / 20 m/s).
-RING_REWARD = replace(TASK_REWARD, w_accel=2.0)
+#: The ring task's reward: safety and Flow's desired-velocity reward at the ring's uniform-flow
+#: speed (r8: 1 in uniform flow, 0 at a standstill).
+RING_REWARD = replace(TASK_REWARD, w_comfort=0.0, w_local_speed=0.0, w_uniform=1.0)
+#: Reaction time of the ring learner's failsafe [s] (``agents.longitudinal``; SUMO's tau).
+RING_REACTION = 1.0
 #: Observation tiers: the paper's sensors, or those plus the downstream (V2X) feed.
 TIERS = ("paper", "v2x")
 #: What a score of 1 means: the ring's uniform flow, or the free flow of the measured road.
@@ -57,6 +62,8 @@ class Task:
     metric: str = "mean_speed"
     """The record metric the score normalises (mean speed of all vehicles in the measurement
     segment [m/s])."""
+    reaction: float = 0.0
+    """Reaction time of the learner interface's failsafe [s]; 0 = none."""
 
     def __post_init__(self) -> None:
         if self.tier not in TIERS or self.reference not in REFERENCES:
@@ -86,8 +93,9 @@ def _tasks() -> dict[str, Task]:
     merge, merge_eval = _road("merge", "merge-eval", 0.1, 300.0, v2x=False)
     neck, neck_eval = _road("bottleneck", "bottleneck-eval", 0.1, 300.0, v2x=False)
     tasks = (
-        Task("ring-v1", "one AV among 22 vehicles on a ring of 220-270 m (eval 210 and 280 m): "
-             "damp the stop-and-go waves", ring, ring_eval, 0.0, "paper", "uniform-flow"),
+        Task("ring-v2", "one AV among 22 vehicles on a ring of 220-270 m (eval 210 and 280 m): "
+             "damp the stop-and-go waves", ring, ring_eval, 0.0, "paper", "uniform-flow",
+             reaction=RING_REACTION),
         Task("wave-highway-v1", "5 % AVs on one lane upstream of a slow zone, with the V2X "
              "feed: damp the waves it sends upstream", wave, wave_eval, 120.0, "v2x",
              "free-flow"),
@@ -104,7 +112,7 @@ TASKS: dict[str, Task] = _tasks()
 
 
 def get_task(name: str) -> Task:
-    """The task ``name`` (an id such as ``ring-v1``; a bare family means its newest version).
+    """The task ``name`` (an id such as ``ring-v2``; a bare family means its newest version).
     ``ValueError`` names the known ids."""
     if name in TASKS:
         return TASKS[name]

@@ -92,7 +92,7 @@ from mixed_traffic.sensing.perception import Perception
 from mixed_traffic.sensing.v2x import DownstreamFeed
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.boundary import PeriodicBoundary, make_boundary
-from mixed_traffic.world.demand import av_count, make_demand, write_demand
+from mixed_traffic.world.demand import av_count, make_demand, uniform_flow_speed, write_demand
 from mixed_traffic.world.fleet_pool import FleetPool
 from mixed_traffic.world.registry import load_scenario
 from mixed_traffic.world.ring import episode_ring
@@ -145,6 +145,7 @@ class MixedTrafficEnv(ParallelEnv):
         warn_coarse_step(cfg.step_length)
         # ring_length: the episode's ring circumference [m] (None: no ring); the longest first
         self.scenario, self.ring_length = episode_ring(self._bundled, cfg.ring_length, None)
+        self._desired = 0.0  # r8's reference speed [m/s] (a ring's uniform flow; 0 = limits)
         self.possible_agents = [f"av_{i}" for i in range(av_count(self.scenario, cfg))]
         self._table = AgentTable(self.possible_agents)
         self._obs_space = observation_space(cfg)
@@ -220,6 +221,9 @@ class MixedTrafficEnv(ParallelEnv):
             self.scenario = ring
             self._use_map()
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
+        self._desired = (uniform_flow_speed(self.scenario, cfg, self.ring_length,
+                                            len(demand.placed_ids))
+                         if self.scenario.ring and demand.placed_ids else 0.0)  # fmt: skip
         route_file = Path(self._tmp) / "demand.rou.xml"
         sc = self.scenario
         write_demand(
@@ -406,7 +410,7 @@ class MixedTrafficEnv(ParallelEnv):
         """Reward, named terms and completed lane changes (bool per agent number) of every
         agent that acted."""
         return agent_rewards(self.config, self.hdmap, self._memory, self._table, snap, rows,
-                             truth, events, self.scenario.ring)  # fmt: skip
+                             truth, events, self.scenario.ring, self._desired)  # fmt: skip
 
     def _record(self, snap, rows: Rows, truth: PerceptionFrame, rewards: dict[str, float],
                 changed: np.ndarray) -> None:  # fmt: skip

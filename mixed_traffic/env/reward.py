@@ -20,11 +20,13 @@ Terms (``reward_terms`` returns them by these names)::
     r4_impact      (v_C2(t+1) - v_C2(t)) / (2 acc_thr dt) if the same rear vehicle C2 slowed by
                    more than v_thr, else 0
     r7_accel       -|a_t| / acc_thr: the agent's own acceleration (Flow's ring penalty)
+    r8_uniform_flow  how near the traffic around the agent is to the reference flow (Flow's
+                   desired-velocity reward; ``traffic_terms``)
 
 ``total_reward = w1 (r1_ttc + r1_lane + r1_terminal) + w2 (r2_speed + r2_lane_change)
-+ w3 r3_comfort + w4 r4_impact (+ w5 r5_local_speed + w6 r6_follower_comfort + w7 r7_accel)``;
-r5 and r6, the traffic around the agent, come from :mod:`mixed_traffic.env.traffic_terms`
-(w5-w7 are 0 by default: the paper's reward).
++ w3 r3_comfort + w4 r4_impact (+ w5 r5_local_speed + w6 r6_follower_comfort + w7 r7_accel
++ w8 r8_uniform_flow)``; r5, r6 and r8, the traffic around the agent, come from
+:mod:`mixed_traffic.env.traffic_terms` (w5-w8 are 0 by default: the paper's reward).
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import numpy as np
 
 from mixed_traffic.config import EnvConfig, RewardConfig
 from mixed_traffic.env.agent_table import AgentTable, Rows, StepMemory
-from mixed_traffic.env.traffic_terms import TRAFFIC_TERMS, traffic_terms
+from mixed_traffic.env.traffic_terms import traffic_terms
 from mixed_traffic.env.truth import FrontView, speeds_of
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.world.hdmap import HDMap
@@ -50,8 +52,10 @@ TERM_NAMES = (
     "r2_lane_change",
     "r3_comfort",
     "r4_impact",
-    *TRAFFIC_TERMS,
+    "r5_local_speed",
+    "r6_follower_comfort",
     "r7_accel",
+    "r8_uniform_flow",
 )
 #: Smallest bumper gap used in the lane-change ratio [m] (avoids dividing by ~0).
 MIN_GAP = 0.5
@@ -216,8 +220,8 @@ def reward_terms(
 
 
 def total_reward(terms: Mapping[str, np.ndarray], cfg: RewardConfig) -> np.ndarray:
-    """(A,) w1·r1 + w2·r2 + w3·r3 + w4·r4 (+ w5·r5 + w6·r6 + w7·r7 where their weights are
-    not 0) from the named terms."""
+    """(A,) w1·r1 + w2·r2 + w3·r3 + w4·r4 (+ w5·r5 + ... + w8·r8 where their weights are not
+    0) from the named terms."""
     r1 = terms["r1_ttc"] + terms["r1_lane"] + terms["r1_terminal"]
     r2 = terms["r2_speed"] + terms["r2_lane_change"]
     total = (
@@ -226,8 +230,9 @@ def total_reward(terms: Mapping[str, np.ndarray], cfg: RewardConfig) -> np.ndarr
         + cfg.w_comfort * terms["r3_comfort"]
         + cfg.w_impact * terms["r4_impact"]
     )
-    extra = (*TRAFFIC_TERMS, "r7_accel")
-    for name, w in zip(extra, (cfg.w_local_speed, cfg.w_follower_comfort, cfg.w_accel)):
+    extra = {"r5_local_speed": cfg.w_local_speed, "r6_follower_comfort": cfg.w_follower_comfort,
+             "r7_accel": cfg.w_accel, "r8_uniform_flow": cfg.w_uniform}  # fmt: skip
+    for name, w in extra.items():
         if w:  # weight 0: the paper's sum, bit for bit
             total = total + w * terms[name]
     return total
@@ -237,9 +242,11 @@ def total_reward(terms: Mapping[str, np.ndarray], cfg: RewardConfig) -> np.ndarr
 def agent_rewards(
     cfg: EnvConfig, hd: HDMap, memory: StepMemory, table: AgentTable, snap: TrafficSnapshot,
     rows: Rows, truth: PerceptionFrame, events: dict[str, str], ring: bool = False,
+    desired: float = 0.0,
 ):  # fmt: skip
     """Reward, named terms and completed lane changes (bool per agent number) of every
-    agent that acted; ``ring``: the network is a ring (for r5 and r6)."""
+    agent that acted; ``ring``: the network is a ring (for r5, r6 and r8); ``desired``: r8's
+    reference speed [m/s] (0 = the lane limits)."""
     prev = memory
     rewards: dict[str, float] = {}
     terms_out: dict[str, dict[str, float]] = {}
@@ -260,7 +267,7 @@ def agent_rewards(
     terms, changed = _terms(cfg, hd, memory, snap, truth, k, now[p], p, ids, failed)
     slots = prev.slots[p]
     terms.update(traffic_terms(cfg.reward, hd, snap, now[p], table.route_table[slots],
-                               table.route_len[slots], ring))  # fmt: skip
+                               table.route_len[slots], ring, desired))  # fmt: skip
     total = total_reward(terms, cfg.reward)
     names = list(terms)
     columns = [np.asarray(v, np.float64).tolist() for v in terms.values()]

@@ -14,7 +14,9 @@ Terms (``traffic_terms`` returns them by these names; route distances as in
                          on average (RMS), at least -(9 / 3)^2 = -9 (SUMO's emergency decel)
 
 r5 is the Flow benchmark's system reward (the mean speed of all vehicles) restricted to a
-window, so every agent on a ring gets the same value; r6 is the CIRCLES idea of judging an AV
+window, so every agent on a ring gets the same value; r8 pays for the state the benchmark's
+score calls 1 (a ring's uniform flow, a road's free flow): it falls with the speeds' spread
+as with their mean's shortfall, so neither waves nor a slow crawl pay; r6 is the CIRCLES idea of judging an AV
 by how its followers drive, with the squared acceleration (Flow's penalty) for their energy.
 """
 
@@ -27,14 +29,16 @@ from mixed_traffic.sensing.route_traffic import ring_pairs, route_frame, route_p
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
-TRAFFIC_TERMS = ("r5_local_speed", "r6_follower_comfort")
+TRAFFIC_TERMS = ("r5_local_speed", "r6_follower_comfort", "r8_uniform_flow")
 
 
 def traffic_terms(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray,
-                  routes: np.ndarray, route_len: np.ndarray, ring: bool) -> dict[str, np.ndarray]:  # fmt: skip
-    """r5 and r6 (each (A,) float64) of the agents at snapshot ``rows`` (A,), whose routes
+                  routes: np.ndarray, route_len: np.ndarray, ring: bool,
+                  desired: float = 0.0) -> dict[str, np.ndarray]:  # fmt: skip
+    """r5, r6 and r8 (each (A,) float64) of the agents at snapshot ``rows`` (A,), whose routes
     are ``routes`` (A, W) edge rows of ``route_len`` (A,) edges; ``ring``: the network is a
-    ring (r5 then counts every vehicle)."""
+    ring (r5 then counts every vehicle); ``desired``: r8's reference speed [m/s] (0 = each
+    vehicle's lane limit)."""
     A = len(rows)
     if A == 0:
         return {name: np.zeros(0) for name in TRAFFIC_TERMS}
@@ -46,7 +50,8 @@ def traffic_terms(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.
         pairs = route_pairs(hd, snap, frame, cfg.local_upstream, cfg.local_downstream)
         behind = -pairs.distance
     a, v = pairs.agent, pairs.vehicle
-    ratio = snap.speed[v] / np.maximum(hd.lane_speed[snap.lane[v]], 0.1)
+    limit = np.maximum(hd.lane_speed[snap.lane[v]], 0.1)
+    ratio = snap.speed[v] / limit
     n = np.bincount(a, minlength=A)
     own_lane = np.maximum(snap.lane[rows].astype(np.int64), 0)
     own = snap.speed[rows] / np.maximum(hd.lane_speed[own_lane], 0.1)  # if off its route
@@ -58,7 +63,19 @@ def traffic_terms(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.
         "r6_follower_comfort": _follower_comfort(
             cfg, snap, a[follower], v[follower], behind[follower], A
         ),
+        "r8_uniform_flow": _uniform_flow(ratio, desired / limit if desired > 0 else 1.0, a, n),
     }
+
+
+def _uniform_flow(ratio: np.ndarray, target: np.ndarray | float, agent: np.ndarray,
+                  n: np.ndarray) -> np.ndarray:  # fmt: skip
+    """(A,) r8 from each pair's speed ``ratio`` and reference ``target`` (shares of its limit)
+    and agent index (each (P,)); ``n`` (A,) pairs per agent (0 without any: r8 = 0)."""
+    target = np.broadcast_to(target, ratio.shape)
+    m = np.maximum(n, 1)
+    rms = np.sqrt(np.bincount(agent, (ratio - target) ** 2, minlength=len(n)) / m)
+    scale = np.bincount(agent, target, minlength=len(n)) / m
+    return np.where(n > 0, np.maximum(0.0, 1.0 - rms / np.maximum(scale, 1e-9)), 0.0)
 
 
 def _follower_comfort(cfg: RewardConfig, snap: TrafficSnapshot, agent: np.ndarray,

@@ -28,7 +28,7 @@ from mixed_traffic.world.drivers import (
     cautious,
 )
 from mixed_traffic.world.fleet_pool import FleetTrip, pool_size
-from mixed_traffic.world.hdmap import CAR
+from mixed_traffic.world.hdmap import CAR, HDMap
 from mixed_traffic.world.placement import (
     Placed,
     cap_followers,
@@ -97,6 +97,22 @@ class Demand:
     def av_ids(self) -> list[str]:
         """All AV ids of the episode (placed and queued), ``av_0 … av_{N-1}``."""
         return [v.vid for v in (*self.vehicles, *self.queue) if v.is_av]
+
+
+def fastest_limit(hd: HDMap, edge: str) -> float:
+    """The limit [m/s] of the fastest car lane of the edge named ``edge`` ."""
+    return float(hd.lane_speed[hd.car_lane_rows(hd.edge_of(edge))].max())
+
+
+def uniform_flow_speed(scenario: Scenario, config: EnvConfig, ring_length: float,
+                       vehicles: int | None = None) -> float:  # fmt: skip
+    """Speed [m/s] of the ring's uniform flow: ``vehicles`` (default ``config.ring_vehicles``)
+    evenly spaced on ``scenario`` (a ring) of ``ring_length`` [m] per lane, each at the IDM
+    equilibrium speed of that spacing (the human model's T and s0, the limit as desired
+    speed)."""
+    limit = fastest_limit(scenario.hdmap, scenario.routes[0].entry)
+    spacing = ring_length * scenario.lanes / (vehicles or config.ring_vehicles)
+    return idm_equilibrium_speed(spacing, limit, config.human, config.vehicle.length)
 
 
 def idm_equilibrium_speed(spacing: float, v0: float, human: HumanConfig, length: float) -> float:
