@@ -18,15 +18,17 @@ Observation (A, 8) float32, from the env's (noisy, perceived) observation decode
     7 cap / accel_scale          ACC-LC's speed cap: the road's rules (limit, lower limits
                                  ahead, red lights) as an acceleration bound, within [-1, 1]
 
-Action: one number ``x`` in [-1, 1]: the acceleration ``x · accel_scale`` [m/s²], bounded by
+Action: one number ``x`` in [-1, 1]: the acceleration ``x · accel_scale`` [m/s²] (with
+``base="idm"`` added to the human model's IDM acceleration behind the perceived leader, so
+that the zero action drives like a human and a policy learns a residual), bounded by
 ACC-LC's speed cap (as FollowerStopper is), by the failsafe where ``reaction > 0`` and by the
 vehicle's limits, held for ``hold`` env steps (the bounds are re-applied every env step). Lane
 keeping, and driving wherever the lane must be left (follow masked), is ACC-LC's.
 
 The failsafe is Flow's for its ring AV (SUMO's safe speed): the AV may not be faster than
-Gipps's safe speed ``-b·τ + sqrt((b·τ)² + v_lead² + 2·b·gap)``, from which it can still stop
-behind its (perceived) leader if both brake at the vehicle's ``max_decel`` b after a reaction
-time τ.
+Gipps's safe speed ``-b·τ + sqrt((b·τ)² + v_lead² + 2·b·(gap - s0))``, from which it can
+still stop ``s0`` behind its (perceived) leader if both brake at the vehicle's ``max_decel`` b
+after a reaction time τ.
 """
 
 from __future__ import annotations
@@ -44,7 +46,7 @@ from agents.rules.acc_lc_features import features
 from agents.rules.acc_lc_lateral import follow_steering, lateral_bounds
 from agents.rules.acc_lc_longitudinal import speed_cap
 from agents.rules.stern import SpeedMemory
-from mixed_traffic.config import VehicleConfig
+from mixed_traffic.config import HumanConfig, VehicleConfig
 from mixed_traffic.env.api import to_accel_brake
 
 #: Feature names in observation order.
@@ -53,6 +55,8 @@ FEATURES = ("speed", "lead_rel_speed", "lead_gap", "rear_rel_speed", "rear_gap",
 N_FEATURES = len(FEATURES)
 #: Features are clipped to [-BOUND, BOUND].
 BOUND = 5.0
+#: What an action adds to (``LongitudinalConfig.base``).
+BASES = ("none", "idm")
 
 
 @dataclass(frozen=True)
@@ -74,13 +78,22 @@ class LongitudinalConfig:
     reaction: float = 0.0
     """Reaction time τ of the failsafe [s] (module docstring); 0 = no failsafe (the runs before
     ``ring-v2``)."""
+    base: str = "none"
+    """What the action adds to: none (it is the acceleration) | idm (the human model's mean
+    IDM, with the limit as desired speed: the zero action follows like a human driver)."""
+    standstill: float = 2.0
+    """Gap s0 the failsafe keeps to a stopped leader [m] (the human model's; without it the
+    safe speed lets a creeping AV close a noisy gap of centimetres)."""
 
     def __post_init__(self) -> None:
         for name in ("dt", "window", "accel_scale", "speed_scale", "gap_scale"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"LongitudinalConfig.{name}={getattr(self, name)!r} must be > 0")
-        if not 0 <= self.reaction <= 10:
-            raise ValueError(f"LongitudinalConfig.reaction={self.reaction!r} must be in 0-10 s")
+        if not 0 <= self.reaction <= 10 or not 0 <= self.standstill <= 20:
+            raise ValueError(f"LongitudinalConfig.reaction={self.reaction!r} / standstill="
+                             f"{self.standstill!r}: must be in 0-10 s / 0-20 m")  # fmt: skip
+        if self.base not in BASES:
+            raise ValueError(f"LongitudinalConfig.base={self.base!r} not in {BASES}")
         if not (isinstance(self.hold, int) and 1 <= self.hold <= 100):
             raise ValueError(f"LongitudinalConfig.hold={self.hold!r} must be an integer in 1-100")
 
@@ -93,6 +106,8 @@ class _Plan(NamedTuple):
     """(A, 3, 2) float32 with ACC-LC's follow steering (its whole plan where follow is masked)."""
     cap: np.ndarray
     """(A,) The acceleration bound [m/s²]: ACC-LC's speed cap and the failsafe."""
+    base: np.ndarray
+    """(A,) The acceleration the action adds to [m/s²] (``LongitudinalConfig.base``)."""
 
 
 class LongitudinalInterface:
@@ -103,9 +118,11 @@ class LongitudinalInterface:
     """
 
     def __init__(self, config: LongitudinalConfig | None = None,
-                 vehicle: VehicleConfig | None = None) -> None:  # fmt: skip
+                 vehicle: VehicleConfig | None = None,
+                 human: HumanConfig | None = None) -> None:  # fmt: skip
         self.c = config or LongitudinalConfig()
         self.vehicle = vehicle or VehicleConfig()
+        self.human = human or HumanConfig()
         self.rule = AccLcPolicy(dt=self.c.dt)
         self._memory = SpeedMemory(max(1, round(self.c.window / self.c.dt)))
         self._plan: _Plan | None = None
@@ -157,7 +174,7 @@ class LongitudinalInterface:
         if x.shape != (len(self._agents),) or not np.all(np.isfinite(x)):
             raise ValueError(f"longitudinal actions {x!r}: expected {len(self._agents)} finite "
                              "values, one per observed agent")  # fmt: skip
-        accel = np.minimum(np.clip(x, -1.0, 1.0) * self.c.accel_scale, plan.cap)
+        accel = np.minimum(np.clip(x, -1.0, 1.0) * self.c.accel_scale + plan.base, plan.cap)
         accel = np.clip(accel, -self.vehicle.max_decel, self.vehicle.max_accel)
         follow = plan.features["mask"][:, FOLLOW]
         decision = np.where(follow, FOLLOW, plan.decision)
@@ -171,11 +188,25 @@ class LongitudinalInterface:
         """(A,) the acceleration [m/s²] that reaches Gipps's safe speed in one env step
         (+inf without a leader)."""
         b, tau = self.vehicle.max_decel, self.c.reaction
-        present = f["present"][:, CURRENT, 0]
-        gap = np.abs(f["vdist"][:, CURRENT, 0]) - f["vlen"][:, CURRENT, 0]
-        lead = np.maximum(f["v"] + f["vrel"][:, CURRENT, 0], 0.0)
-        safe = -b * tau + np.sqrt((b * tau) ** 2 + lead**2 + 2 * b * np.maximum(gap, 0.0))
+        present, gap, lead = _leader(f)
+        room = np.maximum(gap - self.c.standstill, 0.0)
+        safe = -b * tau + np.sqrt((b * tau) ** 2 + lead**2 + 2 * b * room)
         return np.where(present, (safe - f["v"]) / self.c.dt, np.inf)
+
+    def _base(self, f: dict[str, np.ndarray]) -> np.ndarray:
+        """(A,) the acceleration the action adds to [m/s²]: 0, or the human model's mean IDM
+        (Treiber's, desired speed the lane's limit) behind the perceived leader."""
+        v = f["v"]
+        if self.c.base == "none":
+            return np.zeros(len(v))
+        h = self.human
+        present, gap, lead = _leader(f)
+        limit = f["wp_speed"][:, CURRENT, 0]
+        v0 = np.where(limit > 0.5, limit, 13.9) * self.cap_factor
+        s_star = h.min_gap + np.maximum(0.0, v * h.headway
+                                        + v * (v - lead) / (2 * np.sqrt(h.accel * h.decel)))  # fmt: skip
+        z = np.where(present, s_star / np.maximum(gap, 0.1), 0.0)
+        return h.accel * (1.0 - (v / v0) ** h.delta - z**2)
 
     def _lane_keeping(self, obs: Mapping[str, np.ndarray]) -> _Plan:
         """ACC-LC's lane keeping and speed cap; its whole plan only where follow is masked."""
@@ -184,10 +215,20 @@ class LongitudinalInterface:
         cap = speed_cap(f, c, factor=self.cap_factor)
         if self.c.reaction > 0:
             cap = np.minimum(cap, self._failsafe(f))
+        base = self._base(f)
         if not f["mask"][:, FOLLOW].all():
             plan = self.rule.plan(obs)
-            return _Plan(f, plan.decision, np.array(plan.params, np.float32), cap)
+            return _Plan(f, plan.decision, np.array(plan.params, np.float32), cap, base)
         lo, hi = lateral_bounds(f, c)
         params = np.zeros((len(f["v"]), 3, 2), np.float32)
         params[:, FOLLOW, 0] = follow_steering(f, c, lo, hi)
-        return _Plan(f, np.full(len(f["v"]), FOLLOW), params, cap)
+        return _Plan(f, np.full(len(f["v"]), FOLLOW), params, cap, base)
+
+
+def _leader(f: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(A,) whether a leader is perceived in the lane, the bumper gap to it [m] and its speed
+    [m/s] (inf and 0 without one)."""
+    present = f["present"][:, CURRENT, 0]
+    gap = np.abs(f["vdist"][:, CURRENT, 0]) - f["vlen"][:, CURRENT, 0]
+    lead = np.maximum(f["v"] + f["vrel"][:, CURRENT, 0], 0.0)
+    return present, np.where(present, gap, np.inf), np.where(present, lead, 0.0)

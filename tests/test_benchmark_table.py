@@ -25,27 +25,27 @@ def test_the_table_scores_a_task_and_a_rerun_runs_nothing(tmp_path: Path, capsys
             "--readme", str(readme), "--runs", str(tmp_path / "no-runs")]  # fmt: skip
     assert table.main(argv) == 0
     text = readme.read_text()
-    assert "old" not in text and "| ring-v1 | follower-stopper |" in text and "after" in text
+    assert "old" not in text and "| ring-v2 | follower-stopper |" in text and "after" in text
     pdf = "".join(p.extract_text() for p in PdfReader(report).pages)
-    assert "ring-v1" in pdf and "follower-stopper" in pdf
+    assert "ring-v2" in pdf and "follower-stopper" in pdf
     assert (tmp_path / "reports" / "benchmark-scores.png").is_file()
     records = read_records(out)
     assert len(records) == 2 * 2 * 2  # eval configs x (idm, follower-stopper) x seeds
     rows = json.loads((tmp_path / "scores.json").read_text())
     by = {r["policy"]: r for r in rows}
     assert set(by) == {"idm", "follower-stopper"} and by["idm"]["score"] == 0.0
-    cfg = table.BenchmarkConfig(tasks=("ring-v1",), policies=("follower-stopper",), seeds=(0, 1),
+    cfg = table.BenchmarkConfig(tasks=("ring-v2",), policies=("follower-stopper",), seeds=(0, 1),
                                 episode_length=20.0, out=out)  # fmt: skip
     recs = table.run_table(cfg, progress=False)  # nothing left to run: the same records
     assert len(read_records(out)) == 8
-    refs = [uniform_flow_speed(c, c.ring_length[0]) for c in table.TASKS["ring-v1"].eval]
+    refs = [uniform_flow_speed(c, c.ring_length[0]) for c in table.TASKS["ring-v2"].eval]
     assert by["idm"]["references"] == pytest.approx(refs)
     human = [
-        recs[("ring-v1", i, "idm", s, 20.0)]["metrics"]["mean_speed"]
+        recs[("ring-v2", i, "idm", s, 20.0)]["metrics"]["mean_speed"]
         for i in (0, 1)
         for s in (0, 1)
     ]
-    fs = [recs[("ring-v1", i, "follower-stopper", s, 20.0)]["metrics"]["mean_speed"]
+    fs = [recs[("ring-v2", i, "follower-stopper", s, 20.0)]["metrics"]["mean_speed"]
           for i in (0, 1) for s in (0, 1)]  # fmt: skip
     expected = [
         ((fs[2 * i + s] - human[2 * i + s]) / (refs[i] - human[2 * i + s]))
@@ -53,7 +53,7 @@ def test_the_table_scores_a_task_and_a_rerun_runs_nothing(tmp_path: Path, capsys
         for s in (0, 1)
     ]
     assert by["follower-stopper"]["score"] == pytest.approx(sum(expected) / 4)
-    assert "| ring-v1 | follower-stopper |" in capsys.readouterr().out
+    assert "| ring-v2 | follower-stopper |" in capsys.readouterr().out
 
 
 @pytest.mark.parametrize(("argv", "needle"), [

@@ -19,7 +19,7 @@ pytest.importorskip("stable_baselines3")
 
 
 def test_features_read_the_ring_and_actions_keep_acc_lc_lane_keeping() -> None:
-    env = parallel_env("ring-v1", split="eval", index=0, episode_length=5.0)  # 22 on 210 m
+    env = parallel_env("ring-v2", split="eval", index=0, episode_length=5.0)  # 22 on 210 m
     try:
         obs, _ = env.reset(seed=3)
         agents = list(obs)
@@ -41,12 +41,22 @@ def test_features_read_the_ring_and_actions_keep_acc_lc_lane_keeping() -> None:
         assert iface.observe(batch, agents)[0, 6] == pytest.approx(-1.0), "the last command"
         with pytest.raises(ValueError, match="finite"):
             iface.command(np.array([np.nan]))
+        # a residual: the zero action is the human model's IDM behind the perceived leader
+        human = LongitudinalInterface(LongitudinalConfig(base="idm"))
+        f = human.observe(batch, agents)[0]
+        _, params = human.command(np.array([0.0]))
+        v, gap, lead = f[0] * 10, f[2] * 50, (f[0] + f[1]) * 10
+        h = human.human
+        s_star = h.min_gap + v * h.headway + v * (v - lead) / (2 * np.sqrt(h.accel * h.decel))
+        idm = h.accel * (1 - (v / 30.0) ** h.delta - (s_star / gap) ** 2)
+        accel = params[0, FOLLOW, 1] * (3.0 if params[0, FOLLOW, 1] > 0 else 6.0)
+        assert accel == pytest.approx(idm, rel=1e-3, abs=1e-3)
     finally:
         env.close()
 
 
 def test_wrapper_holds_each_action_for_half_a_second() -> None:
-    env = LongitudinalWrapper(parallel_env("ring-v1", episode_length=3.0))
+    env = LongitudinalWrapper(parallel_env("ring-v2", episode_length=3.0))
     try:
         obs, _ = env.reset(seed=0)
         assert env.observation_space("av_0").contains(obs["av_0"])
@@ -60,7 +70,30 @@ def test_wrapper_holds_each_action_for_half_a_second() -> None:
         env.close()
 
 
-@pytest.mark.parametrize("task", ["ring-v1", "merge-v1"])
+def test_the_failsafe_keeps_a_full_throttle_av_from_its_leader() -> None:
+    """Full throttle for 40 s on the short eval ring: with the failsafe (Gipps's safe speed,
+    1 s reaction) the AV never comes closer than its leader's braking allows; without it, it
+    collides."""
+    events = {}
+    for reaction in (1.0, 0.0):
+        env = LongitudinalWrapper(parallel_env("ring-v2", split="eval", index=0,
+                                               episode_length=40.0),
+                                  LongitudinalConfig(reaction=reaction))  # fmt: skip
+        try:
+            env.reset(seed=0)
+            while env.agents:
+                _, _, _, _, infos = env.step({"av_0": np.array([1.0])})
+            events[reaction] = infos["av_0"]["event"]
+        finally:
+            env.close()
+    assert events == {1.0: "", 0.0: "collision"}
+    with pytest.raises(ValueError, match="reaction"):
+        LongitudinalConfig(reaction=-1.0)
+    with pytest.raises(ValueError, match="base='pid'"):
+        LongitudinalConfig(base="pid")
+
+
+@pytest.mark.parametrize("task", ["ring-v2", "merge-v1"])
 def test_wrapped_tasks_pass_the_parallel_api_test(task: str) -> None:
     parallel_api_test(LongitudinalWrapper(parallel_env(task, episode_length=20.0)), num_cycles=60)
 
@@ -78,7 +111,9 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     assert [r["timesteps"] for r in rows] == [64, 128, 192] and meta["timesteps"] == 192
     assert rows[-1]["train_seconds"] > rows[0]["train_seconds"] > 0
     assert all(np.isfinite(r["eval_std_ratio"]) and r["eval_std_ratio"] > 0 for r in rows)
-    assert json.loads((tmp_path / "run" / "model.json").read_text())["interface"]["hold"] == 5
+    interface = json.loads((tmp_path / "run" / "model.json").read_text())["interface"]
+    assert interface["hold"] == 5 and interface["reaction"] == 1.0  # the ring task's failsafe
+    assert interface["base"] == "idm"
     # a curriculum: a new run from the first one's weights keeps its decisions and time
     meta = train(PpoConfig(**{**small, "steps": 256, "out": tmp_path / "next",
                               "init": tmp_path / "run" / "model.zip"}), progress=False)  # fmt: skip
@@ -93,7 +128,7 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     calls = []
     predict = policy.model.predict
     policy.model.predict = lambda x, **kw: (calls.append(len(x)), predict(x, **kw))[1]
-    env = parallel_env("ring-v1", episode_length=2.0)
+    env = parallel_env("ring-v2", episode_length=2.0)
     try:
         obs, _ = env.reset(seed=1)
         while env.agents:
@@ -104,7 +139,7 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     finally:
         env.close()
     assert len(calls) == 4, "20 env steps, one decision every 5"
-    config = task_config("ring-v1", "eval", episode_length=15.0)
+    config = task_config("ring-v2", "eval", episode_length=15.0)
     record = run_episode(config, "ppo", 0.0, checkpoint=ckpt)
     assert record["status"] == "ok" and record["metrics"]["mean_speed"] > 0
 

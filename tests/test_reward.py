@@ -26,7 +26,7 @@ from mixed_traffic.env.termination import (
     speed_limit_mask,
     terminal_events,
 )
-from mixed_traffic.env.traffic_terms import TRAFFIC_TERMS
+from mixed_traffic.env.traffic_terms import TRAFFIC_TERMS, uniform_flow_reward
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.hdmap import load_hdmap
 from mixed_traffic.world.network import build_network
@@ -135,6 +135,18 @@ def test_own_acceleration_is_penalised_only_with_its_weight() -> None:
     assert t["r7_accel"][0] == pytest.approx(-0.5)
     flow = RewardConfig(w_accel=2.0)
     assert total_reward(t, flow)[0] - total_reward(t, CFG)[0] == pytest.approx(-1.0)
+
+
+def test_uniform_flow_pays_one_at_the_reference_and_nothing_at_a_standstill() -> None:
+    """r8 = max(0, 1 - RMS(v - v*) / v*) per agent: its traffic at v* (1), at a standstill (0),
+    in waves at v*/2 and 3v*/2 (RMS v*/2: 0.5), crawling at 3v*/4 (0.75), none (0)."""
+    star = 0.15  # e.g. 4.5 m/s of a 30 m/s limit
+    ratio = star * np.array([1.0, 1.0, 0.0, 0.0, 0.5, 1.5, 0.75, 0.75])
+    agent = np.array([0, 0, 1, 1, 2, 2, 3, 3])
+    r8 = uniform_flow_reward(ratio, star, agent, np.bincount(agent, minlength=5))
+    assert r8 == pytest.approx([1.0, 0.0, 0.5, 0.75, 0.0], abs=1e-12)
+    faster = uniform_flow_reward(ratio[:2] * 3, star, agent[:2], np.array([2]))
+    assert faster[0] == 0.0  # three times v*: as far off as a standstill, floored at 0
 
 
 def test_rear_deceleration() -> None:

@@ -268,8 +268,10 @@ def test_traffic_terms_in_infos_and_zero_weights_keep_the_reward() -> None:
 
 
 def test_ring_terms_are_the_whole_ring_and_sumos_followers() -> None:
-    """On a one-lane ring r5 is every vehicle's mean speed over the limit, and r6 the mean
-    squared acceleration (/ acc_thr²) of the k vehicles SUMO names as followers one by one."""
+    """On a one-lane ring r5 is every vehicle's mean speed over the limit, r8 the RMS distance
+    of every speed to the ring's uniform-flow speed (at which IDM neither speeds up nor slows
+    down), and r6 the mean squared acceleration (/ acc_thr²) of the k vehicles SUMO names as
+    followers one by one."""
     k = 4
     e = parallel_env(scenario="ring", penetration=0.1, episode_length=20.0,
                      reward=RewardConfig(followers=k, local_upstream=1000.0))  # fmt: skip
@@ -278,11 +280,17 @@ def test_ring_terms_are_the_whole_ring_and_sumos_followers() -> None:
         _, _, _, _, infos = run(e, 40)
         api = e._backend._api.vehicle
         lanes = e._backend._api.lane
-        mean = np.mean([api.getSpeed(v) / lanes.getMaxSpeed(api.getLaneID(v))
-                        for v in api.getIDList()])  # fmt: skip
+        speeds = np.array([api.getSpeed(v) for v in api.getIDList()])
+        limit = lanes.getMaxSpeed(api.getLaneID(e.agents[0]))
+        star, h = e._desired, e.config.human
+        gap = e.ring_length / len(speeds) - e.config.vehicle.length
+        idm = 1 - (star / limit) ** h.delta - ((h.min_gap + star * h.headway) / gap) ** 2
+        assert 0 < star < limit and abs(idm) < 1e-3
+        rms = np.sqrt(np.mean((speeds - star) ** 2))
         for a in e.agents:
             t = infos[a]["reward_terms"]
-            assert t["r5_local_speed"] == pytest.approx(mean, rel=1e-9)
+            assert t["r5_local_speed"] == pytest.approx(speeds.mean() / limit, rel=1e-9)
+            assert t["r8_uniform_flow"] == pytest.approx(max(0.0, 1 - rms / star), rel=1e-9)
             chain, v = [], a
             for _ in range(k):
                 v = api.getFollower(v, 300.0)[0]

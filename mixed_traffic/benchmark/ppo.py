@@ -109,8 +109,8 @@ def _config(cfg: PpoConfig, split: str = "train", index: int = 0, **overrides: A
 
 
 def interface_config(cfg: PpoConfig) -> LongitudinalConfig:
-    """The learner interface of the run: the task's step and failsafe."""
-    return LongitudinalConfig(dt=_config(cfg).step_length, reaction=get_task(cfg.task).reaction)
+    """The learner interface of the run: the task's step and interface settings."""
+    return LongitudinalConfig(dt=_config(cfg).step_length, **dict(get_task(cfg.task).learner))
 
 
 def training_env(cfg: PpoConfig) -> Any:

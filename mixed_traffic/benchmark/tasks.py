@@ -11,7 +11,10 @@ around the AV as a share of the limit; the whole ring on a ring) with the AV's o
 ``r3_comfort`` (its acceleration changes) and safety ``r1`` terms; the paper's efficiency and
 impact terms are off. The ring pays for the state its score calls 1, with the safety terms:
 ``r8_uniform_flow``, Flow's desired-velocity reward at the ring's uniform-flow speed, which
-falls with the speeds' spread (the waves) as with their mean's shortfall (a crawl), and its AV obeys the learner interface's failsafe (as Flow's ring AV obeys
+falls with the speeds' spread (the waves) as with their mean's shortfall (a crawl). Its learner
+acts through a residual on the human model's IDM, so that the zero action drives like a human
+(with a plain acceleration the zero action holds the speed the ring starts at, which by itself
+keeps the ring's flow uniform from t = 0), bounded by a failsafe (as Flow's ring AV obeys
 SUMO's safe speed). A task reward must rank the known wave dampers (FollowerStopper, PI with
 saturation) above all-human traffic on the training rings (tests/test_benchmark.py checks
 it). ring-v0 paid for the mean speed with the AV's comfort, and PPO settled at the humans'
@@ -23,6 +26,7 @@ speed; ring-v1 added Flow's penalty on the AV's own acceleration, which ranks th
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Any
 
 from mixed_traffic.config import EnvConfig, RewardConfig
 
@@ -33,8 +37,9 @@ TASK_REWARD = RewardConfig(
 #: The ring task's reward: safety and Flow's desired-velocity reward at the ring's uniform-flow
 #: speed (r8: 1 in uniform flow, 0 at a standstill).
 RING_REWARD = replace(TASK_REWARD, w_comfort=0.0, w_local_speed=0.0, w_uniform=1.0)
-#: Reaction time of the ring learner's failsafe [s] (``agents.longitudinal``; SUMO's tau).
-RING_REACTION = 1.0
+#: The ring learner's interface: a residual on the human model's IDM (the zero action drives as a
+#: human), bounded by a failsafe with SUMO's 1 s reaction time (``agents.longitudinal``).
+RING_LEARNER = (("base", "idm"), ("reaction", 1.0))
 #: Observation tiers: the paper's sensors, or those plus the downstream (V2X) feed.
 TIERS = ("paper", "v2x")
 #: What a score of 1 means: the ring's uniform flow, or the free flow of the measured road.
@@ -62,8 +67,9 @@ class Task:
     metric: str = "mean_speed"
     """The record metric the score normalises (mean speed of all vehicles in the measurement
     segment [m/s])."""
-    reaction: float = 0.0
-    """Reaction time of the learner interface's failsafe [s]; 0 = none."""
+    learner: tuple[tuple[str, Any], ...] = ()
+    """Settings of the learner interface (``agents.longitudinal.LongitudinalConfig`` fields)
+    that the task fixes, as (name, value) pairs; the others keep their defaults."""
 
     def __post_init__(self) -> None:
         if self.tier not in TIERS or self.reference not in REFERENCES:
@@ -95,7 +101,7 @@ def _tasks() -> dict[str, Task]:
     tasks = (
         Task("ring-v2", "one AV among 22 vehicles on a ring of 220-270 m (eval 210 and 280 m): "
              "damp the stop-and-go waves", ring, ring_eval, 0.0, "paper", "uniform-flow",
-             reaction=RING_REACTION),
+             learner=RING_LEARNER),
         Task("wave-highway-v1", "5 % AVs on one lane upstream of a slow zone, with the V2X "
              "feed: damp the waves it sends upstream", wave, wave_eval, 120.0, "v2x",
              "free-flow"),

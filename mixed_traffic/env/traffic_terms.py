@@ -63,11 +63,13 @@ def traffic_terms(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.
         "r6_follower_comfort": _follower_comfort(
             cfg, snap, a[follower], v[follower], behind[follower], A
         ),
-        "r8_uniform_flow": _uniform_flow(ratio, desired / limit if desired > 0 else 1.0, a, n),
+        "r8_uniform_flow": uniform_flow_reward(
+            ratio, desired / limit if desired > 0 else 1.0, a, n
+        ),
     }
 
 
-def _uniform_flow(ratio: np.ndarray, target: np.ndarray | float, agent: np.ndarray,
+def uniform_flow_reward(ratio: np.ndarray, target: np.ndarray | float, agent: np.ndarray,
                   n: np.ndarray) -> np.ndarray:  # fmt: skip
     """(A,) r8 from each pair's speed ``ratio`` and reference ``target`` (shares of its limit)
     and agent index (each (P,)); ``n`` (A,) pairs per agent (0 without any: r8 = 0)."""
