@@ -79,8 +79,9 @@ class LongitudinalConfig:
     """Reaction time τ of the failsafe [s] (module docstring); 0 = no failsafe (the runs before
     ``ring-v2``)."""
     base: str = "none"
-    """What the action adds to: none (it is the acceleration) | idm (the human model's mean
-    IDM, with the limit as desired speed: the zero action follows like a human driver)."""
+    """What the action adds to: none (it is the acceleration) | idm (the default human model's
+    mean IDM, ``HumanConfig()``, with the limit as desired speed: the zero action follows like a
+    human driver)."""
     standstill: float = 2.0
     """Gap s0 the failsafe keeps to a stopped leader [m] (the human model's; without it the
     safe speed lets a creeping AV close a noisy gap of centimetres)."""

@@ -3,7 +3,8 @@
 A task is what two papers must share to compare numbers on this env (as Flow's benchmarks fix
 ring, merge and bottleneck): the training config (scenario, AV share, horizon, reward, the
 observation tier), the warm-up before metrics count, the eval configs it is scored on, and the
-reference its score is normalised to (:mod:`mixed_traffic.benchmark.score`). Ids carry a
+reference its score is normalised to (:mod:`mixed_traffic.benchmark.score`), and the settings
+of the learner interface (:mod:`agents.longitudinal`). Ids carry a
 version (``ring-v2``): a change to any of these makes a new version, never a silent edit.
 
 The task reward is system level, as Flow's: ``r5_local_speed`` (the mean speed of the traffic
@@ -15,8 +16,8 @@ falls with the speeds' spread (the waves) as with their mean's shortfall (a craw
 acts through a residual on the human model's IDM, so that the zero action drives like a human
 (with a plain acceleration the zero action holds the speed the ring starts at, which by itself
 keeps the ring's flow uniform from t = 0), bounded by a failsafe (as Flow's ring AV obeys
-SUMO's safe speed). A task reward must rank the known wave dampers (FollowerStopper, PI with
-saturation) above all-human traffic on the training rings (tests/test_benchmark.py checks
+SUMO's safe speed). A ring reward must rank the known wave dampers (FollowerStopper, PI with
+saturation) above a follower of the waves on a training ring (tests/test_benchmark.py checks
 it). ring-v0 paid for the mean speed with the AV's comfort, and PPO settled at the humans'
 speed; ring-v1 added Flow's penalty on the AV's own acceleration, which ranks the dampers last
 (their commands change by about 2 m/s² every step). Every term stays in

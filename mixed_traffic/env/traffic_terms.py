@@ -14,10 +14,11 @@ Terms (``traffic_terms`` returns them by these names; route distances as in
                          on average (RMS), at least -(9 / 3)^2 = -9 (SUMO's emergency decel)
 
 r5 is the Flow benchmark's system reward (the mean speed of all vehicles) restricted to a
-window, so every agent on a ring gets the same value; r8 pays for the state the benchmark's
-score calls 1 (a ring's uniform flow, a road's free flow): it falls with the speeds' spread
-as with their mean's shortfall, so neither waves nor a slow crawl pay; r6 is the CIRCLES idea of judging an AV
-by how its followers drive, with the squared acceleration (Flow's penalty) for their energy.
+window, so every agent on a ring gets the same value. r8 pays for the state the benchmark's
+score calls 1 (a ring's uniform flow, a road's free flow): it falls with the speeds' spread as
+with their mean's shortfall, so neither waves nor a slow crawl pay. r6 is the CIRCLES idea of
+judging an AV by how its followers drive, with the squared acceleration (Flow's penalty) for
+their energy.
 """
 
 from __future__ import annotations
