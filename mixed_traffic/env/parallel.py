@@ -80,10 +80,7 @@ from mixed_traffic.env.reward import agent_rewards
 from mixed_traffic.env.step_truth import av_step, step_memory
 from mixed_traffic.env.sumo_sync import fan_choices, follow_sumo_routes, give_way_gates
 from mixed_traffic.env.termination import agent_events
-from mixed_traffic.env.truth import (
-    SpeedView,
-    gather,
-)
+from mixed_traffic.env.truth import SpeedView, gather
 from mixed_traffic.paths import scratch_dir
 from mixed_traffic.schema import METRICS
 from mixed_traffic.sensing.frame import PerceptionFrame
@@ -92,7 +89,7 @@ from mixed_traffic.sensing.perception import Perception
 from mixed_traffic.sensing.v2x import DownstreamFeed
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.boundary import PeriodicBoundary, make_boundary
-from mixed_traffic.world.demand import av_count, make_demand, uniform_flow_speed, write_demand
+from mixed_traffic.world.demand import av_count, make_demand, reference_speed, write_demand
 from mixed_traffic.world.fleet_pool import FleetPool
 from mixed_traffic.world.registry import load_scenario
 from mixed_traffic.world.ring import episode_ring
@@ -221,9 +218,7 @@ class MixedTrafficEnv(ParallelEnv):
             self.scenario = ring
             self._use_map()
         demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
-        self._desired = (uniform_flow_speed(self.scenario, cfg, self.ring_length,
-                                            len(demand.placed_ids))
-                         if self.scenario.ring and demand.placed_ids else 0.0)  # fmt: skip
+        self._desired = reference_speed(self.scenario, cfg, self.ring_length, demand)
         route_file = Path(self._tmp) / "demand.rou.xml"
         sc = self.scenario
         write_demand(

@@ -115,6 +115,15 @@ def uniform_flow_speed(scenario: Scenario, config: EnvConfig, ring_length: float
     return idm_equilibrium_speed(spacing, limit, config.human, config.vehicle.length)
 
 
+def reference_speed(scenario: Scenario, config: EnvConfig, ring_length: float | None,
+                    demand: Demand) -> float:  # fmt: skip
+    """The speed [m/s] r8_uniform_flow pays for: on a ring the uniform flow of the vehicles
+    ``demand`` places on it, elsewhere 0 (each lane's limit)."""
+    if not scenario.ring or not demand.placed_ids or ring_length is None:
+        return 0.0
+    return uniform_flow_speed(scenario, config, ring_length, len(demand.placed_ids))
+
+
 def idm_equilibrium_speed(spacing: float, v0: float, human: HumanConfig, length: float) -> float:
     """Speed [m/s] at which IDM keeps a constant ``spacing`` [m] (front to front) between
     vehicles of ``length`` [m]."""
