@@ -197,17 +197,12 @@ class LongitudinalInterface:
     def _base(self, f: dict[str, np.ndarray]) -> np.ndarray:
         """(A,) the acceleration the action adds to [m/s²]: 0, or the human model's mean IDM
         (Treiber's, desired speed the lane's limit) behind the perceived leader."""
-        v = f["v"]
         if self.c.base == "none":
-            return np.zeros(len(v))
-        h = self.human
-        present, gap, lead = _leader(f)
+            return np.zeros(len(f["v"]))
+        _, gap, lead = _leader(f)  # gap inf without a leader: IDM's free road
         limit = f["wp_speed"][:, CURRENT, 0]
         v0 = np.where(limit > 0.5, limit, 13.9) * self.cap_factor
-        s_star = h.min_gap + np.maximum(0.0, v * h.headway
-                                        + v * (v - lead) / (2 * np.sqrt(h.accel * h.decel)))  # fmt: skip
-        z = np.where(present, s_star / np.maximum(gap, 0.1), 0.0)
-        return h.accel * (1.0 - (v / v0) ** h.delta - z**2)
+        return self.human.idm_accel(f["v"], lead, gap, v0)
 
     def _lane_keeping(self, obs: Mapping[str, np.ndarray]) -> _Plan:
         """ACC-LC's lane keeping and speed cap; its whole plan only where follow is masked."""

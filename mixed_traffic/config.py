@@ -13,6 +13,8 @@ from dataclasses import dataclass, field, fields
 from functools import cache
 from typing import Any
 
+import numpy as np
+
 WEATHERS = ("normal", "rain", "fog", "night")
 CAR_FOLLOWING = ("EIDM", "IDM")
 BACKENDS = ("libsumo", "traci", "auto")
@@ -290,6 +292,15 @@ class HumanConfig:
         _check_range(self, "reaction_time", 0.0, 3.0)
         _check_range(self, "coolness", 0.0, 1.0)
         _check_range(self, "action_step", 0.0, 2.0)
+
+    def idm_accel(self, v: Any, v_lead: Any, gap: Any, v0: Any) -> Any:
+        """IDM acceleration [m/s²] of the mean driver (no errors) at speed ``v`` [m/s] behind a
+        leader at ``v_lead`` [m/s] with bumper ``gap`` [m] (inf: no leader), desired speed
+        ``v0`` [m/s]; scalars or arrays of one shape."""
+        s_star = self.min_gap + np.maximum(
+            0.0, v * self.headway + v * (v - v_lead) / (2 * np.sqrt(self.accel * self.decel))
+        )
+        return self.accel * (1 - (v / v0) ** self.delta - (s_star / np.maximum(gap, 0.1)) ** 2)
 
 
 @dataclass(frozen=True)

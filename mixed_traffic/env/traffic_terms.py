@@ -71,7 +71,7 @@ def traffic_terms(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.
 
 
 def uniform_flow_reward(ratio: np.ndarray, target: np.ndarray | float, agent: np.ndarray,
-                  n: np.ndarray) -> np.ndarray:  # fmt: skip
+                        n: np.ndarray) -> np.ndarray:  # fmt: skip
     """(A,) r8 from each pair's speed ``ratio`` and reference ``target`` (shares of its limit)
     and agent index (each (P,)); ``n`` (A,) pairs per agent (0 without any: r8 = 0)."""
     target = np.broadcast_to(target, ratio.shape)

@@ -104,11 +104,7 @@ class PeriodicBoundary:
         self._held = held_now
 
     def _idm_speed(self, v: float, v_lead: float, gap: float, v0: float) -> float:
-        c = self.human
-        s_star = c.min_gap + max(
-            0.0, v * c.headway + v * (v - v_lead) / (2 * np.sqrt(c.accel * c.decel))
-        )
-        acc = c.accel * (1 - (v / v0) ** c.delta - (s_star / max(gap, 0.1)) ** 2)
+        acc = self.human.idm_accel(v, v_lead, gap, v0)
         return float(max(0.0, v + max(acc, -9.0) * self.dt))
 
     @classmethod

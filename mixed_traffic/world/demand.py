@@ -100,7 +100,7 @@ class Demand:
 
 
 def fastest_limit(hd: HDMap, edge: str) -> float:
-    """The limit [m/s] of the fastest car lane of the edge named ``edge`` ."""
+    """The limit [m/s] of the fastest car lane of the edge named ``edge``."""
     return float(hd.lane_speed[hd.car_lane_rows(hd.edge_of(edge))].max())
 
 
