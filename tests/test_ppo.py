@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import pickle
 
 import numpy as np
 import pytest
@@ -114,6 +115,8 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     interface = json.loads((tmp_path / "run" / "model.json").read_text())["interface"]
     assert interface["hold"] == 5 and interface["reaction"] == 1.0  # the ring task's failsafe
     assert interface["base"] == "idm"
+    norm = tmp_path / "run" / "reward_norm.pkl"  # the reward scaler resumes with the weights
+    assert pickle.loads(norm.read_bytes()).ret_rms.count > 192
     # a curriculum: a new run from the first one's weights keeps its decisions and time
     meta = train(PpoConfig(**{**small, "steps": 256, "out": tmp_path / "next",
                               "init": tmp_path / "run" / "model.zip"}), progress=False)  # fmt: skip
@@ -147,7 +150,7 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
 def test_bad_ppo_checkpoints_and_configs_are_named(tmp_path) -> None:
     from agents.policies import make_policy
     from agents.ppo_policy import check_ppo_checkpoint
-    from mixed_traffic.benchmark.ppo import main
+    from mixed_traffic.benchmark.ppo import PpoConfig, main, training_env
 
     with pytest.raises(ValueError, match="needs --checkpoint"):
         make_policy("ppo")
@@ -168,6 +171,11 @@ def test_bad_ppo_checkpoints_and_configs_are_named(tmp_path) -> None:
     with pytest.raises(SystemExit):
         main(["--init", str(bad.with_suffix(".zip.x")), "--out", str(tmp_path / "x")])
     assert not (tmp_path / "x").exists(), "nothing is written for a bad config"
+    run = tmp_path / "corrupt"
+    run.mkdir()
+    (run / "reward_norm.pkl").write_bytes(b"not a pickle")
+    with pytest.raises(ValueError, match="reward statistics"):
+        training_env(PpoConfig(out=run))
 
 
 def test_the_shipped_ring_policy_loads_with_its_lineage() -> None:
