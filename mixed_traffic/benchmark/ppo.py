@@ -76,8 +76,14 @@ class PpoConfig:
     """Scale rewards by a running std of the discounted return (SB3's ``VecNormalize``, as RL
     Zoo's PPO): the critic then fits returns of order 1. Unscaled, ring-v2's returns are about
     250 per decision, and after 164k decisions the critic still predicted 114 (RMSE 150)."""
-    log_std_init: float = -1.0
-    """Initial log std of the Gaussian actions (e^-1 x 3 m/s² = 1.1 m/s² of exploration)."""
+    explore_hold: float = 30.0
+    """Time an exploration draw is held [s] (SB3's gSDE: the noise is a random linear function
+    of the policy's last hidden layer, redrawn this often, so an exploring AV drives one
+    perturbed policy for about a ring wave's period and its effect on the waves shows in the
+    return); 0 = independent Gaussian noise every decision."""
+    log_std_init: float = -2.2
+    """Initial log std of the exploration: per hidden feature with gSDE (e^-2.2 gives an action
+    std of about 0.37, 1.1 m/s²), of the action without (e^-1 for the same)."""
     hidden: tuple[int, ...] = (64, 64)
     """Hidden layer widths of the actor and of the critic (tanh)."""
     episode_length: float = 0.0
@@ -98,8 +104,9 @@ class PpoConfig:
         for name in ("steps", "leg", "n_steps", "batch_size", "n_epochs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')}={getattr(self, name)} must be >= 1")
-        if self.episode_length < 0:
-            raise ValueError(f"--episode-length={self.episode_length} must be >= 0")
+        if self.episode_length < 0 or self.explore_hold < 0:
+            raise ValueError(f"--episode-length={self.episode_length} and --explore-hold="
+                             f"{self.explore_hold} must be >= 0")  # fmt: skip
         if self.seed < 0 or not 0 < self.gamma <= 1 or not 0 < self.learning_rate < 1:
             raise ValueError("--seed must be >= 0, --gamma in (0, 1], --learning-rate in (0, 1)")
         if self.init.parts:
@@ -182,9 +189,12 @@ def _model(cfg: PpoConfig, venv: Any) -> Any:
     if path.is_file() or cfg.init.parts:
         return PPO.load(str(path if path.is_file() else cfg.init), env=venv, device="cpu")
     arch = list(cfg.hidden)
+    interface = interface_config(cfg)
+    held = max(1, round(cfg.explore_hold / (interface.hold * interface.dt)))  # decisions
     return PPO("MlpPolicy", venv, n_steps=cfg.n_steps, batch_size=cfg.batch_size,
                n_epochs=cfg.n_epochs, learning_rate=cfg.learning_rate, gamma=cfg.gamma,
                gae_lambda=cfg.gae_lambda, seed=cfg.seed, device="cpu", verbose=0,
+               use_sde=cfg.explore_hold > 0, sde_sample_freq=held,
                policy_kwargs={"log_std_init": cfg.log_std_init,
                               "net_arch": {"pi": arch, "vf": arch}})  # fmt: skip
 
