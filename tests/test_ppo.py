@@ -100,6 +100,8 @@ def test_wrapped_tasks_pass_the_parallel_api_test(task: str) -> None:
 
 
 def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> None:
+    from stable_baselines3 import PPO
+
     from agents.policies import make_policy
     from mixed_traffic.benchmark.ppo import PpoConfig, read_curves, train
     from mixed_traffic.experiments.runner import run_episode
@@ -117,6 +119,8 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     assert interface["base"] == "idm"
     norm = tmp_path / "run" / "reward_norm.pkl"  # the reward scaler resumes with the weights
     assert pickle.loads(norm.read_bytes()).ret_rms.count > 192
+    model = PPO.load(tmp_path / "run" / "model.zip", device="cpu")
+    assert model.use_sde and model.sde_sample_freq == 60, "exploration held 30 s"
     # a curriculum: a new run from the first one's weights keeps its decisions and time
     meta = train(PpoConfig(**{**small, "steps": 256, "out": tmp_path / "next",
                               "init": tmp_path / "run" / "model.zip"}), progress=False)  # fmt: skip
@@ -168,6 +172,8 @@ def test_bad_ppo_checkpoints_and_configs_are_named(tmp_path) -> None:
         LongitudinalConfig(hold=0)
     with pytest.raises(SystemExit):
         main(["--steps", "0", "--out", str(tmp_path / "x")])
+    with pytest.raises(SystemExit):
+        main(["--explore-hold", "-1", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit):
         main(["--init", str(bad.with_suffix(".zip.x")), "--out", str(tmp_path / "x")])
     assert not (tmp_path / "x").exists(), "nothing is written for a bad config"
