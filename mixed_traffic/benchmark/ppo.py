@@ -9,7 +9,8 @@ conversion: each AV is one row of SB3's batch). The AVs act through the longitud
 (:mod:`mixed_traffic.benchmark.interface`: 8 features, one acceleration held for 0.5 s) and
 are rewarded with the task's reward. After every leg of ``leg`` decisions the weights and
 the optimiser go to ``out/model.zip`` (atomically; no rollout buffer is kept, PPO has no replay),
-its metadata to ``model.json``, and one row to ``curves.csv``: the leg's training returns and a
+the reward scaler's statistics to ``reward_norm.pkl``, its metadata to ``model.json``, and one
+row to ``curves.csv``: the leg's training returns and a
 greedy evaluation on the task's held-out configs through the one episode runner (fleet speed
 std and mean speed against all-human traffic on the same seed). A re-run continues from
 ``model.zip`` (also after kill -9: at most one leg is lost) until ``steps`` decisions.
