@@ -21,8 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import traci
-import traci.constants as tc
 
 from mixed_traffic.world.snapshot import Collision, TrafficSnapshot, sumo_angle_to_rad
 
@@ -32,16 +30,6 @@ AV_SPEED_MODE = 32
 #: laneChangeMode 0: no autonomous lane changes and TraCI changes ignore other drivers.
 AV_LANE_CHANGE_MODE = 0
 
-_TRACI_VARS = (
-    tc.VAR_POSITION3D,
-    tc.VAR_ANGLE,
-    tc.VAR_SPEED,
-    tc.VAR_ACCELERATION,
-    tc.VAR_LANE_ID,
-    tc.VAR_LANEPOSITION,
-    tc.VAR_LANEPOSITION_LAT,
-    tc.VAR_FUELCONSUMPTION,
-)
 _labels = itertools.count()
 _libsumo_owner: SumoBackend | None = None
 
@@ -55,6 +43,21 @@ def _libsumo() -> Any:
     import libsumo
 
     return libsumo
+
+
+def _traci() -> Any:
+    """The TraCI module, loaded when a simulation starts (as :func:`_libsumo`)."""
+    import traci
+
+    return traci
+
+
+def _traci_vars() -> tuple[int, ...]:
+    """The subscribed variables, in :meth:`SumoBackend.read`'s order."""
+    import traci.constants as tc
+
+    return (tc.VAR_POSITION3D, tc.VAR_ANGLE, tc.VAR_SPEED, tc.VAR_ACCELERATION, tc.VAR_LANE_ID,
+            tc.VAR_LANEPOSITION, tc.VAR_LANEPOSITION_LAT, tc.VAR_FUELCONSUMPTION)  # fmt: skip
 
 
 def _libsumo_getters() -> tuple:
@@ -198,7 +201,7 @@ class SumoBackend:
             else [binary("sumo"), *args]
         )
         self._check_libsumo_free()  # another env may have started since this one was made
-        libsumo = _libsumo()
+        libsumo, traci = _libsumo(), _traci()
         try:
             if self.kind == "libsumo":
                 libsumo.start(cmd)
@@ -225,7 +228,7 @@ class SumoBackend:
         self._flush_pending_move()
         try:
             self._api.load(list(args))
-        except (_libsumo().TraCIException, traci.exceptions.TraCIException) as e:
+        except (_libsumo().TraCIException, _traci().exceptions.TraCIException) as e:
             raise SumoError(f"SUMO failed to load ({' '.join(args)}): {e}") from e
         self._after_load()
 
@@ -319,7 +322,7 @@ class SumoBackend:
             v.setSpeedMode(vid, AV_SPEED_MODE)
             v.setLaneChangeMode(vid, AV_LANE_CHANGE_MODE)
         if self.kind == "traci":
-            v.subscribe(vid, _TRACI_VARS)
+            v.subscribe(vid, _traci_vars())
 
     def read(self) -> TrafficSnapshot:
         """Current state of every vehicle (getters on libsumo, subscriptions on TraCI)."""
@@ -342,15 +345,9 @@ class SumoBackend:
             fuel = list(map(f[7], ids))
         else:
             res = v.getAllSubscriptionResults()
-            rows = [res[i] for i in ids]
-            pos = [r[tc.VAR_POSITION3D] for r in rows]
-            angle = [r[tc.VAR_ANGLE] for r in rows]
-            speed = [r[tc.VAR_SPEED] for r in rows]
-            accel = [r[tc.VAR_ACCELERATION] for r in rows]
-            lane = [r[tc.VAR_LANE_ID] for r in rows]
-            lpos = [r[tc.VAR_LANEPOSITION] for r in rows]
-            lat = [r[tc.VAR_LANEPOSITION_LAT] for r in rows]
-            fuel = [r[tc.VAR_FUELCONSUMPTION] for r in rows]
+            pos, angle, speed, accel, lane, lpos, lat, fuel = (
+                [res[i][k] for i in ids] for k in _traci_vars()
+            )
         return self._assemble(ids, pos, angle, speed, accel, lane, lpos, lat, fuel)
 
     def _lane_rows(self, lane: list[str]) -> np.ndarray:
