@@ -10,8 +10,7 @@ conversion: each AV is one row of SB3's batch). The AVs act through the longitud
 are rewarded with the task's reward. After every leg of ``leg`` decisions the weights and
 the optimiser go to ``out/model.zip`` (atomically; no rollout buffer is kept, PPO has no replay),
 the reward scaler's statistics to ``reward_norm.pkl``, its metadata to ``model.json``, and one
-row to ``curves.csv``: the leg's training returns and a
-greedy evaluation on the task's held-out configs through the one episode runner (fleet speed
+row to ``curves.csv``: the leg's training returns and a greedy evaluation on the task's held-out configs through the one episode runner (fleet speed
 std and mean speed against all-human traffic on the same seed). A re-run continues from
 ``model.zip`` (also after kill -9: at most one leg is lost) until ``steps`` decisions.
 """
@@ -291,8 +290,8 @@ def _append_curve(cfg: PpoConfig, row: dict[str, float]) -> None:
 def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
     """Run legs until ``cfg.steps`` decisions; the metadata of the last checkpoint."""
     cfg.out.mkdir(parents=True, exist_ok=True)
+    venv = training_env(cfg)  # names a corrupt reward_norm.pkl before the baseline episodes
     human = _human(cfg)
-    venv = training_env(cfg)
     model = _model(cfg, venv)
     curves = read_curves(cfg.out)
     seconds = curves[-1]["train_seconds"] if curves else _init_seconds(cfg)
