@@ -12,6 +12,7 @@ import numpy as np
 
 from mixed_traffic.config import HumanConfig
 from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.routing import fastest_path
 from mixed_traffic.world.scenario import Route
 
 DEPART_SHARE = 0.95
@@ -25,7 +26,7 @@ def lane_route(hd: HDMap, lane: int, route: Route, edge: str) -> tuple[str, ...]
     changing lanes before the junction (SUMO refuses to insert it otherwise: "too many lane
     changes required"); origin/destination routes take the fastest such path. None: none."""
     if not route.edges:
-        path = hd.fastest_path(lane, hd.edge_row[route.destination])
+        path = fastest_path(hd, lane, hd.edge_row[route.destination])
         return None if path is None else tuple(hd.edge_ids[e] for e in path)
     rest = route.edges[route.edges.index(edge) :] if edge in route.edges else ()
     if len(rest) == 1 or (len(rest) > 1 and (lane, hd.edge_row[rest[1]]) in hd.conn_to):
