@@ -34,13 +34,24 @@ def lane_route(hd: HDMap, lane: int, route: Route, edge: str) -> tuple[str, ...]
     return None
 
 
-def route_index(routes: list[Route], edges: tuple[str, ...]) -> int:
-    """Index of the route with exactly these ``edges`` (appended once)."""
-    for i, r in enumerate(routes):
-        if r.edges == edges:
-            return i
-    routes.append(Route(edges=edges, weight=0.0))
-    return len(routes) - 1
+class RouteIndex:
+    """Index of the route with exactly some edges in a growing list (appended once); a dict
+    kept in step with the list, since a city places thousands of vehicles on their own paths."""
+
+    def __init__(self, routes: list[Route]) -> None:
+        self.routes = routes
+        self._known: dict[tuple[str, ...], int] = {}
+        self._seen = 0
+
+    def __call__(self, edges: tuple[str, ...]) -> int:
+        routes, known = self.routes, self._known
+        for i in range(self._seen, len(routes)):  # routes others appended: the first one counts
+            known.setdefault(routes[i].edges, i)
+        if edges not in known:
+            routes.append(Route(edges=edges, weight=0.0))
+            known[edges] = len(routes) - 1
+        self._seen = len(routes)
+        return known[edges]
 
 
 class Placed(NamedTuple):
