@@ -37,7 +37,9 @@ import numpy as np
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.bench_env import PENETRATIONS, section_env
+from mixed_traffic.experiments.bench_scale import AV_LADDER, section_scale
 from mixed_traffic.experiments.bench_soak import section_soak
+from mixed_traffic.experiments.bench_study import section_study
 from mixed_traffic.paths import scratch_dir
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.boundary import PeriodicBoundary
@@ -184,7 +186,11 @@ SECTIONS: dict[str, Callable[[argparse.Namespace], object]] = {
     "inference": section_inference,
     "soak": section_soak,
     "learner": section_learner,
+    "study": section_study,
+    "scale": section_scale,
 }
+JSON_SECTIONS = ("env", "study", "scale")
+"""Sections whose results ``--json`` prints, one JSON object a line."""
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -258,9 +264,52 @@ def build_parser() -> argparse.ArgumentParser:
         help="learner section: time the learner with torch.compile (compiles first, ~1 min)",
     )  # fmt: skip
     p.add_argument(
+        "--study-workers", type=int, default=2,
+        help="study section: worker processes of the study and its floor (default: 2)",
+    )  # fmt: skip
+    p.add_argument(
+        "--study-seeds", type=int, default=0,
+        help="study section: run seeds 0..N-1 (default: the study's own, 0 1 2)",
+    )  # fmt: skip
+    p.add_argument(
+        "--study-episode", type=float, default=0.0,
+        help="study section: simulated seconds per episode (default: the study's own, 150)",
+    )  # fmt: skip
+    p.add_argument(
+        "--scale-avs", type=int, nargs="+", default=list(AV_LADDER), metavar="N",
+        help="scale section: AV counts to try on the long road, rising (default: 250 .. 4000)",
+    )  # fmt: skip
+    p.add_argument(
+        "--scale-lanes", type=int, default=4, help="scale section: lanes of the road (default: 4)"
+    )
+    p.add_argument(
+        "--scale-density", type=float, default=25.0,
+        help="scale section: veh/km per lane on the road (default: 25)",
+    )  # fmt: skip
+    p.add_argument(
+        "--scale-steps", type=int, default=50,
+        help="scale section: timed env steps per AV count (default: 50)",
+    )  # fmt: skip
+    p.add_argument(
+        "--city-grid", type=int, default=30,
+        help="scale section: junctions per side of the city grid (default: 30)",
+    )  # fmt: skip
+    p.add_argument(
+        "--city-density", type=float, default=12.0,
+        help="scale section: veh/km per lane in the city (default: 12)",
+    )  # fmt: skip
+    p.add_argument(
+        "--city-penetration", type=float, default=0.1,
+        help="scale section: AV share in the city (default: 0.1)",
+    )  # fmt: skip
+    p.add_argument(
+        "--city-episode", type=float, default=300.0,
+        help="scale section: simulated seconds of the city episode (default: 300)",
+    )  # fmt: skip
+    p.add_argument(
         "--json", action="store_true",
-        help="env section only: one JSON object per (env policy, penetration) on stdout, the "
-        "tables on stderr",
+        help=f"sections {', '.join(JSON_SECTIONS)} only: one JSON object per result on stdout, "
+        "the tables on stderr",
     )  # fmt: skip
     p.add_argument(
         "--backend", choices=("libsumo", "traci"), default="libsumo",
@@ -271,8 +320,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: Options that must be finite and > 0, and counts that must be >= 1.
 _POSITIVE = ("densities", "env_density", "env_episode", "soak_length", "soak_density",
-             "learner_block_seconds")  # fmt: skip
-_COUNTS = ("env_steps", "learner_batch", "learner_threads", "learner_blocks")
+             "learner_block_seconds", "scale_density", "city_density", "city_episode",
+             "city_penetration")  # fmt: skip
+_COUNTS = ("env_steps", "learner_batch", "learner_threads", "learner_blocks", "study_workers",
+           "scale_avs", "scale_lanes", "scale_steps")  # fmt: skip
 
 
 def check_args(args: argparse.Namespace) -> str | None:
@@ -284,6 +335,14 @@ def check_args(args: argparse.Namespace) -> str | None:
                 return f"--{name.replace('_', '-')}={v} must be >= 1"
             if name in _POSITIVE and not (math.isfinite(v) and v > 0):
                 return f"--{name.replace('_', '-')}={v} must be a finite number > 0"
+    for name in ("study_seeds", "study_episode"):  # 0 = the study's own
+        v = getattr(args, name)
+        if not (math.isfinite(v) and v >= 0):
+            return f"--{name.replace('_', '-')}={v} must be >= 0 (0: the study's default)"
+    if args.city_grid < 2:
+        return f"--city-grid={args.city_grid} must be >= 2"
+    if args.city_penetration > 1:
+        return f"--city-penetration={args.city_penetration} must be in (0, 1]"
     if any(not 0 < p <= 1 for p in args.penetrations):
         return f"--penetrations={args.penetrations}: each must be in (0, 1]"
     return None
@@ -297,16 +356,19 @@ def main(argv: list[str] | None = None) -> int:
     bad = check_args(args)
     if bad:  # before the first section, not when the section that uses it comes
         parser.error(bad)
-    if args.json and args.section != ["env"]:
-        parser.error("--json needs --section env (the learner section has --learner-json)")
+    others = sorted(set(args.section) - set(JSON_SECTIONS))
+    if args.json and others:
+        parser.error(f"--json prints sections {', '.join(JSON_SECTIONS)}, not {', '.join(others)} "
+                     "(the learner section has --learner-json)")  # fmt: skip
     if not args.json:
         for name in args.section:
             SECTIONS[name](args)
         return 0
-    with contextlib.redirect_stdout(sys.stderr):
-        results = section_env(args)
-    for r in results:
-        print(json.dumps(r.record()), flush=True)
+    for name in args.section:
+        with contextlib.redirect_stdout(sys.stderr):
+            results = SECTIONS[name](args)
+        for r in results:
+            print(json.dumps(r.record()), flush=True)
     return 0
 
 

@@ -10,7 +10,8 @@ them remain): the env is reset (untimed) every ``--env-episode`` seconds of simu
 a second policy ``keep`` (follow, zero steering and accel_brake) keeps the full traffic, the
 load the target refers to. Reported per penetration: medians over block pairs of
 ms/step, steps/s, agent-steps/s (agents = AVs in the network), the limit's ms/step and the ratio
-env/limit (target ≤ 1.3). A separate profiling pass prints where an env step's time goes
+env/limit (target ≤ 1.3). The same rows on the 22-vehicle ``ring`` with one AV (its own
+density; target ≤ 1.5) show the fixed per-step cost of small scenarios. A separate profiling pass prints where an env step's time goes
 (exclusive time per stage).
 """
 
@@ -26,10 +27,16 @@ import numpy as np
 PENETRATIONS = (0.2, 0.5, 1.0)
 TARGET_ENV_RATIO = 1.3
 """Issue 25's target for env step / physical limit."""
+RING_PENETRATION = 1 / 22
+"""The ring row: 22 vehicles at the ring's own density, one of them an AV."""
+TARGETS = {"straight": TARGET_ENV_RATIO, "ring": 1.5}
+"""Issue 45's targets for env step / physical limit per scenario."""
 
 
 @dataclass
 class EnvResult:
+    scenario: str
+    """``straight`` (at ``--env-density``) or ``ring`` (22 vehicles, one AV)."""
     policy: str
     """``random`` or ``keep`` (see ``bench_actions``)."""
     penetration: float
@@ -55,10 +62,11 @@ class EnvResult:
     def record(self) -> dict[str, float | str]:
         """The ``--json`` object (issue 25's keys first)."""
         return {
-            "env_policy": self.policy, "penetration": self.penetration, "ratio": self.ratio,
+            "scenario": self.scenario, "env_policy": self.policy, "penetration": self.penetration,
+            "ratio": self.ratio,
             "agent_steps_per_s": self.agent_steps_per_s, "ms_per_step": self.env_ms,
             "limit_ms_per_step": self.limit_ms, "agents": self.agents, "vehicles": self.vehicles,
-            "blocks": self.blocks, "target_ratio": TARGET_ENV_RATIO,
+            "blocks": self.blocks, "target_ratio": TARGETS[self.scenario],
         }  # fmt: skip
 
 
@@ -117,21 +125,23 @@ def _limit_block(env, block: int) -> tuple[float, object]:
     return total / block, snap
 
 
-def make_bench_env(penetration: float, density: float, episode: float, seed: int):
+def make_bench_env(penetration: float, density: float | None, episode: float, seed: int,
+                   scenario: str = "straight"):  # fmt: skip
+    """The benched env; ``density`` None: the scenario's own."""
     from mixed_traffic.env import parallel_env
 
     return parallel_env(
-        scenario="straight", density=density, penetration=penetration, seed=seed,
+        scenario=scenario, density=density, penetration=penetration, seed=seed,
         episode_length=episode,
     )  # fmt: skip
 
 
 def bench_env_penetration(
-    penetration: float, density: float, steps: int, block: int = 20, warm: int = 50,
-    episode: float = 40.0, seed: int = 0, policy: str = "random",
+    penetration: float, density: float | None, steps: int, block: int = 20, warm: int = 50,
+    episode: float = 40.0, seed: int = 0, policy: str = "random", scenario: str = "straight",
 ) -> EnvResult:  # fmt: skip
     """Alternate (env, limit) block pairs of ``block`` steps until ``steps`` env steps are timed."""
-    env = make_bench_env(penetration, density, episode, seed)
+    env = make_bench_env(penetration, density, episode, seed, scenario)
     rng = np.random.default_rng(seed)
     space = env.action_space(None)
     clock = time.perf_counter
@@ -170,6 +180,7 @@ def bench_env_penetration(
     finally:
         env.close()
     return EnvResult(
+        scenario=scenario,
         policy=policy,
         penetration=penetration,
         env_ms=statistics.median(env_blocks) * 1e3,
@@ -254,31 +265,37 @@ def profile_env_stages(
 
 
 def section_env(args: argparse.Namespace) -> list[EnvResult]:
-    """env.step with random actions vs the physical limit on straight, per penetration."""
+    """env.step vs the physical limit on straight per penetration, and on the ring (one AV)."""
     print(
-        f"env: straight {args.env_density:.0f} veh/km, sublane on, libsumo, random masked "
-        f"actions, {args.env_steps} timed env steps per penetration in alternating (env, limit) "
-        f"blocks of {args.block} (medians over blocks; reset every {args.env_episode:.0f} s)"
-    )
+        f"env: straight {args.env_density:.0f} veh/km and the 22-vehicle ring with one AV, "
+        f"sublane on, libsumo, {args.env_steps} timed env steps per row in alternating "
+        f"(env, limit) blocks of {args.block} (medians over blocks; reset every "
+        f"{args.env_episode:.0f} s)"
+    )  # fmt: skip
     head = (
-        f"{'policy':>6} {'pen':>5} {'AVs':>6} {'veh':>6} {'env ms':>8} {'steps/s':>8} {'agent-st/s':>11} "
-        f"{'limit ms':>9} {'ratio':>6}  target"
-    )
+        f"{'scenario':>8} {'policy':>6} {'pen':>5} {'AVs':>6} {'veh':>6} {'env ms':>8} "
+        f"{'steps/s':>8} {'agent-st/s':>11} {'limit ms':>9} {'ratio':>6}  target"
+    )  # fmt: skip
     print(head)
     print("-" * len(head))
+    rows = [
+        (pol, "straight", p, args.env_density) for pol in args.env_policy for p in args.penetrations
+    ]
+    rows += [(pol, "ring", RING_PENETRATION, None) for pol in args.env_policy]
     results = []
-    for policy, p in [(pol, p) for pol in args.env_policy for p in args.penetrations]:
+    for policy, scenario, p, density in rows:
         r = bench_env_penetration(
-            p, args.env_density, args.env_steps, args.block, episode=args.env_episode,
-            policy=policy,
+            p, density, args.env_steps, args.block, episode=args.env_episode, policy=policy,
+            scenario=scenario,
         )  # fmt: skip
-        ok = "ok" if r.ratio <= TARGET_ENV_RATIO else f"MISSED (> {TARGET_ENV_RATIO}x)"
+        target = TARGETS[scenario]
+        ok = "ok" if r.ratio <= target else f"MISSED (> {target}x)"
         print(
-            f"{r.policy:>6} {r.penetration:>5.2f} {r.agents:>6.1f} {r.vehicles:>6.1f} {r.env_ms:>8.3f} "
-            f"{r.steps_per_s:>8.0f} {r.agent_steps_per_s:>11.0f} {r.limit_ms:>9.3f} "
-            f"{r.ratio:>6.2f}  {ok}",
+            f"{r.scenario:>8} {r.policy:>6} {r.penetration:>5.2f} {r.agents:>6.1f} "
+            f"{r.vehicles:>6.1f} {r.env_ms:>8.3f} {r.steps_per_s:>8.0f} "
+            f"{r.agent_steps_per_s:>11.0f} {r.limit_ms:>9.3f} {r.ratio:>6.2f}  {ok}",
             flush=True,
-        )
+        )  # fmt: skip
         results.append(r)
     p, policy = max(args.penetrations), args.env_policy[-1]
     per, total = profile_env_stages(p, args.env_density, min(args.env_steps, 300),

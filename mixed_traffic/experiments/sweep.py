@@ -319,16 +319,29 @@ def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
     records_path = sweep.results / "records.jsonl"
     with exclusive_folder(sweep.results):  # a second run into the folder stops here
         todo = _missing(sweep, _records_of_this_code(records_path))  # failed ones: again
-        bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode",
-                   disable=not progress)  # fmt: skip
-        if sweep.backend == "ray":
-            _run_ray(todo, sweep, records_path, bar)
-        else:
-            _run_processes(todo, sweep, records_path, bar)
-        bar.close()
+        _run(todo, sweep, records_path, progress)
     if sweep.traffic:
         run_sweep(fd_sweep(sweep), progress)
     return records_path
+
+
+def run_cells(todo: list[Cell], sweep: SweepConfig, progress: bool = True) -> Path:
+    """Run every cell of ``todo`` (recorded or not, repeats included) with the workers and
+    backend of ``sweep``, into its records file; returns that file."""
+    records_path = sweep.results / "records.jsonl"
+    with exclusive_folder(sweep.results):
+        _run(todo, sweep, records_path, progress)
+    return records_path
+
+
+def _run(todo: list[Cell], sweep: SweepConfig, records_path: Path, progress: bool) -> None:
+    bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode",
+               disable=not progress)  # fmt: skip
+    if sweep.backend == "ray":
+        _run_ray(todo, sweep, records_path, bar)
+    else:
+        _run_processes(todo, sweep, records_path, bar)
+    bar.close()
 
 
 def _records_of_this_code(path: Path) -> list[dict]:

@@ -31,11 +31,11 @@ from mixed_traffic.world.fleet_pool import FleetTrip, pool_size
 from mixed_traffic.world.hdmap import CAR, HDMap
 from mixed_traffic.world.placement import (
     Placed,
+    RouteIndex,
     cap_followers,
     departure_cap,
     lane_ahead,
     lane_route,
-    route_index,
     suffix_route,
     upstream_lanes,
 )
@@ -255,6 +255,7 @@ class _Placement:
                  rng: np.random.Generator, routes: list[Route], weights: np.ndarray) -> None:  # fmt: skip
         self.hd, self.config, self.plan, self.rng = scenario.hdmap, config, plan, rng
         self.routes, self.weights, self.base = routes, weights, scenario.routes
+        self.route_of = RouteIndex(routes)
         self.planned: list[Placed] = []
         self.signalised = {src for src, _ in self.hd.tls_links}
         self.upstream = upstream_lanes(self.hd)
@@ -313,11 +314,7 @@ class _Placement:
         for k in range(n):
             pos = min(start + k * spacing, length - 1.0)  # clip, never drop: fixed count
             r = int(self.rng.choice(fit, p=fw))
-            route = (
-                route_index(self.routes, paths[r])
-                if paths[r]
-                else suffix_route(self.routes, r, edge)
-            )
+            route = self.route_of(paths[r]) if paths[r] else suffix_route(self.routes, r, edge)
             v, limits = self._speed(lane_row, length, pos, route, v_lane, lane_limit)
             self.planned.append(Placed(route, pos, lane, lane_row, v, limits))
 

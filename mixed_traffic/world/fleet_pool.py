@@ -25,6 +25,7 @@ import numpy as np
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.drivers import AV_TYPE
 from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.routing import fastest_path
 from mixed_traffic.world.scenario import Route, Scenario
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -50,7 +51,7 @@ def free_flow_time(hd: HDMap, route: Route) -> float:
     else:
         origin = hd.edge_of(route.origin)
         lanes = hd.car_lane_rows(origin)
-        path = hd.fastest_path(lanes[0], hd.edge_of(route.destination)) if lanes else None
+        path = fastest_path(hd, lanes[0], hd.edge_of(route.destination)) if lanes else None
         rows = path or [origin]
     return float(hd.edge_free_time[rows].sum())
 

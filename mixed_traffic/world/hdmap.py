@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import gzip
 import hashlib
-import heapq
 import xml.etree.ElementTree as ET
 import zlib
 from dataclasses import dataclass
@@ -33,7 +32,7 @@ ADVISORY_LAT_ACCEL = 5.5
 SHIFT_ANGLE = np.deg2rad(45.0)
 #: ... where the road's direction changes by less than this across the junction [rad].
 SHIFT_STRAIGHT = np.deg2rad(20.0)
-#: Extra cost of a turnaround in ``HDMap.fastest_path`` [s].
+#: Extra cost of a turnaround in ``routing.fastest_path`` [s].
 UTURN_PENALTY = 120.0
 _CACHE_VERSION = "hdmap-v9"  # v2: sumolib; v3: lane permissions; v4: yield links; v5: shifts,
 # turnarounds; v6: internal yields; v7: unsignalised links at signals; v8: fans; v9: the shifts
@@ -177,34 +176,6 @@ class HDMap:
         """(edge row, next edge row) pairs joined by a turnaround's junction lane."""
         return {(int(self.lane_edge[a]), b) for (a, b), v in self.conn_to.items()
                 if self.lane_uturn[v]}  # fmt: skip
-
-    def fastest_path(self, lane: int, destination: int) -> list[int] | None:
-        """Edge rows from ``lane``'s edge to ``destination`` with the least free-flow travel
-        time whose first junction is one ``lane`` connects through (None: there is none).
-        A turnaround costs ``UTURN_PENALTY`` more: drivers turn around where nothing else
-        leads on, not to save a block."""
-        start = int(self.lane_edge[lane])
-        if start == destination:
-            return [start]
-        free, turns = self.edge_free_time, self.edge_uturns
-
-        def cost(e: int, n: int) -> float:
-            return float(free[n]) + (UTURN_PENALTY if (e, n) in turns else 0.0)
-
-        heap = [(cost(start, e), e, [start, e]) for e in self.lane_exits.get(lane, ())]
-        heapq.heapify(heap)
-        done: set[int] = set()
-        while heap:
-            t, e, path = heapq.heappop(heap)
-            if e == destination:
-                return path
-            if e in done:
-                continue
-            done.add(e)
-            for n in self.edge_successors.get(e, ()):
-                if n not in done:
-                    heapq.heappush(heap, (t + cost(e, n), n, [*path, n]))
-        return None
 
     @cached_property
     def wp_speed(self) -> np.ndarray:

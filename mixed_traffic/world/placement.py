@@ -12,6 +12,7 @@ import numpy as np
 
 from mixed_traffic.config import HumanConfig
 from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.world.routing import fastest_path
 from mixed_traffic.world.scenario import Route
 
 DEPART_SHARE = 0.95
@@ -25,7 +26,7 @@ def lane_route(hd: HDMap, lane: int, route: Route, edge: str) -> tuple[str, ...]
     changing lanes before the junction (SUMO refuses to insert it otherwise: "too many lane
     changes required"); origin/destination routes take the fastest such path. None: none."""
     if not route.edges:
-        path = hd.fastest_path(lane, hd.edge_row[route.destination])
+        path = fastest_path(hd, lane, hd.edge_row[route.destination])
         return None if path is None else tuple(hd.edge_ids[e] for e in path)
     rest = route.edges[route.edges.index(edge) :] if edge in route.edges else ()
     if len(rest) == 1 or (len(rest) > 1 and (lane, hd.edge_row[rest[1]]) in hd.conn_to):
@@ -33,13 +34,24 @@ def lane_route(hd: HDMap, lane: int, route: Route, edge: str) -> tuple[str, ...]
     return None
 
 
-def route_index(routes: list[Route], edges: tuple[str, ...]) -> int:
-    """Index of the route with exactly these ``edges`` (appended once)."""
-    for i, r in enumerate(routes):
-        if r.edges == edges:
-            return i
-    routes.append(Route(edges=edges, weight=0.0))
-    return len(routes) - 1
+class RouteIndex:
+    """Index of the route with exactly some edges in a growing list (appended once); a dict
+    kept in step with the list, since a city places thousands of vehicles on their own paths."""
+
+    def __init__(self, routes: list[Route]) -> None:
+        self.routes = routes
+        self._known: dict[tuple[str, ...], int] = {}
+        self._seen = 0
+
+    def __call__(self, edges: tuple[str, ...]) -> int:
+        routes, known = self.routes, self._known
+        for i in range(self._seen, len(routes)):  # routes others appended: the first one counts
+            known.setdefault(routes[i].edges, i)
+        if edges not in known:
+            routes.append(Route(edges=edges, weight=0.0))
+            known[edges] = len(routes) - 1
+        self._seen = len(routes)
+        return known[edges]
 
 
 class Placed(NamedTuple):

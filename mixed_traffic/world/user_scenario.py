@@ -90,14 +90,28 @@ class _Net:
             e.getID(): _car_successors(e, self.lanes, vclass) for e in edges
         }
 
-    def reachable(self, start: str) -> set[str]:
+    def reachable(self, start: str, graph: dict[str, set[str]] | None = None) -> set[str]:
+        """Edges reachable from ``start`` (itself included); over ``graph``'s links if given."""
+        graph = self.succ if graph is None else graph
         seen, todo = {start}, deque([start])
         while todo:
-            for nxt in self.succ[todo.popleft()]:
+            for nxt in graph.get(todo.popleft(), ()):
                 if nxt not in seen:
                     seen.add(nxt)
                     todo.append(nxt)
         return seen
+
+    def reaching(self, ends: set[str]) -> set[str]:
+        """Edges from which every edge of ``ends`` is reachable: one backward search per end
+        (not a forward one per edge, which a city's thousands of edges made minutes)."""
+        pred: dict[str, set[str]] = {}
+        for e, succ in self.succ.items():
+            for n in succ:
+                pred.setdefault(n, set()).add(e)
+        out = set(self.lanes)
+        for end in ends:
+            out &= self.reachable(end, pred)
+        return out
 
     def fringe(self) -> tuple[list[str], list[str]]:
         """Entry and exit edges: those touching a node with a single neighbouring node."""
@@ -140,7 +154,7 @@ def _from_net(path: Path) -> Scenario:
     routes = tuple(Route(origin=o, destination=d) for o, d in chosen)
     dests = {d for _, d in chosen}
     # vehicles are placed only where every destination can still be reached
-    placement = tuple(e for e in sorted(net.lanes) if dests <= net.reachable(e))
+    placement = tuple(sorted(net.reaching(dests)))
     return Scenario(
         name=str(path),
         family="user",

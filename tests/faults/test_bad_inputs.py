@@ -194,6 +194,11 @@ BENCH = [
     cli("bench", "--section env --env-steps 0", "--env-steps=0 must be >= 1", "zero-env-steps"),
     cli("bench", "--section soak --soak-length inf", "--soak-length=inf", "inf-soak"),
     cli("bench", "--section learner --learner-threads 0", "--learner-threads=0", "zero-threads"),
+    cli("bench", "--section study --study-episode -1", "--study-episode=-1.0", "negative-study-episode"),
+    cli("bench", "--section scale --scale-avs 0", "--scale-avs=0 must be >= 1", "zero-scale-avs"),
+    cli("bench", "--section scale --city-grid 1", "--city-grid=1 must be >= 2", "one-junction-city"),
+    cli("bench", "--section scale --city-penetration 1.5", "--city-penetration=1.5", "city-share-above-1"),
+    cli("bench", "--section soak --json", "--json prints sections", "json-of-soak"),
 ]
 # fmt: on
 CLI_CASES = SWEEP + EVALUATE + TRAIN + COMPARE + FLEET + BENCH + STUDY

@@ -1,0 +1,95 @@
+"""Section ``study`` of ``python -m mixed_traffic.bench``: the default study's wall time against
+its SUMO-only floor, measured in one run.
+
+The study is ``python -m mixed_traffic.sweep --penetration`` with its defaults (every policy,
+penetration and seed, the all-human reference and traffic cells, then the PDF report), run into
+a scratch folder. The floor runs the same cells (same scenario, penetration, density, seed and
+episode length, the same number of worker processes) with SUMO driving every vehicle, AVs
+included (policy ``idm``), and writes no report: what the study would cost if the AVs' whole
+pipeline (perception, observation, policy, control, metrics) were free.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from mixed_traffic.paths import scratch_dir
+
+
+@dataclass
+class StudyResult:
+    cells: int
+    """Episodes in each run (the study's cells and the traffic cells)."""
+    study_s: float
+    """Wall time of the study: its cells and its report [s]."""
+    report_s: float
+    """Of which the report (figures and PDF) [s]."""
+    floor_s: float
+    """Wall time of the same cells with SUMO driving every vehicle [s]."""
+
+    @property
+    def ratio(self) -> float:
+        """Study over floor [-] (target: at most 1.5)."""
+        return self.study_s / self.floor_s
+
+    def record(self) -> dict[str, float | int]:
+        return {"section": "study", "cells": self.cells, "study_s": round(self.study_s, 1),
+                "report_s": round(self.report_s, 1), "floor_s": round(self.floor_s, 1),
+                "ratio": round(self.ratio, 3)}  # fmt: skip
+
+
+def study_sweep(args: argparse.Namespace, out: Path):  # -> SweepConfig
+    """The default penetration study into ``out``; ``--study-seeds`` and ``--study-episode``
+    shrink it (for tests and quick looks)."""
+    from mixed_traffic.experiments.sweep import SweepConfig
+
+    cfg = SweepConfig(axis="penetration", out=out, workers=args.study_workers)
+    if args.study_seeds:
+        cfg = replace(cfg, seeds=tuple(range(args.study_seeds)))
+    if args.study_episode:
+        cfg = replace(cfg, episode_length=args.study_episode,
+                      warmup=min(cfg.warmup, args.study_episode / 2))  # fmt: skip
+    return cfg
+
+
+def floor_cells(sweep) -> list:
+    """Every cell the study runs (its traffic cells too), each with SUMO driving."""
+    from mixed_traffic.experiments.sweep import cells, fd_sweep
+
+    todo = cells(sweep) + (cells(fd_sweep(sweep)) if sweep.traffic else [])
+    return [replace(c, policy="idm") for c in todo]
+
+
+def run_study_and_floor(sweep, progress: bool = True) -> StudyResult:
+    """Time the study (cells, then report), then its floor, in this order in one process."""
+    from analysis.report import build_report
+    from mixed_traffic.experiments.sweep import run_cells, run_sweep
+
+    n = len(floor_cells(sweep))
+    t0 = time.perf_counter()
+    run_sweep(sweep, progress)
+    t1 = time.perf_counter()
+    build_report(sweep.results, sweep.report_pdf)
+    t2 = time.perf_counter()
+    floor = replace(sweep, out=sweep.results.parent / "floor", policies=("idm",), traffic=False,
+                    report=False, checkpoint=None)  # fmt: skip
+    run_cells(floor_cells(sweep), floor, progress)
+    t3 = time.perf_counter()
+    return StudyResult(cells=n, study_s=t2 - t0, report_s=t2 - t1, floor_s=t3 - t2)
+
+
+def section_study(args: argparse.Namespace) -> list[StudyResult]:
+    """The study and its floor in a scratch folder (removed afterwards)."""
+    out = Path(scratch_dir())
+    try:
+        result = run_study_and_floor(study_sweep(args, out / "study"), progress=True)
+    finally:
+        shutil.rmtree(out, ignore_errors=True)
+    print(f"study: {result.cells} cells x 2; study {result.study_s:.0f} s (report "
+          f"{result.report_s:.0f} s), SUMO-only floor {result.floor_s:.0f} s, ratio "
+          f"{result.ratio:.2f} (target <= 1.5)", flush=True)  # fmt: skip
+    return [result]

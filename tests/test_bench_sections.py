@@ -1,0 +1,36 @@
+"""The study and scale sections of ``python -m mixed_traffic.bench`` (issue 45): what they run
+and the JSON rows they print. Timings are never asserted."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from collections import Counter
+
+from mixed_traffic.experiments import bench
+from mixed_traffic.experiments.bench_study import floor_cells, study_sweep
+from mixed_traffic.experiments.sweep import cells, fd_sweep
+
+
+def test_the_study_floor_runs_every_study_cell_with_sumo_driving(tmp_path) -> None:
+    args = argparse.Namespace(study_workers=2, study_seeds=2, study_episode=40.0)
+    sweep = study_sweep(args, tmp_path)
+    assert sweep.seeds == (0, 1) and sweep.episode_length == 40.0 and sweep.warmup == 20.0
+    study = cells(sweep) + cells(fd_sweep(sweep))
+    floor = floor_cells(sweep)
+    assert {c.policy for c in floor} == {"idm"} and len(floor) == len(study) > 0
+    drop = lambda c: (c.scenario, c.density, c.penetration, c.seed)  # noqa: E731
+    assert Counter(map(drop, floor)) == Counter(map(drop, study))  # repeats kept: same work
+    assert any(c.penetration == 1.0 for c in floor)  # AVs present, driven by SUMO
+
+
+def test_the_scale_section_prints_its_row(capsys) -> None:
+    argv = ["--section", "scale", "--json", "--scale-avs", "20", "40", "--scale-steps", "3",
+            "--city-grid", "3", "--city-episode", "1"]  # fmt: skip
+    assert bench.main(argv) == 0
+    row = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert row["section"] == "scale" and row["city_completed"] is True
+    assert row["city_vehicles"] > 10 and row["city_sumo_s"] > 0
+    assert abs(row["ladder"][0]["avs"] - 20) <= 4  # placement rounds per lane
+    assert all(r["realtime_factor"] > 0 for r in row["ladder"])
+    assert row["max_avs_realtime"] in [0] + [r["avs"] for r in row["ladder"]]
