@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from mixed_traffic.world.hdmap import CAR, NetFileError, read_net
+from mixed_traffic.world.od_pairs import reach_sets, spread_pairs
 from mixed_traffic.world.scenario import OwnVehicle, Route, Scenario
 
 #: Fringe origin/destination pairs kept for a bare network (enough for route choice, few routes).
@@ -142,15 +143,12 @@ def _car_successors(edge, car_edges: dict[str, int], vclass: str) -> set[str]:
 def _from_net(path: Path) -> Scenario:
     net = _Net(path)
     entries, exits = net.fringe()
-    reach = {o: net.reachable(o) for o in entries}
-    pairs = [(o, d) for o in entries for d in exits if d in reach[o] and d != o]
-    if not pairs:  # a road of single edges: each is its own trip (SUMO accepts from == to)
-        pairs = [(o, o) for o in entries if o in exits]
-    if not pairs:
+    reach = reach_sets(net.succ, entries, net.reachable)
+    # spread over the pairs so every entry appears (deterministic, no seed needed); a road of
+    # single edges: each is its own trip (SUMO accepts from == to)
+    chosen = spread_pairs(entries, exits, reach, MAX_OD_PAIRS)
+    if not chosen:
         raise ValueError(f"network file {path}: no exit edge is reachable from any entry edge")
-    # spread the kept pairs over the list so every entry appears (deterministic, no seed needed)
-    idx = np.unique(np.linspace(0, len(pairs) - 1, min(MAX_OD_PAIRS, len(pairs))).round())
-    chosen = [pairs[int(i)] for i in idx]
     routes = tuple(Route(origin=o, destination=d) for o, d in chosen)
     dests = {d for _, d in chosen}
     # vehicles are placed only where every destination can still be reached
