@@ -441,8 +441,9 @@ def test_fused_varying_batch_sizes() -> None:
 
 
 def test_bench_env_json_prints_one_object_per_policy_and_penetration(capsys) -> None:
-    """``bench --section env --json``: one JSON line per (env policy, penetration) with the
-    keys issue 25 names, a positive ratio measured against the physical limit."""
+    """``bench --section env --json``: one JSON line per (env policy, penetration) on straight,
+    then the one-AV ring, with the keys issues 25 and 45 name, a positive ratio measured
+    against the physical limit."""
     import json
 
     from mixed_traffic.experiments.bench import main
@@ -452,7 +453,10 @@ def test_bench_env_json_prints_one_object_per_policy_and_penetration(capsys) -> 
     assert main(argv) == 0
     lines = capsys.readouterr().out.strip().splitlines()
     recs = [json.loads(x) for x in lines]
-    assert [(r["env_policy"], r["penetration"]) for r in recs] == [("keep", 0.2), ("keep", 1.0)]
+    rows = [(r["scenario"], r["env_policy"], r["penetration"]) for r in recs]
+    assert rows == [("straight", "keep", 0.2), ("straight", "keep", 1.0),
+                    ("ring", "keep", pytest.approx(1 / 22))]  # fmt: skip
+    assert recs[-1]["agents"] == 1.0 and recs[-1]["vehicles"] == 22.0
     for r in recs:
         assert {"ratio", "agent_steps_per_s", "ms_per_step"} <= set(r)
         assert r["ratio"] > 0 and r["ms_per_step"] > 0 and r["agent_steps_per_s"] > 0
