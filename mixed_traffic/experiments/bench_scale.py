@@ -17,6 +17,7 @@ Both networks are generated with SUMO's own tools and cached by their parameters
 from __future__ import annotations
 
 import argparse
+import subprocess
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,6 +30,8 @@ from mixed_traffic.world.network import build_network
 AV_LADDER = (250, 500, 1000, 2000, 4000)
 CITY_BLOCK = 150.0
 """Block length of the city grid [m]."""
+CITY_LANES = 2
+"""Lanes of every city street (each direction)."""
 
 
 @dataclass
@@ -67,16 +70,15 @@ def long_road(length_km: float, lanes: int) -> Path:
 
 
 def city_grid(n: int) -> Path:
-    """An ``n`` x ``n`` grid of 2-lane 50 km/h streets with traffic lights (netgenerate, cached)."""
-    import subprocess
-
+    """An ``n`` x ``n`` grid of ``CITY_LANES``-lane 50 km/h streets with traffic lights
+    (netgenerate, cached)."""
     out = cache_dir("bench-scale") / f"grid-{n}x{n}.net.xml"
     if out.exists():
         return out
     tmp = out.with_suffix(".tmp.xml")
     cmd = [binary("netgenerate"), "--grid", f"--grid.number={n}", f"--grid.length={CITY_BLOCK}",
-           "--default.lanenumber=2", "--default.speed=13.89", "--tls.guess", "--no-turnarounds",
-           "--no-warnings", "--output-file", str(tmp)]  # fmt: skip
+           f"--default.lanenumber={CITY_LANES}", "--default.speed=13.89", "--tls.guess",
+           "--no-turnarounds", "--no-warnings", "--output-file", str(tmp)]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True)
     if proc.returncode != 0 or not tmp.exists():
         raise ValueError(f"netgenerate failed: {proc.stderr.strip() or proc.stdout.strip()}")
@@ -85,27 +87,18 @@ def city_grid(n: int) -> Path:
 
 
 def _env_and_policy(config: EnvConfig, policy: str):
-    from agents.policies import make_policy
+    """The env of ``config`` and the runner's batched policy (None: SUMO drives the AVs)."""
     from mixed_traffic.env.parallel import MixedTrafficEnv
+    from mixed_traffic.experiments.runner import SUMO_DRIVEN, batch_policy
 
-    env = MixedTrafficEnv(config=config, sumo_drives_avs=policy == "idm")
-    agent = None
-    if policy != "idm":
-        agent = make_policy(policy, seed=config.seed, z=config.sensors.history,
-                            m=config.sensors.waypoints, dt=config.step_length,
-                            family=env.scenario.family)  # fmt: skip
-    return env, agent
+    env = MixedTrafficEnv(config=config, sumo_drives_avs=policy in SUMO_DRIVEN)
+    return env, batch_policy(policy, config, None, env.scenario.family)
 
 
 def _step(env, agent) -> None:
-    from agents.policies import to_actions
+    from mixed_traffic.experiments.runner import decide
 
-    agents = list(env.agents)
-    actions = {}
-    if agents and agent is not None:
-        decision, params = agent.act(env.observation_batch(agents), agents)
-        actions = to_actions(agents, decision, params)
-    env.step(actions)
+    env.step(decide(env, agent)[0])
 
 
 def realtime_factor(avs: int, args: argparse.Namespace) -> dict:
@@ -114,7 +107,7 @@ def realtime_factor(avs: int, args: argparse.Namespace) -> dict:
     warm, timed = 50, args.scale_steps
     cfg = EnvConfig(scenario=str(long_road(km, args.scale_lanes)), penetration=1.0,
                     density=args.scale_density * args.scale_lanes, seed=0,
-                    episode_length=(warm + timed + 1) * 0.1)  # fmt: skip
+                    episode_length=(warm + timed + 1) * EnvConfig.step_length)  # fmt: skip
     env, agent = _env_and_policy(cfg, "auto")
     try:
         env.reset(seed=0, options={"allow_no_agents": True})
@@ -137,7 +130,7 @@ def realtime_factor(avs: int, args: argparse.Namespace) -> dict:
 def city_episode(args: argparse.Namespace, policy: str) -> tuple[int, bool, float]:
     """(distinct vehicles, ran to the end, wall time [s]) of one city episode."""
     cfg = EnvConfig(scenario=str(city_grid(args.city_grid)), penetration=args.city_penetration,
-                    density=args.city_density * 2, seed=0, episode_length=args.city_episode)  # fmt: skip
+                    density=args.city_density * CITY_LANES, seed=0, episode_length=args.city_episode)  # fmt: skip
     t0 = time.perf_counter()
     env, agent = _env_and_policy(cfg, policy)
     vehicles = 0

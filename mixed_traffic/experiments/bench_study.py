@@ -69,7 +69,7 @@ def run_study_and_floor(sweep, progress: bool = True) -> StudyResult:
     from analysis.report import build_report
     from mixed_traffic.experiments.sweep import run_cells, run_sweep
 
-    n = len(floor_cells(sweep))
+    todo = floor_cells(sweep)
     t0 = time.perf_counter()
     run_sweep(sweep, progress)
     t1 = time.perf_counter()
@@ -77,9 +77,9 @@ def run_study_and_floor(sweep, progress: bool = True) -> StudyResult:
     t2 = time.perf_counter()
     floor = replace(sweep, out=sweep.results.parent / "floor", policies=("idm",), traffic=False,
                     report=False, checkpoint=None)  # fmt: skip
-    run_cells(floor_cells(sweep), floor, progress)
+    run_cells(todo, floor, progress)
     t3 = time.perf_counter()
-    return StudyResult(cells=n, study_s=t2 - t0, report_s=t2 - t1, floor_s=t3 - t2)
+    return StudyResult(cells=len(todo), study_s=t2 - t0, report_s=t2 - t1, floor_s=t3 - t2)
 
 
 def section_study(args: argparse.Namespace) -> list[StudyResult]:

@@ -104,7 +104,7 @@ def run_episode(
     config, meta = env.config, record_meta(env.config)  # the scenario's defaults filled in
     frames = _Gif(gif)
     try:
-        agent = _make_policy(policy, config, checkpoint, env.scenario.family)
+        agent = batch_policy(policy, config, checkpoint, env.scenario.family)
         infer_s, decisions = _drive(env, agent, frames, progress)
         metrics: dict[str, Any] = dict.fromkeys(METRICS)
         metrics.update(env.episode_metrics())
@@ -147,8 +147,8 @@ def cell_of(config: EnvConfig, policy: str) -> dict[str, Any]:
     return {"policy": policy, **cell, "detection_range": config.sensors.range_factor}
 
 
-def _make_policy(name: str, config: EnvConfig, checkpoint: str | Path | None, family: str) -> Any:
-    """The batched policy, or None when SUMO drives the AVs."""
+def batch_policy(name: str, config: EnvConfig, checkpoint: str | Path | None, family: str) -> Any:
+    """The batched policy for an episode of ``config``, or None when SUMO drives the AVs."""
     if parse_policy(name).base in SUMO_DRIVEN:
         return None
     from agents.policies import make_policy  # torch only for learned policies
@@ -157,25 +157,32 @@ def _make_policy(name: str, config: EnvConfig, checkpoint: str | Path | None, fa
                        m=config.sensors.waypoints, dt=config.step_length, family=family)  # fmt: skip
 
 
-def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tuple[float, int]:
-    """Step ``env`` to its time limit under ``agent``; (inference time [s], decisions)."""
+def decide(env: MixedTrafficEnv, agent: Any) -> tuple[dict[str, Any], float]:
+    """``agent``'s actions for ``env``'s live agents (one batched call), and its inference
+    time [s]; none when no agent is live."""
     from agents.policies import to_actions
 
+    agents = list(env.agents)
+    if not agents:
+        return {}, 0.0
+    batch = env.observation_batch(agents)
+    t = time.perf_counter()
+    decision, params = agent.act(batch, agents)
+    seconds = time.perf_counter() - t
+    return to_actions(agents, decision, params), seconds
+
+
+def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tuple[float, int]:
+    """Step ``env`` to its time limit under ``agent``; (inference time [s], decisions)."""
     config = env.config
     infer, decisions = 0.0, 0
     obs, _ = env.reset(seed=config.seed, options={"allow_no_agents": True})  # all-human draws count
     frames.add(env)
     steps = range(config.steps_per_episode)
     for _ in tqdm(steps, desc="steps", leave=False, disable=not progress):
-        agents = list(env.agents)
-        actions: dict[str, Any] = {}
-        if agents:
-            batch = env.observation_batch(agents)
-            t = time.perf_counter()
-            decision, params = agent.act(batch, agents)
-            infer += time.perf_counter() - t
-            decisions += len(agents)
-            actions = to_actions(agents, decision, params)
+        actions, seconds = decide(env, agent)
+        infer += seconds
+        decisions += len(actions)
         obs, *_ = env.step(actions)
         frames.add(env)
         if env.sim_time >= config.episode_length - 1e-9:

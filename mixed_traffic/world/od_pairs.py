@@ -13,6 +13,8 @@ from itertools import islice
 
 import numpy as np
 
+from mixed_traffic.world.routing import predecessors
+
 
 def components(succ: dict[str, set[str]]) -> dict[str, int]:
     """Strongly connected component of each edge of ``succ`` (Kosaraju, iterative)."""
@@ -33,10 +35,7 @@ def components(succ: dict[str, set[str]]) -> dict[str, int]:
             else:
                 stack.pop()
                 order.append(v)
-    pred: dict[str, list[str]] = {}
-    for v, ws in succ.items():
-        for w in ws:
-            pred.setdefault(w, []).append(v)
+    pred = predecessors(succ)
     comp: dict[str, int] = {}
     for start in reversed(order):
         if start in comp:

@@ -8,11 +8,14 @@ path then follows, from the lane, the successor that keeps the least time to go.
 from __future__ import annotations
 
 import heapq
+from collections.abc import Iterable, Mapping
+from typing import TypeVar
 
 import numpy as np
 
 from mixed_traffic.world.hdmap import UTURN_PENALTY, HDMap
 
+T = TypeVar("T")
 TIE = 1e-9
 """Paths whose times differ by less than this share are equally fast [-] (sums of the same
 edge times in another order differ in the last bits)."""
@@ -69,9 +72,14 @@ def time_to(hd: HDMap, destination: int) -> np.ndarray:
 def _predecessors(hd: HDMap) -> dict[int, list[int]]:
     """Edge row -> edge rows that reach it through one junction (cached on ``hd``)."""
     if "_predecessors" not in hd.__dict__:
-        out: dict[int, list[int]] = {}
-        for e, succ in hd.edge_successors.items():
-            for n in succ:
-                out.setdefault(n, []).append(e)
-        hd.__dict__["_predecessors"] = out
+        hd.__dict__["_predecessors"] = predecessors(hd.edge_successors)
     return hd.__dict__["_predecessors"]
+
+
+def predecessors(succ: Mapping[T, Iterable[T]]) -> dict[T, list[T]]:
+    """The graph ``succ`` (node -> successors) turned around: node -> its predecessors."""
+    out: dict[T, list[T]] = {}
+    for e, nxt in succ.items():
+        for n in nxt:
+            out.setdefault(n, []).append(e)
+    return out

@@ -10,12 +10,14 @@ from __future__ import annotations
 import gzip
 import xml.etree.ElementTree as ET
 from collections import Counter, deque
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 
 import numpy as np
 
 from mixed_traffic.world.hdmap import CAR, NetFileError, read_net
 from mixed_traffic.world.od_pairs import reach_sets, spread_pairs
+from mixed_traffic.world.routing import predecessors
 from mixed_traffic.world.scenario import OwnVehicle, Route, Scenario
 
 #: Fringe origin/destination pairs kept for a bare network (enough for route choice, few routes).
@@ -91,7 +93,7 @@ class _Net:
             e.getID(): _car_successors(e, self.lanes, vclass) for e in edges
         }
 
-    def reachable(self, start: str, graph: dict[str, set[str]] | None = None) -> set[str]:
+    def reachable(self, start: str, graph: Mapping[str, Iterable[str]] | None = None) -> set[str]:
         """Edges reachable from ``start`` (itself included); over ``graph``'s links if given."""
         graph = self.succ if graph is None else graph
         seen, todo = {start}, deque([start])
@@ -105,10 +107,7 @@ class _Net:
     def reaching(self, ends: set[str]) -> set[str]:
         """Edges from which every edge of ``ends`` is reachable: one backward search per end
         (not a forward one per edge, which a city's thousands of edges made minutes)."""
-        pred: dict[str, set[str]] = {}
-        for e, succ in self.succ.items():
-            for n in succ:
-                pred.setdefault(n, set()).add(e)
+        pred = predecessors(self.succ)
         out = set(self.lanes)
         for end in ends:
             out &= self.reachable(end, pred)
