@@ -82,15 +82,18 @@ def plot_scores(rows: Sequence[dict[str, Any]], out: Path) -> Path:
 
 
 def plot_training(curves: dict[str, pd.DataFrame], out: Path) -> Path | None:
-    """Each PPO run's held-out speed std and mean speed (ratios to all human) over training
-    hours; ``None`` without runs."""
+    """Each PPO run's validation speed std and mean speed (ratios to all human, the legs that
+    were validated; runs from before validation are left out) over training hours; ``None``
+    without such runs."""
+    curves = {k: df.dropna(subset=["val_std_ratio"]) for k, df in curves.items()
+              if "val_std_ratio" in df}  # fmt: skip
     if not curves:
         return None
     fig, axes = new_figure(11, 3.8, ncols=2)
     for name, df in curves.items():
         hours = df["train_seconds"] / 3600
-        axes[0].plot(hours, df["eval_std_ratio"], marker=".", label=name)
-        axes[1].plot(hours, df["eval_speed_ratio"], marker=".", label=name)
+        axes[0].plot(hours, df["val_std_ratio"], marker=".", label=name)
+        axes[1].plot(hours, df["val_speed_ratio"], marker=".", label=name)
     axes[0].axhline(0.5, color="black", lw=0.8, ls="--", label="half the all-human std")
     axes[0].set_ylabel("speed std / all-human std [-]")
     axes[1].axhline(1.0, color="black", lw=0.6, ls=":")

@@ -13,7 +13,7 @@ from agents.longitudinal import LongitudinalConfig, LongitudinalInterface
 from agents.rules.acc_lc import FOLLOW, AccLcPolicy
 from agents.rules.obs_batch import stack_obs
 from analysis import benchmark_report
-from mixed_traffic.benchmark import parallel_env, task_config
+from mixed_traffic.benchmark import parallel_env, selection, task_config
 from mixed_traffic.benchmark.interface import LongitudinalWrapper
 
 pytest.importorskip("stable_baselines3")
@@ -107,13 +107,17 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     from mixed_traffic.experiments.runner import run_episode
 
     small = dict(steps=128, leg=64, n_steps=64, batch_size=32, n_epochs=2, episode_length=15.0,
-                 out=tmp_path / "run")  # fmt: skip
+                 val_seeds=1, out=tmp_path / "run")  # fmt: skip
     train(PpoConfig(**small), progress=False)
     meta = train(PpoConfig(**{**small, "steps": 192}), progress=False)  # resumes
     rows = read_curves(tmp_path / "run")
     assert [r["timesteps"] for r in rows] == [64, 128, 192] and meta["timesteps"] == 192
     assert rows[-1]["train_seconds"] > rows[0]["train_seconds"] > 0
-    assert all(np.isfinite(r["eval_std_ratio"]) and r["eval_std_ratio"] > 0 for r in rows)
+    assert all(np.isfinite(r["val_std_ratio"]) and r["val_std_ratio"] > 0 for r in rows)
+    best = json.loads((tmp_path / "run" / "best.json").read_text())  # the best leg is kept
+    ranked = min(rows, key=selection.rank)
+    assert best["leg"] == ranked["leg"] and best["val_std_ratio"] == ranked["val_std_ratio"]
+    assert (tmp_path / "run" / "best.zip").stat().st_size > 0
     interface = json.loads((tmp_path / "run" / "model.json").read_text())["interface"]
     assert interface["hold"] == 5 and interface["reaction"] == 1.0  # the ring task's failsafe
     assert interface["base"] == "idm"
@@ -194,3 +198,31 @@ def test_the_shipped_ring_policy_loads_with_its_lineage() -> None:
     assert policy.interface.cap_factor == pytest.approx(0.95), "the tuned ring rule's cap"
     meta = json.loads(PPO_RING.with_suffix(".json").read_text())
     assert {"revision", "sumo", "library", "train_seconds", "config"} <= set(meta)
+
+
+def test_selection_keeps_the_best_validated_leg(tmp_path) -> None:
+    """Safe legs that keep the humans' speed rank first, then the lowest std; a leg without
+    validation numbers (an older run's) never counts; only a better leg replaces best.zip."""
+    row = lambda leg, std, speed=1.1, col=0: {
+        "leg": leg,
+        "val_std_ratio": std,  # noqa: E731
+        "val_speed_ratio": speed,
+        "val_collisions": col,
+    }
+    old = {"leg": 1, "val_std_ratio": float("nan")}
+    rows = [old]
+    for leg, (zip_text, r, kept) in enumerate(
+        [(b"a", row(2, 0.6), True), (b"b", row(3, 0.3, speed=0.9), False),
+         (b"c", row(4, 0.2, col=1), False), (b"d", row(5, 0.5), True), (b"e", row(6, 0.5), False)],
+        start=2,
+    ):  # fmt: skip
+        (tmp_path / "model.zip").write_bytes(zip_text)
+        rows.append(r)
+        assert selection.keep_best(tmp_path, r, rows, {"timesteps": leg}) is kept, leg
+    assert (tmp_path / "best.zip").read_bytes() == b"d"
+    assert json.loads((tmp_path / "best.json").read_text())["leg"] == 5
+    assert sorted(rows[1:], key=selection.rank)[-1]["leg"] == 4  # a collision ranks last
+    assert selection.validation_configs("ring-v2", 1000, 2)[1].seed == 1001
+    lengths = [c.ring_length for c in selection.validation_configs("ring-v2", 7, 1)]
+    evals = [task_config("ring-v2", "eval", i).ring_length for i in (0, 1)]
+    assert lengths == [(215.0,), (275.0,)] and not set(lengths) & set(evals)

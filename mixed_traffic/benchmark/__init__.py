@@ -22,13 +22,14 @@ __all__ = ["TASKS", "Task", "get_task", "parallel_env", "task_config"]
 
 
 def task_config(task: str, split: str = "train", index: int = 0, **overrides: Any) -> EnvConfig:
-    """The ``EnvConfig`` of ``task``'s ``split`` ("train" or "eval", the eval's ``index``-th
-    config), with ``overrides`` (EnvConfig fields) applied. ``ValueError`` on a bad name,
+    """The ``EnvConfig`` of ``task``'s ``split`` ("train", "eval" or "validate"; the split's
+    ``index``-th config), with ``overrides`` (EnvConfig fields) applied. ``ValueError`` on a bad name,
     split or index."""
     t = get_task(task)
-    if split not in ("train", "eval"):
-        raise ValueError(f"split={split!r}: give 'train' or 'eval'")
-    configs = (t.train,) if split == "train" else t.eval
+    splits = {"train": (t.train,), "eval": t.eval, "validate": t.validate or (t.train,)}
+    if split not in splits:
+        raise ValueError(f"split={split!r}: give one of {list(splits)}")
+    configs = splits[split]
     if not 0 <= index < len(configs):
         raise ValueError(f"index={index}: task {t.name} has {len(configs)} {split} config(s)")
     return replace(configs[index], **overrides)

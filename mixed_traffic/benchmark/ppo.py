@@ -2,7 +2,7 @@
 
     pip install -e ".[ppo]"
     python -m mixed_traffic.benchmark.ppo --task ring-v2 --seed 0 --steps 400000
-    python -m mixed_traffic.evaluate --policy ppo --checkpoint agents/checkpoints/ppo/ring-v2-s0/model.zip
+    python -m mixed_traffic.evaluate --policy ppo --checkpoint agents/checkpoints/ppo/ring-v2-s0/best.zip
 
 One policy is shared by every AV (parameter sharing through SuperSuit's PettingZoo-to-vector-env
 conversion: each AV is one row of SB3's batch). The AVs act through the longitudinal interface
@@ -10,9 +10,11 @@ conversion: each AV is one row of SB3's batch). The AVs act through the longitud
 are rewarded with the task's reward. After every leg of ``leg`` decisions the weights and
 the optimiser go to ``out/model.zip`` (atomically; no rollout buffer is kept, PPO has no replay),
 the reward scaler's statistics to ``reward_norm.pkl``, its metadata to ``model.json``, and one
-row to ``curves.csv``: the leg's training returns and a greedy evaluation on the task's held-out configs through the one episode runner (fleet speed
-std and mean speed against all-human traffic on the same seed). A re-run continues from
-``model.zip`` (also after kill -9: at most one leg is lost) until ``steps`` decisions.
+row to ``curves.csv``: the leg's training returns and a greedy validation on the task's
+validation configs (never its eval configs) through the one episode runner: fleet speed std and
+mean speed against all-human traffic on the same episodes. The best leg so far is kept as
+``best.zip`` (:mod:`mixed_traffic.benchmark.selection`): the run's output. A re-run continues
+from ``model.zip`` (also after kill -9: at most one leg is lost) until ``steps`` decisions.
 """
 
 from __future__ import annotations
@@ -21,12 +23,10 @@ import argparse
 import csv
 import io
 import json
-import multiprocessing
 import pickle
 import sys
 import time
-from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -34,17 +34,16 @@ import numpy as np
 
 from agents.longitudinal import LongitudinalConfig
 from agents.ppo_policy import meta_path, read_meta
-from mixed_traffic.benchmark import get_task, task_config
+from mixed_traffic.benchmark import get_task, selection, task_config
 from mixed_traffic.benchmark.interface import LongitudinalWrapper
 from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
-from mixed_traffic.experiments.runner import run_episode
 from mixed_traffic.provenance import atomic_write, git_revision, sumo_version
 
 #: The reward scaler's running statistics, beside ``model.zip``.
 NORM_FILE = "reward_norm.pkl"
 CURVE_FIELDS = ("leg", "timesteps", "env_steps", "train_seconds", "episodes", "mean_return",
-                "eval_std_ratio", "eval_speed_ratio", "eval_collisions")  # fmt: skip
+                *selection.FIELDS)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -88,8 +87,10 @@ class PpoConfig:
     """Hidden layer widths of the actor and of the critic (tanh)."""
     episode_length: float = 0.0
     """Simulated time per training and evaluation episode [s]; 0 = the task's horizon."""
-    eval_seed: int = 1000
-    """Seed of the per-leg evaluation on each held-out config (the same every leg)."""
+    val_seed: int = 1000
+    """First seed of the per-leg validation (the same every leg; the eval uses 0, 1, 2 …)."""
+    val_seeds: int = 2
+    """Validation episodes per validation config (seeds ``val_seed`` onwards)."""
     out: Path = field(default=Path())
     """Folder of the run; default ``agents/checkpoints/ppo/<task>-s<seed>``."""
     init: Path = field(default=Path())
@@ -225,43 +226,20 @@ def _save(cfg: PpoConfig, model: Any, meta: dict[str, Any]) -> None:
     atomic_write(meta_path(cfg.out / "model.zip"), lambda f: f.write(text))
 
 
-def _eval_metrics(cfg: PpoConfig, policy: str, checkpoint: Path | None) -> list[dict]:
-    """Metrics of one episode per held-out config of the task (seed ``eval_seed``)."""
-    t = get_task(cfg.task)
-    configs = [replace(_config(cfg, "eval", i), seed=cfg.eval_seed) for i in range(len(t.eval))]
-    return [run_episode(c, policy, t.warmup, checkpoint=checkpoint)["metrics"] for c in configs]
+def _validate(cfg: PpoConfig, human: list[dict[str, float]]) -> dict[str, float]:
+    """The greedy policy of ``model.zip`` on the task's validation episodes against the
+    all-human ``human`` metrics (``selection.FIELDS``)."""
+    runs = selection.episode_metrics(_validation(cfg), "ppo", cfg.out / "model.zip", _warmup(cfg))
+    return selection.ratios(runs, human)
 
 
-def _in_child(*args: Any) -> list[dict]:
-    """:func:`_eval_metrics` in a fresh process: libsumo runs one simulation per process,
-    and the training env holds this one's."""
-    ctx = multiprocessing.get_context("spawn")
-    with ProcessPoolExecutor(max_workers=1, mp_context=ctx) as pool:
-        return pool.submit(_eval_metrics, *args).result()
+def _validation(cfg: PpoConfig) -> list[Any]:
+    extra = {"episode_length": cfg.episode_length} if cfg.episode_length else {}
+    return selection.validation_configs(cfg.task, cfg.val_seed, cfg.val_seeds, **extra)
 
 
-def _evaluate(cfg: PpoConfig, human: list[dict[str, float]]) -> dict[str, float]:
-    """Greedy policy on each held-out config (seed ``eval_seed``) against the all-human
-    ``human`` metrics: mean ratios of speed std and of mean speed, and collisions."""
-    std, speed, collisions = [], [], 0
-    runs = _in_child(cfg, "ppo", cfg.out / "model.zip")
-    for m, base in zip(runs, human):
-        std.append(m["speed_std"] / base["speed_std"])
-        speed.append(m["mean_speed"] / base["mean_speed"])
-        collisions += int(m.get("collisions") or 0)
-    return {"eval_std_ratio": float(np.mean(std)), "eval_speed_ratio": float(np.mean(speed)),
-            "eval_collisions": collisions}  # fmt: skip
-
-
-def _human(cfg: PpoConfig) -> list[dict[str, float]]:
-    """All-human metrics of each held-out config at ``eval_seed`` (cached in the run folder)."""
-    path = cfg.out / "human.json"
-    if path.is_file():
-        return json.loads(path.read_text())
-    out = _in_child(cfg, "idm", None)
-    text = json.dumps(out).encode()
-    atomic_write(path, lambda f: f.write(text))
-    return out
+def _warmup(cfg: PpoConfig) -> float:
+    return get_task(cfg.task).warmup
 
 
 def read_curves(folder: Path) -> list[dict[str, float]]:
@@ -274,14 +252,15 @@ def read_curves(folder: Path) -> list[dict[str, float]]:
 
 
 def _number(text: str) -> float:
-    value = float(text)
+    value = float(text) if text else float("nan")  # a column an older run did not fill
     return int(value) if value.is_integer() else value
 
 
 def _append_curve(cfg: PpoConfig, row: dict[str, float]) -> None:
     rows = [*read_curves(cfg.out), row]
     buf = io.StringIO()
-    writer = csv.DictWriter(buf, CURVE_FIELDS, lineterminator="\n")
+    writer = csv.DictWriter(buf, CURVE_FIELDS, restval="", extrasaction="ignore",
+                            lineterminator="\n")  # fmt: skip
     writer.writeheader()
     writer.writerows(rows)
     atomic_write(cfg.out / "curves.csv", lambda f: f.write(buf.getvalue().encode()))
@@ -291,7 +270,7 @@ def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
     """Run legs until ``cfg.steps`` decisions; the metadata of the last checkpoint."""
     cfg.out.mkdir(parents=True, exist_ok=True)
     venv = training_env(cfg)  # names a corrupt reward_norm.pkl before the baseline episodes
-    human = _human(cfg)
+    human = selection.human(cfg.out, _validation(cfg), _warmup(cfg))
     model = _model(cfg, venv)
     curves = read_curves(cfg.out)
     seconds = curves[-1]["train_seconds"] if curves else _init_seconds(cfg)
@@ -314,14 +293,15 @@ def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
                "env_steps": model.num_timesteps * interface.hold, "train_seconds": round(seconds, 1),
                "episodes": len(returns),
                "mean_return": float(np.mean(returns)) if returns else float("nan"),
-               **_evaluate(cfg, human)}  # fmt: skip
+               **_validate(cfg, human)}  # fmt: skip
         _append_curve(cfg, row)
         curves.append(row)
+        best = selection.keep_best(cfg.out, row, curves, meta)
         if progress:
             print(f"leg {row['leg']}: {row['timesteps']} decisions, {seconds / 60:.1f} min, "
-                  f"return {row['mean_return']:.2f}, eval std x{row['eval_std_ratio']:.2f} "
-                  f"speed x{row['eval_speed_ratio']:.2f}, collisions {row['eval_collisions']}",
-                  file=sys.stderr)  # fmt: skip
+                  f"return {row['mean_return']:.2f}, validation std x{row['val_std_ratio']:.2f} "
+                  f"speed x{row['val_speed_ratio']:.2f}, collisions {row['val_collisions']}"
+                  f"{' (best so far)' if best else ''}", file=sys.stderr)  # fmt: skip
     venv.close()
     return meta
 

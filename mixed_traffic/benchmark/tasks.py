@@ -2,7 +2,8 @@
 
 A task is what two papers must share to compare numbers on this env (as Flow's benchmarks fix
 ring, merge and bottleneck): the training config (scenario, AV share, horizon, reward, the
-observation tier), the warm-up before metrics count, the eval configs it is scored on, and the
+observation tier), the warm-up before metrics count, the eval configs it is scored on, the
+validation configs a learner may select its checkpoints on (never the eval configs), and the
 reference its score is normalised to (:mod:`mixed_traffic.benchmark.score`), and the settings
 of the learner interface (:mod:`agents.longitudinal`). Ids carry a
 version (``ring-v2``): a change to any of these makes a new version, never a silent edit.
@@ -68,6 +69,10 @@ class Task:
     metric: str = "mean_speed"
     """The record metric the score normalises (mean speed of all vehicles in the measurement
     segment [m/s])."""
+    validate: tuple[EnvConfig, ...] = ()
+    """Configs a learner selects its checkpoints on (other ring lengths than train's and eval's;
+    on the roads the training config, at seeds the eval does not use); () = the training
+    config."""
     learner: tuple[tuple[str, Any], ...] = ()
     """Settings of the learner interface (``agents.longitudinal.LongitudinalConfig`` fields)
     that the task fixes, as (name, value) pairs; the others keep their defaults."""
@@ -77,7 +82,7 @@ class Task:
             raise ValueError(f"task {self.name}: tier {self.tier!r} / reference "
                              f"{self.reference!r} not in {TIERS} / {REFERENCES}")  # fmt: skip
         if (self.tier == "v2x") != self.train.v2x or any(
-            c.v2x != self.train.v2x for c in self.eval
+            c.v2x != self.train.v2x for c in (*self.eval, *self.validate)
         ):
             raise ValueError(f"task {self.name}: tier {self.tier!r} and the configs' v2x disagree")
 
@@ -94,6 +99,10 @@ def _ring() -> tuple:
     return train, tuple(replace(train, ring_length=(x,)) for x in (210.0, 280.0))
 
 
+#: The ring's validation lengths [m]: outside the training range, as the eval's, but not them.
+RING_VALIDATION = (215.0, 275.0)
+
+
 def _tasks() -> dict[str, Task]:
     ring, ring_eval = _ring()
     wave, wave_eval = _road("wave-highway", "wave-highway-eval", 0.05, 420.0, v2x=True)
@@ -102,6 +111,7 @@ def _tasks() -> dict[str, Task]:
     tasks = (
         Task("ring-v2", "one AV among 22 vehicles on a ring of 220-270 m (eval 210 and 280 m): "
              "damp the stop-and-go waves", ring, ring_eval, 0.0, "paper", "uniform-flow",
+             validate=tuple(replace(ring, ring_length=(x,)) for x in RING_VALIDATION),
              learner=RING_LEARNER),
         Task("wave-highway-v1", "5 % AVs on one lane upstream of a slow zone, with the V2X "
              "feed: damp the waves it sends upstream", wave, wave_eval, 120.0, "v2x",
