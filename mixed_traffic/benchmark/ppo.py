@@ -138,7 +138,7 @@ def training_env(cfg: PpoConfig) -> Any:
     from agents.rules.tuned import cap_factor
 
     ring = _config(cfg).scenario == "ring"
-    env = MixedTrafficEnv(config=_config(cfg, fixed_fleet=not ring))
+    env = MixedTrafficEnv(config=_config(cfg, fixed_fleet=not ring), metrics=False)  # rewards only
     wrapped = LongitudinalWrapper(env, interface_config(cfg))
     wrapped.interface.cap_factor = cap_factor(env.scenario.family)  # as in evaluation
     venv = ss.pettingzoo_env_to_vec_env_v1(wrapped)

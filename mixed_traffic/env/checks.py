@@ -22,6 +22,21 @@ def check_reset_args(seed: Any, options: Any) -> None:
         raise ValueError(f"reset(options={options!r}): options must be a dict or None")
 
 
+def check_step(phase: str, actions: Any, episode_length: float) -> None:
+    """Name a ``step()`` call before ``reset()``, after ``close()`` or after the episode ended
+    (``phase``), or whose ``actions`` are not a dict."""
+    if phase == "new":
+        raise RuntimeError("step() before reset(): call reset() to start an episode first")
+    if phase == "closed":
+        raise RuntimeError("step() after close(): call reset() to start a new episode")
+    if phase == "ended":
+        raise RuntimeError(f"step() after the episode ended at episode_length="
+                           f"{episode_length} s: call reset()")  # fmt: skip
+    if not isinstance(actions, Mapping):
+        raise ValueError(f"step() takes a dict of actions, one per live agent (agent id -> "
+                         f"{{'decision', 'params'}}), got {type(actions).__name__}")  # fmt: skip
+
+
 def check_warmup(warmup: float, episode_length: float) -> None:
     """Raise ``ValueError`` unless 0 <= ``warmup`` < ``episode_length`` [s]."""
     if not 0 <= warmup < episode_length:

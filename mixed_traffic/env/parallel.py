@@ -44,6 +44,8 @@ Arguments: every field of ``EnvConfig`` as a keyword (``parallel_env(density=180
 whole ``config=EnvConfig(...)``; ``render_mode`` ``"rgb_array"`` (headless bird's-eye view) or
 ``"human"`` (sumo-gui, needs a display); ``warmup`` [s] before flow metrics count;
 ``trace=True`` keeps every vehicle's trajectory in the measurement segment (``trajectories()``);
+``metrics=False`` records no metrics (a training env: its observations, rewards and infos are
+the same, each step is cheaper, and ``episode_metrics()`` raises);
 ``sumo_drives_avs=True`` hands the AVs back to SUMO's own car-following and lane-change models
 (they are then no agents: the all-human reference of the studies drives this way).
 """
@@ -52,7 +54,7 @@ from __future__ import annotations
 
 import contextlib
 import shutil
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import replace
 from itertools import compress, repeat
 from pathlib import Path
@@ -64,6 +66,7 @@ from pettingzoo import ParallelEnv
 from pettingzoo.utils.conversions import parallel_to_aec
 
 from mixed_traffic.config import EnvConfig
+from mixed_traffic.env import checks
 from mixed_traffic.env.action import (
     action_space,
     allowed_decisions,
@@ -72,7 +75,6 @@ from mixed_traffic.env.action import (
 )
 from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
 from mixed_traffic.env.av_metrics import AVMetrics
-from mixed_traffic.env.checks import check_gui, check_reset_args, check_warmup, warn_coarse_step
 from mixed_traffic.env.control import BicycleController
 from mixed_traffic.env.flow_metrics import FlowRecorder
 from mixed_traffic.env.obs_batch import StepBatches
@@ -119,6 +121,7 @@ class MixedTrafficEnv(ParallelEnv):
         warmup: float = 0.0,
         sumo_drives_avs: bool = False,
         trace: bool = False,
+        metrics: bool = True,
         **kwargs: Any,
     ) -> None:
         if config is not None and kwargs:
@@ -131,15 +134,16 @@ class MixedTrafficEnv(ParallelEnv):
                 f"render_mode={render_mode!r} is not one of {self.metadata['render_modes']}"
             )
         if render_mode == "human":
-            check_gui()
+            checks.check_gui()
         self.render_mode = render_mode
-        check_warmup(warmup, cfg.episode_length)
+        checks.check_warmup(warmup, cfg.episode_length)
         self.warmup = warmup
         self.sumo_drives_avs = sumo_drives_avs
         self.trace = trace
+        self.metrics = metrics
         self._bundled = load_scenario(cfg.scenario)
         self.config = cfg = self._bundled.configure(cfg)
-        warn_coarse_step(cfg.step_length)
+        checks.warn_coarse_step(cfg.step_length)
         # ring_length: the episode's ring circumference [m] (None: no ring); the longest first
         self.scenario, self.ring_length = episode_ring(self._bundled, cfg.ring_length, None)
         self._desired = 0.0  # r8's reference speed [m/s] (a ring's uniform flow; 0 = limits)
@@ -200,7 +204,7 @@ class MixedTrafficEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ reset
     def reset(self, seed: int | None = None, options: dict | None = None):
-        check_reset_args(seed, options)
+        checks.check_reset_args(seed, options)
         if seed is None:
             seed = int(self._episode_rng.integers(2**31 - 1))
         if self._phase == "closed":  # reopened: a new scratch folder for the route file
@@ -283,7 +287,7 @@ class MixedTrafficEnv(ParallelEnv):
 
     def _step_once(self, actions: dict[str, Any]):
         """One simulation step: the agents act, SUMO moves, the PettingZoo dicts."""
-        self._check_step(actions)
+        checks.check_step(self._phase, actions, self.config.episode_length)
         decision, params = stack_actions(actions, self.agents, self._act_space)  # action
         decision = self._allowed(decision)
         steer, accel = to_physical(decision, params, self.config.vehicle)
@@ -311,23 +315,15 @@ class MixedTrafficEnv(ParallelEnv):
             for mine, theirs in zip((obs, rew, term, trunc, infos), self._step_once({})):
                 mine.update(theirs)
         if self._phase == "ended":
+            self._summarise(infos)
+        return obs, rew, term, trunc, infos
+
+    def _summarise(self, infos: dict[str, dict]) -> None:
+        """The episode's metrics into every info (``"episode"``), where the env records them."""
+        if self.metrics:
             summary = self.episode_metrics()
             for info in infos.values():
                 info["episode"] = summary
-        return obs, rew, term, trunc, infos
-
-    def _check_step(self, actions: Any) -> None:
-        """Name the misuse before anything moves."""
-        if self._phase == "new":
-            raise RuntimeError("step() before reset(): call reset() to start an episode first")
-        if self._phase == "closed":
-            raise RuntimeError("step() after close(): call reset() to start a new episode")
-        if self._phase == "ended":
-            raise RuntimeError(f"step() after the episode ended at episode_length="
-                               f"{self.config.episode_length} s: call reset()")  # fmt: skip
-        if not isinstance(actions, Mapping):
-            raise ValueError(f"step() takes a dict of actions, one per live agent (agent id -> "
-                             f"{{'decision', 'params'}}), got {type(actions).__name__}")  # fmt: skip
 
     def _allowed(self, decision: np.ndarray) -> np.ndarray:
         """Decisions the masks of the last observations forbid, replaced (``allowed_decisions``)
@@ -353,7 +349,8 @@ class MixedTrafficEnv(ParallelEnv):
         snap = self._backend.step()
         self._batches.clear()
         self._boundary.step(snap, self._backend)
-        self._flow.update(snap)
+        if self.metrics:
+            self._flow.update(snap)
         ids = self._perception.tls_ids
         self._tls = dict(zip(ids, self._backend.tls_states(ids)))
         return snap
@@ -410,6 +407,8 @@ class MixedTrafficEnv(ParallelEnv):
     def _record(self, snap, rows: Rows, truth: PerceptionFrame, rewards: dict[str, float],
                 changed: np.ndarray) -> None:  # fmt: skip
         """Per-AV metrics of this step (flow metrics are recorded in ``_advance``)."""
+        if not self.metrics:
+            return
         sample = av_step(snap, rows, truth, self._table, self._memory, rewards, changed)
         self._av.step(sample, snap.time, SpeedView(snap))
 
@@ -466,9 +465,7 @@ class MixedTrafficEnv(ParallelEnv):
         if truncate:
             self._phase = "ended"
             table.agents = []
-            summary = self.episode_metrics()
-            for info in infos.values():
-                info["episode"] = summary
+            self._summarise(infos)
         self._snap = snap
         return obs_out, rew_out, terminated, truncated, infos
 
@@ -553,6 +550,8 @@ class MixedTrafficEnv(ParallelEnv):
 
     def _recorder(self, what: str) -> FlowRecorder:
         """The episode's flow recorder; ``RuntimeError`` naming ``what`` before the first reset."""
+        if not self.metrics:
+            raise RuntimeError(f"{what}(): this env was made with metrics=False and records none")
         if self._flow is None:
             raise RuntimeError(f"{what}() before reset(): call reset() to start an episode first")
         return self._flow

@@ -61,10 +61,11 @@ class LaneGraph:
 
     def signal(self, lane: np.ndarray, edge: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(...) light index into ``tls_ids`` and link index of lane -> edge (-1, -1 if none)."""
+        if len(self.tls_keys) == 0:  # a network without signals: nothing to look up
+            shape = np.broadcast_shapes(np.shape(lane), np.shape(edge))
+            return np.full(shape, -1), np.full(shape, -1)
         found, i = self._find(self.tls_keys, lane, edge)
-        i = np.minimum(i, max(len(self.tls_keys) - 1, 0))
-        if len(self.tls_keys) == 0:
-            return np.full(found.shape, -1), np.full(found.shape, -1)
+        i = np.minimum(i, len(self.tls_keys) - 1)
         return np.where(found, self.tls_tl[i], -1), np.where(found, self.tls_link[i], -1)
 
     def _find(self, keys: np.ndarray, lane: np.ndarray, edge: np.ndarray):

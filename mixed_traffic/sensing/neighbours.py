@@ -9,6 +9,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from mixed_traffic import compiled
+from mixed_traffic.sensing import neighbours_kernel
 from mixed_traffic.sensing.blockers import PATH_GEOMETRY, path_blockers
 from mixed_traffic.sensing.lane_graph import CURRENT, LEFT, RIGHT, SEARCH_DEPTH, lane_graph
 from mixed_traffic.sensing.merges import merge_leaders
@@ -117,40 +119,81 @@ def find_neighbours(
     g = lane_graph(hdmap)
     rows = np.asarray(rows, dtype=np.int64)
     srt = _sort_by_lane(snap, hdmap.n_lanes, g.lane_offset_key)
-    # ---- query lanes (A, 3) and the agent's position projected onto them
+    lanes, pos = _query_lanes(snap, hdmap, rows)
+    has, lsafe = lanes >= 0, np.maximum(lanes, 0)
+    succ = _successors(hdmap, lsafe, next_edge, via)
+    prev = np.where(has, g.pred[lsafe], -1)
+    search = _compiled if compiled.enabled() else _reference
+    i, vehicle, distance, straddle = search(snap, hdmap, rows, lanes, pos, srt, succ, prev,
+                                            max_range)  # fmt: skip
+    on_path, geom = _in_the_way(snap, hdmap, rows, vehicle, distance, max_range, next_edge, via,
+                                straddle)  # fmt: skip
+    return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom)
+
+
+def _query_lanes(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:  # fmt: skip
+    """(A, 3) the agents' left, current and right lanes (-1 none), and (A, 3) their
+    positions projected onto them [m] (scaled by the lane lengths; 0 where none)."""
     lane_len = hdmap.lane_length
     ego_lane = snap.lane.astype(np.int64)[rows]
     cur = np.where(ego_lane >= 0, ego_lane, -1)
-    lanes = g.lane3[np.maximum(cur, 0)]  # (A, 3) left, current, right
+    lanes = lane_graph(hdmap).lane3[np.maximum(cur, 0)]  # (A, 3) left, current, right
     lanes[cur < 0] = -1
     has = lanes >= 0
-    lsafe = np.maximum(lanes, 0)
-    ratio = lane_len[lsafe] / np.maximum(lane_len[np.maximum(cur, 0)], 1e-9)[:, None]
-    pos = np.where(has, snap.lane_pos[rows][:, None] * ratio, 0.0)
+    ratio = lane_len[np.maximum(lanes, 0)] / np.maximum(lane_len[np.maximum(cur, 0)], 1e-9)[:, None]
+    return lanes, np.where(has, snap.lane_pos[rows][:, None] * ratio, 0.0)
+
+
+def _successors(hdmap: HDMap, lsafe: np.ndarray, next_edge: np.ndarray | None,
+                via: np.ndarray | None) -> np.ndarray:  # fmt: skip
+    """(A, 3) the lane each column continues into: towards ``next_edge`` where it connects
+    there, SUMO's choice ``via`` for the current lane, else the primary successor."""
+    succ = hdmap.lane_next[lsafe].astype(np.int64)
+    if next_edge is not None:
+        nxt = np.broadcast_to(np.asarray(next_edge)[:, None], lsafe.shape)
+        conn = lane_graph(hdmap).connection(lsafe, nxt)
+        succ = np.where(conn >= 0, conn, succ)
+    if via is not None:
+        succ[:, CURRENT] = np.where(via >= 0, via, succ[:, CURRENT])
+    return succ
+
+
+def _reference(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np.ndarray,
+               pos: np.ndarray, srt: _Sorted, succ: np.ndarray, prev: np.ndarray,
+               max_range: float) -> tuple:  # fmt: skip
+    """The numpy search (the kernel's reference): the sorted start indices ``i`` (A, 3),
+    ``vehicle`` and ``distance`` (A, 3, 2), and the straddler (``_straddlers``)."""
+    g, lane_len = lane_graph(hdmap), hdmap.lane_length
+    has, lsafe = lanes >= 0, np.maximum(lanes, 0)
+    cur = lanes[:, CURRENT]
     i, front, fdist, rear, rdist = _same_lane(srt, rows, cur, lsafe, has, pos, g.lane_offset_key)
     if len(srt.order):
         front, fdist = _nearer_beside(snap, hdmap, rows, lanes, srt, pos, front, fdist, i + (np.arange(3) == CURRENT), +1)  # fmt: skip
         rear, rdist = _nearer_beside(snap, hdmap, rows, lanes, srt, pos, rear, rdist, i - 1, -1)
-        succ = hdmap.lane_next[lsafe].astype(np.int64)
-        if next_edge is not None:
-            A = len(rows)
-            conn = g.connection(lsafe, np.broadcast_to(np.asarray(next_edge)[:, None], (A, 3)))
-            succ = np.where(conn >= 0, conn, succ)
-        if via is not None:
-            succ[:, CURRENT] = np.where(via >= 0, via, succ[:, CURRENT])
         offset = np.where(has, lane_len[lsafe] - pos, np.inf)  # distance to the lane end
         front, fdist = _ahead(srt, hdmap, rows, succ, offset, front, fdist, max_range)
         back = np.where(has, pos, np.inf)  # distance from the lane start
-        prev = np.where(has, g.pred[lsafe], -1)
         rear, rdist = _behind(srt, hdmap, g.pred, rows, prev, back, rear, rdist, max_range)
-    # ---- range
     f_in = (front >= 0) & (fdist <= max_range)
     r_in = (rear >= 0) & (-rdist <= max_range)
     vehicle = np.stack([np.where(f_in, front, -1), np.where(r_in, rear, -1)], axis=2)
     distance = np.stack([np.where(f_in, fdist, np.inf), np.where(r_in, rdist, -np.inf)], axis=2)
-    on_path, geom = _in_the_way(snap, hdmap, rows, lanes, i, pos, srt, vehicle, distance,
-                                max_range, next_edge, via)  # fmt: skip
-    return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom)
+    return i, vehicle, distance, _straddlers(snap, hdmap, rows, lanes, i, pos, srt, max_range)
+
+
+def _compiled(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np.ndarray,
+              pos: np.ndarray, srt: _Sorted, succ: np.ndarray, prev: np.ndarray,
+              max_range: float) -> tuple:  # fmt: skip
+    """:func:`_reference` as one compiled kernel (:mod:`.neighbours_kernel`)."""
+    g = lane_graph(hdmap)
+    i, vehicle, distance, best, gap, lat = neighbours_kernel.search(
+        rows, lanes, pos, srt.order, srt.key, srt.pos, srt.start, srt.rank, succ, prev,
+        hdmap.lane_length, hdmap.lane_next, g.pred, hdmap.lane_width, snap.lane, snap.lane_pos,
+        snap.lateral, snap.length, snap.width, snap.speed, g.lane_offset_key, max_range,
+        SEARCH_DEPTH, STRADDLE_DEPTH, STRADDLE_MARGIN,
+    )  # fmt: skip
+    return i, vehicle, distance, (best, gap, _straddle_geometry(snap, best, lat))
 
 
 def _same_lane(srt: _Sorted, rows: np.ndarray, cur: np.ndarray, lsafe: np.ndarray,
@@ -215,14 +258,13 @@ def _behind(srt: _Sorted, hdmap: HDMap, pred: np.ndarray, rows: np.ndarray, prev
     return rear, rdist
 
 
-def _in_the_way(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np.ndarray,
-                i: np.ndarray, pos: np.ndarray, srt: _Sorted, vehicle: np.ndarray,
+def _in_the_way(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, vehicle: np.ndarray,
                 distance: np.ndarray, max_range: float, next_edge: np.ndarray | None,
-                via: np.ndarray | None = None):  # fmt: skip
+                via: np.ndarray | None, straddle: tuple):  # fmt: skip
     """A vehicle in the way on another lane, nearer than the lane's leader: across the path
-    ahead (a junction lane), or straddling in from a neighbour lane. It replaces the current
-    lane's front vehicle in ``vehicle`` / ``distance`` (in place); returns ``on_path`` (A,)
-    and its ``PATH_GEOMETRY`` (A, 4)."""
+    ahead (a junction lane), or ``straddle``-ing in from a neighbour lane (``_straddlers``).
+    It replaces the current lane's front vehicle in ``vehicle`` / ``distance`` (in place);
+    returns ``on_path`` (A,) and its ``PATH_GEOMETRY`` (A, 4)."""
     A = len(rows)
     lead = vehicle[:, CURRENT, 0]
     lead_gap = distance[:, CURRENT, 0] - np.where(lead >= 0, snap.length[np.maximum(lead, 0)], 0.0)
@@ -230,7 +272,7 @@ def _in_the_way(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np
     for other, gap, other_geom in (
         path_blockers(snap, hdmap, rows, max_range, next_edge, lead_gap, via),
         merge_leaders(snap, hdmap, rows, max_range, next_edge, via, lead_gap),
-        _straddlers(snap, hdmap, rows, lanes, i, pos, srt, max_range),
+        straddle,
     ):
         take = (other >= 0) & (gap < lead_gap)
         vehicle[:, CURRENT, 0] = np.where(take, other, vehicle[:, CURRENT, 0])
@@ -309,6 +351,11 @@ def _straddlers(
                 best = np.where(better, v, best)
                 best_gap = np.where(better, gap, best_gap)
                 best_lat = np.where(better, y, best_lat)
+    return best, best_gap, _straddle_geometry(snap, best, best_lat)
+
+
+def _straddle_geometry(snap: TrafficSnapshot, best: np.ndarray, lat: np.ndarray) -> np.ndarray:
+    """(A, 4) ``PATH_GEOMETRY`` of the straddlers ``best`` (A,) at offsets ``lat`` (A,) [m]."""
     v = np.maximum(best, 0)
-    geom = np.stack([snap.speed[v], snap.length[v], snap.width[v], best_lat], axis=1)
-    return best, best_gap, np.where((best >= 0)[:, None], geom, 0.0)
+    geom = np.stack([snap.speed[v], snap.length[v], snap.width[v], lat], axis=1)
+    return np.where((best >= 0)[:, None], geom, 0.0)

@@ -337,6 +337,8 @@ class ObservationBuilder:
         its route hop ``via`` (A, 3) leads into, towards ``after`` (A,); / preview_range where
         within it, 0 elsewhere (so a signal behind a short edge is known in time)."""
         hd, rng = self.hdmap, self.config.sensors.preview_range
+        if len(self.graph.tls_ids) == 0:  # a network without signals
+            return np.zeros(lanes.shape, np.float32)
         tl, _ = lane_signals(self.graph, lanes, np.asarray(next_edge, np.int64))
         dist = hd.lane_length[np.maximum(lanes, 0)] - pos
         exit_lane, exit_dist = exit_table(hd)

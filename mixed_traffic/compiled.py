@@ -1,0 +1,34 @@
+"""Compiled kernels: numba's ``njit`` with its on-disk cache, so a machine compiles each kernel
+once (later processes, sweep cells and workers load it from ``__pycache__``).
+
+A stage that has a kernel keeps its numpy version as the reference (tests check the two
+equal on real SUMO states). The numpy stages run instead when numba is not installed or
+``MIXED_TRAFFIC_KERNELS=numpy`` is set.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from typing import Any
+
+try:
+    import numba
+except ImportError:  # the numpy reference stages run
+    numba = None
+
+#: The environment variable that selects the numpy stages (``numpy``) over the kernels.
+SWITCH = "MIXED_TRAFFIC_KERNELS"
+
+
+def enabled() -> bool:
+    """True when the compiled kernels run (numba present, not switched off)."""
+    return numba is not None and os.environ.get(SWITCH, "numba") != "numpy"
+
+
+def njit(fn: Callable[..., Any]) -> Callable[..., Any]:
+    """``fn`` compiled on first call and cached on disk (no fastmath: results equal numpy's
+    bit for bit); ``fn`` itself without numba."""
+    if numba is None:
+        return fn
+    return numba.njit(cache=True, nogil=True)(fn)

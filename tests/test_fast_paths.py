@@ -1,0 +1,103 @@
+"""Fast paths against their references on real SUMO states: compiled kernels
+(``mixed_traffic.compiled``) against the numpy stages, and a training env without metrics
+(``metrics=False``) against one that records them."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mixed_traffic import compiled
+from mixed_traffic.env import parallel_env
+from mixed_traffic.experiments.bench_env import bench_actions
+from mixed_traffic.sensing import neighbours, perception
+
+needs_numba = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
+
+
+def _equal(a: neighbours.Neighbours, b: neighbours.Neighbours) -> None:
+    for name in ("lane", "vehicle", "distance", "on_path", "path_geometry"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and np.array_equal(x, y), name
+
+
+@needs_numba
+@pytest.mark.parametrize(
+    ("scenario", "penetration", "steps"),
+    [("ring", 1 / 22, 80), ("straight", 0.5, 80), ("merge", 0.3, 80), ("urban", 0.3, 120)],
+)
+def test_neighbour_kernel_equals_numpy(monkeypatch, scenario: str, penetration: float,
+                                       steps: int) -> None:  # fmt: skip
+    """Every agent's neighbours, with random lane changes and steering (vehicles side by side,
+    straddling, junctions, successor and predecessor lanes), bit for bit."""
+    calls = []
+
+    def both(*args, **kw):
+        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        ref = neighbours.find_neighbours(*args, **kw)
+        monkeypatch.setenv(compiled.SWITCH, "numba")
+        out = neighbours.find_neighbours(*args, **kw)
+        _equal(out, ref)
+        calls.append(len(out.lane))
+        return out
+
+    monkeypatch.setattr(perception, "find_neighbours", both)
+    env = parallel_env(scenario=scenario, penetration=penetration, seed=3, episode_length=60.0)
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=3)
+    for _ in range(steps):
+        if not env.agents:
+            break
+        obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng))
+    env.close()
+    assert sum(calls) > steps, "the search ran for the agents"
+
+
+@needs_numba
+def test_kernels_switch_off() -> None:
+    """``MIXED_TRAFFIC_KERNELS=numpy`` selects the reference stages."""
+    import os
+
+    saved = os.environ.get(compiled.SWITCH)
+    try:
+        os.environ[compiled.SWITCH] = "numpy"
+        assert not compiled.enabled()
+        os.environ[compiled.SWITCH] = "numba"
+        assert compiled.enabled()
+    finally:
+        if saved is None:
+            os.environ.pop(compiled.SWITCH, None)
+        else:
+            os.environ[compiled.SWITCH] = saved
+
+
+def _episode(metrics: bool, **kw) -> tuple[list, parallel_env]:
+    """Every step's (observations, rewards, terminations, truncations, infos) of one episode
+    with random actions, and the closed env."""
+    env = parallel_env(**kw, metrics=metrics)
+    rng, steps = np.random.default_rng(1), []
+    obs, _ = env.reset(seed=kw["seed"])
+    while env.agents:
+        out = env.step(bench_actions(env, obs, env.action_space(None), rng))
+        obs = out[0]
+        steps.append(out)
+    env.close()
+    return steps, env
+
+
+@pytest.mark.parametrize(("scenario", "penetration"), [("ring", 1 / 22), ("straight", 0.5)])
+def test_env_without_metrics_steps_the_same(scenario: str, penetration: float) -> None:
+    """``metrics=False`` changes no observation, reward or info (but ``"episode"``), to the
+    episode's end; its ``episode_metrics()`` names why it has none."""
+    kw = dict(scenario=scenario, penetration=penetration, seed=5, episode_length=12.0)
+    ref, _ = _episode(True, **kw)
+    fast, env = _episode(False, **kw)
+    assert len(ref) == len(fast) >= 100
+    for (obs, *dicts, infos), (obs2, *dicts2, infos2) in zip(ref, fast):
+        assert dicts == dicts2 and list(obs) == list(obs2)
+        for a in obs:
+            assert all(np.array_equal(obs[a][k], obs2[a][k]) for k in obs[a])
+            assert {k: v for k, v in infos[a].items() if k != "episode"} == infos2[a]
+    assert "episode" in next(iter(ref[-1][-1].values()))
+    with pytest.raises(RuntimeError, match="metrics=False"):
+        env.episode_metrics()
