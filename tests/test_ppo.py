@@ -203,12 +203,10 @@ def test_the_shipped_ring_policy_loads_with_its_lineage() -> None:
 def test_selection_keeps_the_best_validated_leg(tmp_path) -> None:
     """Safe legs that keep the humans' speed rank first, then the lowest std; a leg without
     validation numbers (an older run's) never counts; only a better leg replaces best.zip."""
-    row = lambda leg, std, speed=1.1, col=0: {
-        "leg": leg,
-        "val_std_ratio": std,  # noqa: E731
-        "val_speed_ratio": speed,
-        "val_collisions": col,
-    }
+
+    def row(leg: int, std: float, speed: float = 1.1, col: int = 0) -> dict:
+        return {"leg": leg, "val_std_ratio": std, "val_speed_ratio": speed, "val_collisions": col}
+
     old = {"leg": 1, "val_std_ratio": float("nan")}
     rows = [old]
     for leg, (zip_text, r, kept) in enumerate(
