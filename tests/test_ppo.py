@@ -178,6 +178,10 @@ def test_bad_ppo_checkpoints_and_configs_are_named(tmp_path) -> None:
         main(["--steps", "0", "--out", str(tmp_path / "x")])
     with pytest.raises(SystemExit):
         main(["--explore-hold", "-1", "--out", str(tmp_path / "x")])
+    with pytest.raises(ValueError, match="--val-seeds=0"):
+        PpoConfig(val_seeds=0)
+    with pytest.raises(ValueError, match="--val-seed"):
+        PpoConfig(val_seed=-1)
     with pytest.raises(SystemExit):
         main(["--init", str(bad.with_suffix(".zip.x")), "--out", str(tmp_path / "x")])
     assert not (tmp_path / "x").exists(), "nothing is written for a bad config"

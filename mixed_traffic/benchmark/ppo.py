@@ -102,14 +102,19 @@ class PpoConfig:
         if not self.out.parts:
             default = Path("agents/checkpoints/ppo") / f"{self.task}-s{self.seed}"
             object.__setattr__(self, "out", default)
-        for name in ("steps", "leg", "n_steps", "batch_size", "n_epochs"):
+        for name in ("steps", "leg", "n_steps", "batch_size", "n_epochs", "val_seeds"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')}={getattr(self, name)} must be >= 1")
         if self.episode_length < 0 or self.explore_hold < 0:
             raise ValueError(f"--episode-length={self.episode_length} and --explore-hold="
                              f"{self.explore_hold} must be >= 0")  # fmt: skip
-        if self.seed < 0 or not 0 < self.gamma <= 1 or not 0 < self.learning_rate < 1:
-            raise ValueError("--seed must be >= 0, --gamma in (0, 1], --learning-rate in (0, 1)")
+        if (
+            min(self.seed, self.val_seed) < 0
+            or not 0 < self.gamma <= 1
+            or not 0 < self.learning_rate < 1
+        ):
+            raise ValueError("--seed and --val-seed must be >= 0, --gamma in (0, 1], "
+                             "--learning-rate in (0, 1)")  # fmt: skip
         if self.init.parts:
             read_meta(self.init)  # ValueError naming a --init that is not a PPO run's model.zip
         if not self.hidden or min(self.hidden) < 1:
