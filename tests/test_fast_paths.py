@@ -54,6 +54,20 @@ def test_neighbour_kernel_equals_numpy(monkeypatch, scenario: str, penetration: 
 
 
 @needs_numba
+def test_warm_loads_the_kernel_the_env_calls() -> None:
+    """``warm()`` (the sweep's fork server calls it) loads the specialisation a real step uses,
+    so forked cells add none."""
+    from mixed_traffic.sensing import neighbours_kernel
+
+    neighbours_kernel.warm()
+    env = parallel_env(scenario="ring", penetration=1 / 22, seed=0, episode_length=2.0)
+    obs, _ = env.reset(seed=0)
+    env.step(bench_actions(env, obs, env.action_space(None), np.random.default_rng(0), "keep"))
+    env.close()
+    assert len(neighbours_kernel.search.signatures) == 1
+
+
+@needs_numba
 def test_kernels_switch_off() -> None:
     """``MIXED_TRAFFIC_KERNELS=numpy`` selects the reference stages."""
     import os

@@ -381,8 +381,9 @@ def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar
 
 
 def _cell_context(learned: bool) -> mp.context.BaseContext:
-    """Fork cells from a server that has imported the runner (and torch with the learned
-    policies) once: a fresh interpreter per cell paid 1-4 s of imports. The server itself
+    """Fork cells from a server that has imported the runner and loaded the compiled kernels
+    (and torch with the learned policies) once: a fresh interpreter per cell paid 1-4 s of
+    imports, and each cell about 0.5 s for the kernels' first call. The server itself
     starts no simulation and no torch thread, so each cell is still a clean process; the
     backend loads libsumo in the cell, when its simulation starts. Spawn where the platform
     has no forkserver."""
@@ -390,7 +391,7 @@ def _cell_context(learned: bool) -> mp.context.BaseContext:
         return mp.get_context("spawn")
     ctx = mp.get_context("forkserver")
     torch = ["agents.policies", "agents.checkpoint"] if learned else []
-    ctx.set_forkserver_preload(["mixed_traffic.experiments.runner", *torch])
+    ctx.set_forkserver_preload(["mixed_traffic.experiments.preload", *torch])
     return ctx
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mixed_traffic.compiled import njit
+from mixed_traffic.compiled import inline, njit
 
 _LEFT, _CURRENT, _RIGHT = 0, 1, 2
 _SIDES = ((_LEFT, 1.0), (_RIGHT, -1.0))
@@ -76,7 +76,7 @@ def search(
     return i, vehicle, distance, best, best_gap, best_lat
 
 
-@njit
+@inline
 def _same_lane(a, i, lanes, pos, order, s_pos, start):
     """(front, fdist, rear, rdist) (3,) of agent ``a`` on each lane column."""
     n = len(order)
@@ -96,7 +96,7 @@ def _same_lane(a, i, lanes, pos, order, s_pos, start):
     return front, fdist, rear, rdist
 
 
-@njit
+@inline
 def _nearer(a, rows, lanes, pos, order, s_pos, start, i, step, veh, dist, lane_pos, lateral,
             length, lane_width):  # fmt: skip
     """Of two vehicles side by side on a neighbour lane, the laterally nearer (in place)."""
@@ -117,7 +117,7 @@ def _nearer(a, rows, lanes, pos, order, s_pos, start, i, step, veh, dist, lane_p
             veh[c], dist[c] = w, s_pos[j] - pos[a, c]
 
 
-@njit
+@inline
 def _ahead(row, succ, off, front, fdist, order, s_pos, start, lane_length, lane_next, max_range,
            depth):  # fmt: skip
     """The first vehicle on the successor lanes, when the lane has no front vehicle."""
@@ -134,7 +134,7 @@ def _ahead(row, succ, off, front, fdist, order, s_pos, start, lane_length, lane_
     return front, fdist
 
 
-@njit
+@inline
 def _behind(row, prev, back, rear, rdist, order, s_pos, start, lane_length, pred, max_range,
             depth):  # fmt: skip
     """The last vehicle on the predecessor lanes, when the lane has no rear vehicle."""
@@ -149,7 +149,7 @@ def _behind(row, prev, back, rear, rdist, order, s_pos, start, lane_length, pred
     return rear, rdist
 
 
-@njit
+@inline
 def _straddler(a, rows, lanes, i, pos, order, s_pos, start, lane_width, lateral, length, width,
                max_range, depth, margin):  # fmt: skip
     """The nearest vehicle ahead on a neighbour lane overlapping the ego laterally: its row
@@ -173,3 +173,15 @@ def _straddler(a, rows, lanes, i, pos, order, s_pos, start, lane_width, lateral,
                     and abs(y - lateral[ego]) < half and gap < best_gap):  # fmt: skip
                 best, best_gap, best_lat = v, gap, y
     return best, best_gap, best_lat
+
+
+def warm() -> None:
+    """Load :func:`search` (from the disk cache, else compile it) for the dtypes
+    ``neighbours.find_neighbours`` passes, on an empty network: a process that forks workers
+    calls this once, and they inherit the kernel (a first call costs about 0.5 s)."""
+    i64, i32 = np.int64, np.int32
+    one, lanes = np.zeros(1), np.full((1, 3), -1, i64)
+    search(np.zeros(1, i64), lanes, np.zeros((1, 3)), np.zeros(0, i64), np.zeros(0), np.zeros(0),
+           np.zeros(2, i64), np.zeros(1, i64), lanes, lanes, one, np.zeros(1, i32),
+           np.zeros(1, i64), one, np.zeros(1, i32), one, one, one, one, one, 1.0, 1.0, 3, 3,
+           0.2)  # fmt: skip
