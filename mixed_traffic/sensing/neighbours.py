@@ -189,9 +189,9 @@ def _compiled(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, lanes: np.n
     g = lane_graph(hdmap)
     i, vehicle, distance, best, gap, lat = neighbours_kernel.search(
         rows, lanes, pos, srt.order, srt.key, srt.pos, srt.start, srt.rank, succ, prev,
-        hdmap.lane_length, hdmap.lane_next, g.pred, hdmap.lane_width, snap.lane, snap.lane_pos,
-        snap.lateral, snap.length, snap.width, snap.speed, g.lane_offset_key, max_range,
-        SEARCH_DEPTH, STRADDLE_DEPTH, STRADDLE_MARGIN,
+        hdmap.lane_length, hdmap.lane_next, g.pred, hdmap.lane_width, snap.lane_pos,
+        snap.lateral, snap.length, snap.width, g.lane_offset_key, max_range, SEARCH_DEPTH,
+        STRADDLE_DEPTH, STRADDLE_MARGIN,
     )  # fmt: skip
     return i, vehicle, distance, (best, gap, _straddle_geometry(snap, best, lat))
 

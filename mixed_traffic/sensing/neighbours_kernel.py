@@ -19,8 +19,8 @@ _SIDES = ((_LEFT, 1.0), (_RIGHT, -1.0))
 @njit
 def search(
     rows, lanes, pos, order, key, s_pos, start, rank, succ, prev, lane_length, lane_next, pred,
-    lane_width, lane, lane_pos, lateral, length, width, speed, offset_key, max_range,
-    search_depth, straddle_depth, straddle_margin,
+    lane_width, lane_pos, lateral, length, width, offset_key, max_range, search_depth,
+    straddle_depth, straddle_margin,
 ):  # fmt: skip
     """Front/rear vehicles of every agent's (left, current, right) lanes, and straddlers.
 
@@ -183,5 +183,4 @@ def warm() -> None:
     one, lanes = np.zeros(1), np.full((1, 3), -1, i64)
     search(np.zeros(1, i64), lanes, np.zeros((1, 3)), np.zeros(0, i64), np.zeros(0), np.zeros(0),
            np.zeros(2, i64), np.zeros(1, i64), lanes, lanes, one, np.zeros(1, i32),
-           np.zeros(1, i64), one, np.zeros(1, i32), one, one, one, one, one, 1.0, 1.0, 3, 3,
-           0.2)  # fmt: skip
+           np.zeros(1, i64), one, one, one, one, one, 1.0, 1.0, 3, 3, 0.2)  # fmt: skip
