@@ -26,7 +26,7 @@ def task_config(task: str, split: str = "train", index: int = 0, **overrides: An
     ``index``-th config), with ``overrides`` (EnvConfig fields) applied. ``ValueError`` on a bad name,
     split or index."""
     t = get_task(task)
-    splits = {"train": (t.train,), "eval": t.eval, "validate": t.validate or (t.train,)}
+    splits = {"train": (t.train,), "eval": t.eval, "validate": t.validation}
     if split not in splits:
         raise ValueError(f"split={split!r}: give one of {list(splits)}")
     configs = splits[split]

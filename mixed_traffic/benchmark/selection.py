@@ -34,21 +34,22 @@ FIELDS = ("val_std_ratio", "val_speed_ratio", "val_collisions")
 #: All-human metrics of the validation episodes, beside ``model.zip``.
 HUMAN_FILE = "validation_human.json"
 BEST, BEST_META = "best.zip", "best.json"
-_KEYS = ("speed_std", "mean_speed", "collisions")
 
 
 def validation_configs(task: str, seed: int, seeds: int, **overrides: Any) -> list[EnvConfig]:
     """Every validation config of ``task`` at seeds ``seed .. seed + seeds - 1``."""
-    n = len(get_task(task).validate) or 1
+    n = len(get_task(task).validation)
     return [replace(task_config(task, "validate", i, **overrides), seed=seed + k)
             for i in range(n) for k in range(seeds)]  # fmt: skip
 
 
 def _metrics(configs: list[EnvConfig], policy: str, checkpoint: Path | None,
              warmup: float) -> list[dict[str, float]]:  # fmt: skip
-    """Speed std, mean speed and collisions of one episode per config."""
+    """Speed std, mean speed and collisions of one episode per config (a missing speed metric
+    raises rather than read as a perfect 0)."""
     runs = [run_episode(c, policy, warmup, checkpoint=checkpoint)["metrics"] for c in configs]
-    return [{k: float(m.get(k) or 0.0) for k in _KEYS} for m in runs]
+    return [{"speed_std": float(m["speed_std"]), "mean_speed": float(m["mean_speed"]),
+             "collisions": float(m.get("collisions") or 0)} for m in runs]  # fmt: skip
 
 
 def episode_metrics(configs: list[EnvConfig], policy: str, checkpoint: Path | None,

@@ -77,6 +77,11 @@ class Task:
     """Settings of the learner interface (``agents.longitudinal.LongitudinalConfig`` fields)
     that the task fixes, as (name, value) pairs; the others keep their defaults."""
 
+    @property
+    def validation(self) -> tuple[EnvConfig, ...]:
+        """The configs checkpoints are selected on: ``validate``, else the training config."""
+        return self.validate or (self.train,)
+
     def __post_init__(self) -> None:
         if self.tier not in TIERS or self.reference not in REFERENCES:
             raise ValueError(f"task {self.name}: tier {self.tier!r} / reference "
