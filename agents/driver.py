@@ -37,7 +37,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from agents.learning.rbpdqn import LearnerConfig, Policy
+from agents.learners.rbpdqn import LearnerConfig, Policy
 from agents.nets.networks import FOLLOW, LEAD_SPREAD
 from agents.rules.acc_lc import AccLcPlan, AccLcPolicy
 from agents.rules.acc_lc_config import LANE_C

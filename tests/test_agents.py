@@ -11,8 +11,8 @@ import torch
 
 from agents.bench_inference import random_obs
 from agents.checkpoint import load_checkpoint, load_policy, save_checkpoint
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy, obs_to_torch
-from agents.learning.replay import ReplayBuffer
+from agents.learners.rbpdqn import RBPDQN, LearnerConfig, Policy, obs_to_torch
+from agents.learners.replay import ReplayBuffer
 from agents.nets.fused import FusedActorCritic
 from agents.nets.lca import LCA, LCAConfig
 from agents.nets.networks import FOLLOW, Actor, Critic, masked_q, select

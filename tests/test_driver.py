@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from agents.driver import Driver, held_accel, lane_switched, steps_per_decision, track_leader
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy
+from agents.learners.rbpdqn import RBPDQN, LearnerConfig, Policy
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import LEAD_SPREAD
 from agents.policies import stack_obs, to_actions
@@ -120,7 +120,7 @@ def test_a_closed_gate_is_the_same_policy_and_is_not_trained(tmp_path) -> None:
 
     from agents.bench_inference import random_obs
     from agents.checkpoint import load_checkpoint, save_checkpoint, with_hold_gate
-    from agents.learning.fleet_search import get_theta, set_theta
+    from agents.training.fleet_search import get_theta, set_theta
 
     lca = LCAConfig(z=5, m=10)
     learner = RBPDQN(lca, LearnerConfig(residual=True))
@@ -175,7 +175,7 @@ def test_an_eager_residual_speeds_without_the_governor_and_not_with_it(tmp_path)
     import dataclasses
 
     from agents.checkpoint import save_checkpoint
-    from agents.learning.fleet_search import get_theta, set_theta
+    from agents.training.fleet_search import get_theta, set_theta
     from mixed_traffic.config import EnvConfig
     from mixed_traffic.experiments.runner import run_episode
 
@@ -201,8 +201,8 @@ def test_an_eager_residual_speeds_without_the_governor_and_not_with_it(tmp_path)
 def open_gate(tmp_path_factory) -> Path:
     """The shipped AUTO with its hold gate forced open (bias only: it holds in every state)."""
     from agents.checkpoint import load_checkpoint, save_checkpoint, with_hold_gate
-    from agents.learning.fleet_search import get_theta, set_theta
     from agents.policies import SHIPPED_CHECKPOINT
+    from agents.training.fleet_search import get_theta, set_theta
 
     learner, meta = load_checkpoint(SHIPPED_CHECKPOINT)
     gated = with_hold_gate(learner)

@@ -1,4 +1,4 @@
-"""Multi-worker training (agents.learning.trainer, agents.collection.workers, mixed_traffic.experiments.train) on real SUMO.
+"""Multi-worker training (agents.training.trainer, agents.collection.workers, mixed_traffic.experiments.train) on real SUMO.
 
 Tiny budgets: a few thousand transitions of 2 s episodes on one straight scenario.
 """
@@ -16,9 +16,9 @@ import torch
 
 from agents.checkpoint import load_checkpoint
 from agents.collection.workers import RolloutWorker
-from agents.learning.config import TrainConfig, feasible_densities
-from agents.learning.trainer import Trainer
 from agents.rules.acc_lc import AccLcPolicy
+from agents.training.config import TrainConfig
+from agents.training.trainer import Trainer
 from mixed_traffic.experiments.train import main
 from mixed_traffic.world.registry import load_scenario
 
@@ -190,10 +190,10 @@ def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None
 
 def test_each_scenario_samples_the_densities_it_can_hold() -> None:
     ring = load_scenario("ring-220m")
-    assert feasible_densities(ring, (60.0, 180.0, 0.0)) == (60.0, None)
-    assert feasible_densities(load_scenario("straight-3lane"), (60.0, 180.0)) == (60.0, 180.0)
+    assert ring.feasible_densities((60.0, 180.0, 0.0)) == (60.0, None)
+    assert load_scenario("straight-3lane").feasible_densities((60.0, 180.0)) == (60.0, 180.0)
     with pytest.raises(ValueError, match="ring-220m"):
-        feasible_densities(ring, (180.0,))
+        ring.feasible_densities((180.0,))
 
 
 def test_worker_crash_is_recovered(tmp_path: Path) -> None:

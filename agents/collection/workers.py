@@ -1,7 +1,7 @@
 """Rollout workers (paper §IV-F, Algorithm 1: worker with a LocalBuffer) and their transports.
 
 A :class:`RolloutWorker` owns one env (libsumo allows one simulation per process), a local
-copy of the actor/critic wrapped in a single-threaded :class:`agents.learning.rbpdqn.Policy`, and a
+copy of the actor/critic wrapped in a single-threaded :class:`agents.learners.rbpdqn.Policy`, and a
 :class:`LocalBuffer`. :meth:`RolloutWorker.collect` drives the env until at least ``n``
 transitions are buffered and returns them as one :data:`Chunk` (the LocalBuffer flush). The
 episode in progress carries over between calls.
@@ -11,7 +11,7 @@ seed from ``np.random.default_rng([seed, worker_id, run, incarnation, episode])`
 generator drives exploration, so a worker's trajectory is a pure function of those numbers and
 the weights it is given.
 
-Transports (the learner side lives in :mod:`agents.learning.trainer`):
+Transports (the learner side lives in :mod:`agents.training.trainer`):
 
 - in-process: the learner calls ``collect`` directly (``--workers 1``: deterministic);
 - :func:`process_main`: a spawned process sends chunks through its own pipe and reads weights
@@ -35,8 +35,7 @@ from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
 from agents.collection.intervals import Intervals, Rows
 from agents.driver import Driver
-from agents.learning.config import feasible_densities
-from agents.learning.rbpdqn import LearnerConfig, Policy, build_nets
+from agents.learners.rbpdqn import LearnerConfig, Policy, build_nets
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
 from agents.policies import OBS_KEYS, make_policy, stack_obs, to_actions
@@ -51,7 +50,7 @@ Chunk = dict[str, Any]
 ``obs``/``next_obs`` dicts of float32 (n, ...) arrays, ``decision`` (n,) int64, ``params``
 (n, 3, 2) float32 (the network output u the agent held), ``reward``, ``done`` and ``discount``
 (n,) float32, the expert labels ``labelled`` (n,) float32, ``label_decision`` (n,) int64 and
-``label_params`` (n, 3, 2) float32 (see :class:`agents.learning.replay.ReplayBuffer`); plus
+``label_params`` (n, 3, 2) float32 (see :class:`agents.learners.replay.ReplayBuffer`); plus
 ``worker_id``, ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo``
 (decisions in the chunk taken by the demonstrator), ``sim_steps`` (simulation steps taken),
 ``trips``/``terminals``/``collisions`` (AV trips that ended in the chunk: arrived or terminal;
@@ -186,7 +185,7 @@ class RolloutWorker:
         torch.set_num_threads(1)
         self.spec = spec
         # each scenario's feasible densities, once (an episode samples among them)
-        self._densities = {n: feasible_densities(load_scenario(n), spec.densities)
+        self._densities = {n: load_scenario(n).feasible_densities(spec.densities)
                            for n in set(spec.scenarios)}  # fmt: skip
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)  # overwritten by the first set_weights

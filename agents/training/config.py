@@ -1,20 +1,17 @@
 """Training run settings (:class:`TrainConfig`) and the env / encoder configs derived from them.
 
 ``python -m mixed_traffic.train`` builds its options from the fields of :class:`TrainConfig` (their
-docstrings carry the units); :class:`agents.learning.trainer.Trainer` runs one.
+docstrings carry the units); :class:`agents.training.trainer.Trainer` runs one.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import Any, NoReturn
 
 from agents.nets.lca import LCAConfig
 from mixed_traffic.config import WEATHERS, EnvConfig
-
-if TYPE_CHECKING:
-    from mixed_traffic.world.scenario import Scenario
 
 BACKENDS = ("process", "ray")
 RESIDUAL_BC_ACCEL = 0.05
@@ -69,7 +66,7 @@ class TrainConfig:
     expert_labels: bool = True
     """Label every transition the learning policy drives with the demonstrator's action for
     the same observation; behaviour cloning and the DQfD margin then target it (DAgger-style
-    deviation from the paper, see agents.learning.rbpdqn; off = BC on the taken action)."""
+    deviation from the paper, see agents.learners.rbpdqn; off = BC on the taken action)."""
     residual: bool = True
     """Train the residual form (``LearnerConfig.residual``): the actor learns a bounded
     correction to ACC-LC, starting from zero; False = the paper's form (the actor outputs the
@@ -149,7 +146,7 @@ class TrainConfig:
     """Paper §V-A method instead of RBP-DQN: transfuser (imitation of the demonstrator over
     raster and point tokens; needs --no-residual) | drl-mf (BP-DQN over a map-less raster and
     point cloud, no impact term; needs --no-residual) | head (BP-DQN, decisions and accel only,
-    ACC-LC's lane keeping steers) | p-ddpg | q-pamdp (``agents.learning.variants``)."""
+    ACC-LC's lane keeping steers) | p-ddpg | q-pamdp (``agents.learners.variants``)."""
     local_buffer: int = 256
     """B_l: transitions a worker buffers before flushing them to the learner [transitions]."""
     replay_capacity: int = 200_000
@@ -317,17 +314,6 @@ class TrainConfig:
         names = {f.name for f in fields(cls)}
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items()
                       if k in names})  # fmt: skip
-
-
-def feasible_densities(
-    scenario: Scenario, densities: tuple[float, ...]
-) -> tuple[float | None, ...]:
-    """The ``densities`` [veh/km] ``scenario`` can hold (up to its jam density), 0 as None
-    (its default); ValueError naming the scenario when none fits."""
-    out = tuple(d or None for d in densities if d <= scenario.max_density)
-    if not out:
-        raise ValueError(f"no density of {list(densities)} veh/km fits scenario {scenario.name!r}")
-    return out
 
 
 def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:

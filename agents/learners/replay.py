@@ -97,7 +97,7 @@ class ReplayBuffer:
         self.size = min(self.size + n, self.capacity)
 
     def sample(self, batch: int, rng: np.random.Generator) -> dict:
-        """Uniform sample with replacement → batch dict of torch tensors (see agents.learning.rbpdqn)."""
+        """Uniform sample with replacement → batch dict of torch tensors (see agents.learners.rbpdqn)."""
         if self.size == 0:
             raise ValueError("cannot sample from an empty replay buffer")
         idx = rng.integers(0, self.size, size=batch)

@@ -1,6 +1,6 @@
 """RBP-DQN learner (paper §IV-F eq. train_actor / train_critic) and the batched inference policy.
 
-Batch layout (what :meth:`agents.learning.replay.ReplayBuffer.sample` returns), B = batch size:
+Batch layout (what :meth:`agents.learners.replay.ReplayBuffer.sample` returns), B = batch size:
 
 - ``obs``, ``next_obs``: dicts of float tensors (B, ...) per DESIGN §6 (``next_obs`` includes
   ``action_mask`` (B, 3), used to mask the TD target);
@@ -107,7 +107,7 @@ class LearnerConfig:
     """MP-DQN critic (``agents.nets.networks.Critic``): each decision's Q sees only its own
     parameters (False = the paper's P-DQN critic)."""
     algorithm: str = "rbp-dqn"
-    """Learning rule (``agents.learning.variants``): rbp-dqn (this class; BP-DQN with
+    """Learning rule (``agents.learners.variants``): rbp-dqn (this class; BP-DQN with
     ``regularize=False``) | p-ddpg | q-pamdp | imitation."""
     steer_control: bool = True
     """Residual form: the policy corrects the steering (False = HEAD: discrete lane decisions
