@@ -33,6 +33,11 @@ SUMO_DRIVEN = ("idm",)
 """Policies under which SUMO drives the AVs (no agent acts)."""
 
 
+def sumo_drives(policy: str) -> bool:
+    """Whether SUMO drives the AVs under ``policy`` (a name or spec such as ``idm``)."""
+    return parse_policy(policy).base in SUMO_DRIVEN
+
+
 def validate(config: EnvConfig, warmup: float, policy: str | None = None) -> EnvConfig:
     """Everything an episode needs checked before any work starts: the policy name, the
     scenario, the density against its jam density and the warm-up. Raises ``ValueError``.
@@ -96,10 +101,9 @@ def run_episode(
         SumoError: SUMO failed to start.
     """
     policy = check_policy(policy)
-    base = parse_policy(policy).base
     t0 = time.perf_counter()
     # the env validates the config against its scenario before anything else is done
-    env = MixedTrafficEnv(config=config, warmup=warmup, sumo_drives_avs=base in SUMO_DRIVEN,
+    env = MixedTrafficEnv(config=config, warmup=warmup, sumo_drives_avs=sumo_drives(policy),
                           render_mode="rgb_array" if gif else None, trace=trace is not None)  # fmt: skip
     config, meta = env.config, record_meta(env.config)  # the scenario's defaults filled in
     frames = _Gif(gif)
@@ -149,7 +153,7 @@ def cell_of(config: EnvConfig, policy: str) -> dict[str, Any]:
 
 def batch_policy(name: str, config: EnvConfig, checkpoint: str | Path | None, family: str) -> Any:
     """The batched policy for an episode of ``config``, or None when SUMO drives the AVs."""
-    if parse_policy(name).base in SUMO_DRIVEN:
+    if sumo_drives(name):
         return None
     from agents.policies import make_policy  # torch only for learned policies
 
