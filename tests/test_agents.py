@@ -13,6 +13,7 @@ from agents.bench_inference import random_obs
 from agents.checkpoint import load_checkpoint, load_policy, save_checkpoint
 from agents.learners.rbpdqn import RBPDQN, LearnerConfig, Policy, obs_to_torch
 from agents.learners.replay import ReplayBuffer
+from agents.learners.variants import make_learner
 from agents.nets.fused import FusedActorCritic
 from agents.nets.lca import LCA, LCAConfig
 from agents.nets.networks import FOLLOW, Actor, Critic, masked_q, select
@@ -257,6 +258,38 @@ def test_td_target_uses_each_rows_discount() -> None:
     y = learner.td_target(batch)
     gamma = torch.tensor([0.95, 0.99, 0.9, 0.5])
     torch.testing.assert_close(y, batch["reward"] + gamma * best)
+
+
+def test_twin_critics_take_the_smaller_target_at_the_first_critics_best_decision(tmp_path) -> None:
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg, LearnerConfig(twin=True))
+    single = RBPDQN(cfg)  # the same seed: the first pair is the one-critic learner's
+    assert all(torch.equal(a, b) for a, b in zip(learner.critic.parameters(),
+                                                 single.critic.parameters()))  # fmt: skip
+    batch = _batch(16, cfg)
+    batch["done"][:] = 0.0
+    nxt = batch["next_obs"]
+    with torch.no_grad():
+        u = learner.actor_targ(nxt)
+        q1 = masked_q(learner.critic_targ(nxt, u), nxt["action_mask"])
+        best, arg = q1.max(dim=1)
+        q2 = learner.critic2_targ(nxt, u).gather(1, arg[:, None])[:, 0]
+    assert not torch.equal(q2, best)  # the twin is its own draw
+    torch.testing.assert_close(learner.td_target(batch),
+                               batch["reward"] + 0.9 * torch.minimum(best, q2))  # fmt: skip
+    assert (learner.td_target(batch) <= single.td_target(batch) + 1e-6).all()
+    before = [p.detach().clone() for p in learner.critic2.parameters()]
+    learner.update(batch)  # both critics learn
+    assert any(not torch.equal(a, b) for a, b in zip(before, learner.critic2.parameters()))
+    path = save_checkpoint(tmp_path / "twin.pt", learner)
+    loaded, _ = load_checkpoint(path)
+    assert loaded.cfg.twin and all(
+        torch.equal(a, b) for a, b in zip(loaded.critic2.parameters(), learner.critic2.parameters())
+    )
+    batch2 = _batch(16, cfg, seed=3)
+    assert loaded.update(batch2) == learner.update(batch2)  # resumes with the twin's optimiser
+    with pytest.raises(ValueError, match="twin critics apply to rbp-dqn only"):
+        make_learner(cfg, LearnerConfig(twin=True, algorithm="p-ddpg"))
 
 
 def test_residual_form_starts_at_zero() -> None:

@@ -106,15 +106,20 @@ def test_provenance_names_the_revision_the_run_started_at(tmp_path: Path, monkey
 def test_init_fine_tunes_from_a_checkpoint(tmp_path: Path) -> None:
     first = Trainer(_cfg(tmp_path / "a", workers=1, env_steps=1000)).run()
     src = tmp_path / "a" / "auto.pt"
-    tr = Trainer(_cfg(tmp_path / "b", workers=1, env_steps=800, demo_steps=0, init=str(src)))
+    # the second stage adds twin critics and 3-step returns: the one-critic weights fill the
+    # first critic, the twin keeps its own initialisation
+    stage = dict(workers=1, demo_steps=0, twin=True, n_step=3)
+    tr = Trainer(_cfg(tmp_path / "b", env_steps=800, init=str(src), **stage))
     source, _ = load_checkpoint(src)
     for pa, pb in zip(tr.learner.actor.parameters(), source.actor.parameters(), strict=True):
         assert torch.equal(pa, pb)
+    assert tr.learner.critic2 is not None
     assert tr.c["env_steps"] == 0 and len(tr.replay) == 0 and tr.learner.steps == 0
     info = tr.run()
     assert info["init"]["env_steps"] == first["env_steps"] and info["init"]["path"] == str(src)
     assert info["updates"] > 0 and info["env_steps"] >= 800
-    resumed = Trainer(_cfg(tmp_path / "b", workers=1, env_steps=900), resume=True)
+    assert load_checkpoint(tmp_path / "b" / "auto.pt")[0].cfg.twin
+    resumed = Trainer(_cfg(tmp_path / "b", env_steps=900, **stage), resume=True)
     assert resumed.c["init"]["path"] == str(src)  # provenance survives a resume
     src.write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match=r"auto\.pt.*corrupt"):
@@ -186,6 +191,17 @@ def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None
     assert full.mean() > 0.8 and (chunk["discount"][~full] > 0.95).all()
     assert chunk["sim_steps"] * 0.5 > n / 5 * 0.1  # far fewer transitions than agent-steps
     assert 0 < np.abs(chunk["params"]).max() <= 1.0  # u: exploration noise around 0
+    # 3-step returns: three whole intervals discount 0.95^3, the ends of trips less
+    tr = Trainer(_cfg(tmp_path / "n3", workers=1, env_steps=1, demo_steps=0, episode_length=6.0,
+                      n_step=3))  # fmt: skip
+    worker = RolloutWorker(tr.worker_specs()[0])
+    worker.set_weights(tr.weights())
+    try:
+        chunk = worker.collect(200)
+    finally:
+        worker.close()
+    full = np.isclose(chunk["discount"], 0.95**3, atol=1e-5)
+    assert full.mean() > 0.6 and (chunk["discount"][~full] > 0.95**3).all()
 
 
 def test_each_scenario_samples_the_densities_it_can_hold() -> None:
@@ -230,6 +246,11 @@ def test_ray_backend_smoke_with_crash(tmp_path: Path) -> None:
         (["--env-steps", "10", "--lr-final", "0.1"], "lr_final"),
         (["--env-steps", "10", "--decision-interval", "0"], "decision_interval"),
         (["--env-steps", "10", "--horizon", "0.4"], "horizon"),
+        (["--env-steps", "10", "--n-step", "0"], "TrainConfig.n_step=0"),
+        (
+            ["--env-steps", "10", "--twin", "--baseline", "p-ddpg"],
+            "twin critics apply to rbp-dqn only",
+        ),
         (["--env-steps", "10", "--demo-policy", "random"], "residual form corrects ACC-LC"),
         (["--env-steps", "10", "--scenarios", "ring-220m", "--densities", "180"], "ring-220m"),
     ],

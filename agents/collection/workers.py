@@ -97,6 +97,8 @@ class WorkerSpec:
     bootstrap_arrival: bool = True
     """An arrival at the end of the route bootstraps from its last observation (False: a
     terminal state of value 0, as every other trip end)."""
+    n_step: int = 1
+    """Decisions per stored transition (n-step returns, ``agents.collection.intervals``)."""
     crash_after_chunks: int = 0
     """Test hook: SIGKILL itself after sending this many chunks (incarnation 0 only)."""
     extra: dict[str, Any] = field(default_factory=dict)
@@ -251,7 +253,7 @@ class RolloutWorker:
         # γ per decision_interval, so per simulation step of any scenario's length
         gamma_step = lc.gamma ** (self.env.config.step_length / lc.decision_interval)
         self.intervals = Intervals(gamma_step, s.reward_scale or 1.0 - gamma_step,
-                                   s.bootstrap_arrival)  # fmt: skip
+                                   s.bootstrap_arrival, s.n_step)  # fmt: skip
 
     def _step(self) -> None:
         """One env step for all current agents; closed transitions go to the LocalBuffer."""

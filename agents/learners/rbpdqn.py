@@ -128,6 +128,11 @@ class LearnerConfig:
     [s]; longer than a stop-and-go wave's period (about 30 s on the 260 m ring)."""
     hold_gain: float = 0.5
     """Gain of the held AV's speed tracking: acceleration per m/s below the reference [1/s]."""
+    twin: bool = False
+    """Clipped double Q (TD3, Fujimoto et al. 2018) against over-estimation: a second critic,
+    trained on the same target, which takes the smaller of the two target critics' Q at the
+    first's best decision. The actor and the acting policy use the first critic (rbp-dqn
+    only; False = one critic, as checkpoints before it)."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
@@ -168,27 +173,44 @@ class RBPDQN:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.actor, self.critic = build_nets(lca, self.cfg)
+            # the twin's own draw (after the first pair's: their weights are unchanged)
+            self.critic2 = build_nets(lca, self.cfg)[1] if self.cfg.twin else None
         if self.cfg.residual:  # u = 0 and Q = 0: the teacher bonus picks ACC-LC's decisions
             self.actor.zero_output()
-            self.critic.zero_output()
+            for critic in self._critics():
+                critic.zero_output()
         self.actor_targ = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_targ = copy.deepcopy(self.critic).requires_grad_(False)
+        self.critic2_targ = copy.deepcopy(self.critic2)
         self.actor_opt = torch.optim.Adam(
             self.actor.gradient_parameters(), lr=self.cfg.lr, fused=True
         )
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.lr, fused=True)
+        self.critic2_opt = None
+        if self.critic2 is not None:
+            self.critic2_targ.requires_grad_(False)
+            self.critic2_opt = torch.optim.Adam(self.critic2.parameters(), lr=self.cfg.lr,
+                                                fused=True)  # fmt: skip
         self.steps = 0
         self.compile = compile
         self._compiled: tuple | None = None
 
+    def _critics(self) -> list[nn.Module]:
+        return [self.critic] if self.critic2 is None else [self.critic, self.critic2]
+
     def td_target(self, batch: dict) -> Tensor:
         """y (B,) = r + γ(1 − done)·max over unmasked next decisions of Q_targ(s', p, u_targ(s')),
         with the batch's per-row ``discount`` as γ where it has one (decision intervals cut
-        short by the episode's end span fewer steps)."""
+        short by the episode's end span fewer steps). Twin critics: the smaller of the two
+        targets' Q at the first's best decision."""
         nxt = batch["next_obs"]
         with torch.no_grad():
-            q_next = masked_q(self.critic_targ(nxt, self.actor_targ(nxt)), nxt["action_mask"])
-            best = q_next.max(dim=-1).values
+            u_next = self.actor_targ(nxt)
+            q_next = masked_q(self.critic_targ(nxt, u_next), nxt["action_mask"])
+            best, arg = q_next.max(dim=-1)
+            if self.critic2_targ is not None:
+                q2 = self.critic2_targ(nxt, u_next).gather(1, arg[:, None])[:, 0]
+                best = torch.minimum(best, q2)
             # A row with every decision masked has no successor value; treat it as 0 rather
             # than letting -inf poison the loss (the env never emits such a row, DESIGN §6).
             best = torch.where(torch.isfinite(best), best, torch.zeros_like(best))
@@ -198,13 +220,16 @@ class RBPDQN:
             return batch["reward"] + gamma * (1.0 - batch["done"]) * best
 
     def critic_loss(self, batch: dict) -> Tensor:
-        """½·mean (y − Q(s, p_taken, A_taken))² + λ·DQfD margin loss on demonstrations."""
+        """½·mean (y − Q(s, p_taken, A_taken))² + λ·DQfD margin loss on demonstrations, summed
+        over the critics (each has its own parameters, so each gets its own gradient)."""
         y = self.td_target(batch)
-        q_all = self.critic(batch["obs"], batch["params"])  # (B, 3)
-        q = q_all.gather(1, batch["decision"][:, None])[:, 0]
-        loss = 0.5 * (y - q).pow(2).mean()
-        if self.cfg.demo_weight > 0 and "labelled" in batch:
-            loss = loss + self.cfg.demo_weight * self.margin_loss(q_all, batch)
+        loss = y.new_zeros(())
+        for critic in self._critics():
+            q_all = critic(batch["obs"], batch["params"])  # (B, 3)
+            q = q_all.gather(1, batch["decision"][:, None])[:, 0]
+            loss = loss + 0.5 * (y - q).pow(2).mean()
+            if self.cfg.demo_weight > 0 and "labelled" in batch:
+                loss = loss + self.cfg.demo_weight * self.margin_loss(q_all, batch)
         return loss
 
     def margin_loss(self, q_all: Tensor, batch: dict) -> Tensor:
@@ -248,6 +273,9 @@ class RBPDQN:
         critic_loss, actor_loss = self._losses()
         c_loss = critic_loss(batch)
         c_norm = self._step(c_loss, self.critic, self.critic_opt)
+        if self.critic2 is not None:  # its gradient came with the first's backward
+            self._clip_and_step(self.critic2, self.critic2_opt)
+            _soft_update(self.critic2_targ, self.critic2, self.cfg.tau)
         # Freeze the critic so the actor loss does not build critic parameter gradients.
         self.critic.requires_grad_(False)
         try:
@@ -280,8 +308,12 @@ class RBPDQN:
         """Backward, clip to ``grad_clip``, optimiser step. → gradient norm before clipping."""
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        return self._clip_and_step(net, opt)
+
+    def _clip_and_step(self, net: nn.Module, opt: torch.optim.Optimizer) -> Tensor:
         norm = nn.utils.clip_grad_norm_(net.parameters(), self.cfg.grad_clip, foreach=True)
         opt.step()
+        opt.zero_grad(set_to_none=True)
         return norm
 
     def state_dict(self) -> dict:
@@ -294,7 +326,14 @@ class RBPDQN:
             "actor_opt": self.actor_opt.state_dict(),
             "critic_opt": self.critic_opt.state_dict(),
             "steps": self.steps,
+            **self._twin_state(),
         }
+
+    def _twin_state(self) -> dict:
+        if self.critic2 is None:
+            return {}
+        return {"critic2": self.critic2.state_dict(), "critic2_targ": self.critic2_targ.state_dict(),
+                "critic2_opt": self.critic2_opt.state_dict()}  # fmt: skip
 
     def load_state_dict(self, sd: dict) -> None:
         self.actor.load_state_dict(sd["actor"])
@@ -303,6 +342,11 @@ class RBPDQN:
         self.critic_targ.load_state_dict(sd["critic_targ"])
         self.actor_opt.load_state_dict(sd["actor_opt"])
         self.critic_opt.load_state_dict(sd["critic_opt"])
+        if self.critic2 is not None and "critic2" in sd:  # else (one-critic weights) its own init
+            self.critic2.load_state_dict(sd["critic2"])
+            self.critic2_targ.load_state_dict(sd["critic2_targ"])
+            self.critic2_opt.load_state_dict(sd["critic2_opt"])
+            _fused_adam(self.critic2_opt)
         self.set_lr(self.cfg.lr)  # the config's rate, not the saved one
         _fused_adam(self.actor_opt)
         _fused_adam(self.critic_opt)
@@ -310,7 +354,7 @@ class RBPDQN:
 
     def set_lr(self, lr: float) -> None:
         """Learning rate of both optimisers from the next update on [-]."""
-        for opt in (self.actor_opt, self.critic_opt):
+        for opt in filter(None, (self.actor_opt, self.critic_opt, self.critic2_opt)):
             for group in opt.param_groups:
                 group["lr"] = lr
 

@@ -105,6 +105,10 @@ def make_learner(
     classes = {"rbp-dqn": RBPDQN, "p-ddpg": PDDPG, "q-pamdp": QPAMDP, "imitation": Imitation}
     if cfg.algorithm not in classes:
         raise ValueError(f"LearnerConfig.algorithm={cfg.algorithm!r}: choose from {ALGORITHMS}")
+    if cfg.twin and cfg.algorithm != "rbp-dqn":
+        raise ValueError(
+            f"LearnerConfig.twin: twin critics apply to rbp-dqn only, not {cfg.algorithm!r}"
+        )
     return classes[cfg.algorithm](lca, cfg, seed=seed, compile=compile)
 
 

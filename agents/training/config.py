@@ -90,6 +90,13 @@ class TrainConfig:
     horizon: float = 10.0
     """Effective horizon 1/(1 - γ) of the discount [s]: γ per decision = 1 - decision_interval
     / horizon (0.95 at 0.5 s; the paper's γ = 0.9 per 0.1 s step is a 1 s horizon)."""
+    n_step: int = 1
+    """Decisions per stored transition [-]: n-step returns bootstrap n decisions ahead, so a
+    reward reaches the values of earlier decisions n times faster
+    (:mod:`agents.collection.intervals`); 1 = one-step, as runs before it."""
+    twin: bool = False
+    """Twin critics against over-estimation (clipped double Q, ``LearnerConfig.twin``;
+    rbp-dqn and its ablations only)."""
     steer_delta: float = 0.005
     """Residual form: largest steering correction [action units; 0.005 = 0.3°]. Held for a
     0.5 s decision at 30 m/s, 0.05 (3°) moved a car up to 2 m sideways: exploration noise on it
@@ -269,6 +276,10 @@ class TrainConfig:
             self._bad("decision_interval", "must be in (0, 5] s")
         if not self.horizon > self.decision_interval:
             self._bad("horizon", "must exceed decision_interval (γ = 1 - interval / horizon)")
+        if not 1 <= self.n_step <= 200:
+            self._bad("n_step", "must be in [1, 200] decisions")
+        if self.twin and self.baseline in ("p-ddpg", "q-pamdp", "transfuser"):
+            self._bad("twin", f"twin critics apply to rbp-dqn only, not baseline {self.baseline}")
         for name in ("steer_delta", "accel_delta"):
             if not 0 < getattr(self, name) <= 2:
                 self._bad(name, "must be in (0, 2] action units")

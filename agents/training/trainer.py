@@ -78,7 +78,7 @@ def _learner_config(cfg: TrainConfig) -> LearnerConfig:
                          accel_delta=cfg.accel_delta, teacher_bonus=cfg.teacher_bonus,
                          decision_interval=cfg.decision_interval, multi_pass=cfg.multi_pass,
                          speed_governor=cfg.speed_governor,
-                         rss_governor=cfg.rss_governor,
+                         rss_governor=cfg.rss_governor, twin=cfg.twin,
                          # u of the residual form is already in bounded units, and ACC-LC's
                          # decisions get a selection bonus instead of the DQfD margin
                          **({"bc_steer_weight": 1.0, "demo_weight": 0.0} if cfg.residual
@@ -260,7 +260,7 @@ class Trainer:
                 demo_quota=max(0, share - self.c["demo_received"][i]), demo_share=cfg.demo_share,
                 demo_policy=cfg.demo_policy, expert_labels=cfg.expert_labels,
                 learner=self.learner.cfg, reward_scale=cfg.reward_scale,
-                bootstrap_arrival=cfg.bootstrap_arrival,
+                bootstrap_arrival=cfg.bootstrap_arrival, n_step=cfg.n_step,
                 crash_after_chunks=cfg.crash_after_chunks if i == 0 and self.c["run"] == 0 else 0,
             )
             for i in range(cfg.workers)
