@@ -27,7 +27,9 @@ Two forms (``LearnerConfig.residual``):
 
 Modes of :meth:`Driver.act`: ``greedy`` (evaluation), ``explore`` (Gaussian noise on u and
 ε-random decisions; needs an rng) and ``teacher`` (ACC-LC drives: u = 0 in the residual form,
-ACC-LC's parameters in the paper's).
+ACC-LC's parameters in the paper's). An agent's noise is held for ``noise_hold`` decisions
+(1: a fresh draw at each), so that an exploring AV drives one perturbed policy long enough for
+its effect on the traffic (a wave forming or damped) to show in the return.
 """
 
 from __future__ import annotations
@@ -122,9 +124,12 @@ class Driver:
     """Batched decisions for the agents of one env step, with the hold between decisions."""
 
     def __init__(self, policy: Policy | None, cfg: LearnerConfig, step_length: float,
-                 teacher: AccLcPolicy | None = None) -> None:  # fmt: skip
-        """``policy`` may be None for teacher-only driving; ``teacher`` defaults to ACC-LC."""
-        self.policy, self.cfg = policy, cfg
+                 teacher: AccLcPolicy | None = None, noise_hold: int = 1) -> None:  # fmt: skip
+        """``policy`` may be None for teacher-only driving; ``teacher`` defaults to ACC-LC;
+        ``noise_hold``: decisions an exploration draw is held [-]."""
+        if noise_hold < 1:
+            raise ValueError(f"noise_hold={noise_hold} must be >= 1 decision")
+        self.policy, self.cfg, self.noise_hold = policy, cfg, noise_hold
         self.k = steps_per_decision(cfg.decision_interval, step_length)
         self.teacher = teacher if teacher is not None else AccLcPolicy(dt=step_length)
         steer = cfg.steer_delta if cfg.steer_control else 0.0  # HEAD: ACC-LC steers
@@ -136,6 +141,8 @@ class Driver:
         """ACC-LC's plan of the last :meth:`act` (None where ACC-LC was not evaluated)."""
         # per agent: [steps left, held decision, held u (3, 2), hold gate open]
         self._held: dict[str, list] = {}
+        # per exploring agent: [decisions left, held noise (3, 2)]
+        self._noise: dict[str, list] = {}
         # per agent: the hold's reference speed [m/s] and the leader's variance about it
         self._ref: dict[str, tuple[float, float]] = {}
         self._alpha = min(1.0, step_length / cfg.hold_tau)
@@ -180,6 +187,7 @@ class Driver:
         if len(self._held) > len(agents) or any(a not in self._held for a in agents):
             live = set(agents)
             self._held = {a: h for a, h in self._held.items() if a in live}
+            self._noise = {a: h for a, h in self._noise.items() if a in live}
 
     def _teacher(self, obs: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, ...]:
         """ACC-LC's (decision (A,), params (A, 3, 2), the governors' accel_brake cap (A, 3))."""
@@ -237,10 +245,27 @@ class Driver:
             sub = {k: np.asarray(v)[idx] for k, v in obs.items()}
             if spread is not None:
                 sub[LEAD_SPREAD] = spread[idx]
-            dec, u, hold = self.policy.choose(sub, mode == "explore", rng, bonus)
+            noise = (
+                self._held_noise([agents[i] for i in idx.tolist()], rng)
+                if mode == "explore"
+                else None
+            )
+            dec, u, hold = self.policy.choose(sub, mode == "explore", rng, bonus, noise)
         hold &= residual
         for j, i in enumerate(idx.tolist()):
             self._held[agents[i]] = [self.k, int(dec[j]), u[j], bool(hold[j])]
+
+    def _held_noise(self, names: list[str], rng: np.random.Generator) -> np.ndarray:
+        """(D, 3, 2) exploration noise of the deciding agents ``names``: a fresh draw for each
+        (the rng's stream does not depend on the holds), kept where an agent's is still held."""
+        fresh = self.policy.draw_noise(rng, len(names))
+        for j, a in enumerate(names):
+            h = self._noise.get(a)
+            if h is None or h[0] <= 0:
+                h = self._noise[a] = [self.noise_hold, fresh[j].copy()]
+            fresh[j] = h[1]
+            h[0] -= 1
+        return fresh
 
     def _hold(self, agents: list[str], obs: Mapping[str, np.ndarray], mask: np.ndarray,
               t_dec: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip

@@ -64,6 +64,38 @@ def test_zero_residual_drives_as_acc_lc_and_decides_every_interval(interval: flo
     assert set(gaps) == {steps_per_decision(interval, 0.1) - 1}
 
 
+@pytest.mark.parametrize("hold", [1, 3])
+def test_exploration_noise_is_held_for_its_decisions(hold: int) -> None:
+    """An untrained residual network (u = 0) explores with u = its noise: each agent keeps one
+    draw for ``hold`` decisions, and agents draw apart."""
+    cfg = LearnerConfig(residual=True, decision_interval=0.1)
+    learner = RBPDQN(LCAConfig(z=5, m=10), cfg)
+    policy = Policy(learner.actor, learner.critic, noise_std=0.3, epsilon=0.0, threads=1)
+    driver = Driver(policy, cfg, 0.1, noise_hold=hold)
+    env = parallel_env(scenario="straight-3lane", density=60, penetration=0.5, episode_length=3,
+                       seed=1)  # fmt: skip
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=1)
+    us: dict[str, list[np.ndarray]] = {}
+    try:
+        while env.agents:
+            agents = list(env.agents)
+            cmd = driver.act(stack_obs(obs, agents), agents, "explore", rng)
+            for a, u in zip(agents, cmd.u):
+                us.setdefault(a, []).append(u.copy())
+            obs, *_ = env.step(to_actions(agents, cmd.decision, cmd.params))
+    finally:
+        env.close()
+    runs = [u for u in us.values() if len(u) >= 6]
+    assert len(runs) >= 2
+    for u in runs:  # a new draw exactly every ``hold`` decisions
+        changed = [not np.array_equal(a, b) for a, b in zip(u, u[1:])]
+        assert changed == [(i + 1) % hold == 0 for i in range(len(changed))]
+    assert not np.array_equal(runs[0][0], runs[1][0])
+    with pytest.raises(ValueError, match="noise_hold=0 must be >= 1"):
+        Driver(policy, cfg, 0.1, noise_hold=0)
+
+
 def test_the_governor_caps_only_the_correction_that_lifts_the_acceleration() -> None:
     cfg = LearnerConfig(residual=True, speed_governor=True, accel_delta=0.25)
     driver = Driver(None, cfg, 0.1)

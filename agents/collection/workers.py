@@ -99,6 +99,8 @@ class WorkerSpec:
     terminal state of value 0, as every other trip end)."""
     n_step: int = 1
     """Decisions per stored transition (n-step returns, ``agents.collection.intervals``)."""
+    explore_hold: float = 0.0
+    """Time an AV's exploration noise is held [s] (0: a fresh draw at every decision)."""
     crash_after_chunks: int = 0
     """Test hook: SIGKILL itself after sending this many chunks (incarnation 0 only)."""
     extra: dict[str, Any] = field(default_factory=dict)
@@ -249,7 +251,9 @@ class RolloutWorker:
         self.obs, _ = self.env.reset(seed=cfg.seed, options={"allow_no_agents": True})
         self.ep_reward, self.ep_actions = 0.0, 0
         lc = s.learner
-        self.driver = Driver(self.policy, lc, self.env.config.step_length, self._demonstrator())
+        hold = max(1, round(s.explore_hold / lc.decision_interval))
+        self.driver = Driver(self.policy, lc, self.env.config.step_length, self._demonstrator(),
+                             noise_hold=hold)  # fmt: skip
         # γ per decision_interval, so per simulation step of any scenario's length
         gamma_step = lc.gamma ** (self.env.config.step_length / lc.decision_interval)
         self.intervals = Intervals(gamma_step, s.reward_scale or 1.0 - gamma_step,

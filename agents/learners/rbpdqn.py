@@ -444,23 +444,23 @@ class Policy:
         explore: bool,
         rng: np.random.Generator | None = None,
         bonus: np.ndarray | None = None,
+        noise: np.ndarray | None = None,
     ) -> Choice:
         """obs numpy (A, ...) → :class:`Choice`.
 
         ``bonus`` (A, 3), if given, is added to Q before the masked argmax. Exploration:
-        Gaussian noise (std ``noise_std``, times ``steer_noise_factor`` for the steering
-        column) on all params, clipped to [-1, 1], and the critic scores the *noisy* params
-        (they are what gets executed and stored); then with probability ``epsilon`` a uniformly
-        random unmasked decision replaces the argmax. The gate is never explored.
+        Gaussian noise (``noise`` (A, 3, 2) if given, else :meth:`draw_noise`) on all params,
+        clipped to [-1, 1], and the critic scores the *noisy* params (they are what gets
+        executed and stored); then with probability ``epsilon`` a uniformly random unmasked
+        decision replaces the argmax. The gate is never explored.
         """
         t = obs_to_torch(obs)
         mask = t["action_mask"] > 0.5
-        noise = None
         if explore:
             if rng is None:
                 raise ValueError("explore=True needs an rng")
-            std = self.noise_std * np.array([self.steer_noise_factor, 1.0], np.float32)
-            noise = gaussian(rng, len(mask), std)
+            noise = self.draw_noise(rng, len(mask)) if noise is None else noise
+        noise = torch.from_numpy(noise) if explore else None
         q, params, score = self.q_and_params(t, noise)
         if bonus is not None:
             q = q + torch.from_numpy(np.asarray(bonus, np.float32))
@@ -469,6 +469,12 @@ class Policy:
             dec = explore_decisions(dec, mask.numpy(), self.epsilon, rng)
         hold = np.zeros(len(dec), bool) if score is None else (score > 0).numpy()
         return Choice(dec, params.numpy().copy(), hold)
+
+    def draw_noise(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """(n, 3, 2) float32 Gaussian noise: std ``noise_std``, times ``steer_noise_factor`` for
+        the steering column."""
+        std = self.noise_std * np.array([self.steer_noise_factor, 1.0], np.float32)
+        return gaussian(rng, n, std)
 
 
 class Choice(NamedTuple):
@@ -482,9 +488,9 @@ class Choice(NamedTuple):
     """(A,) bool: the hold gate is open (always False without a gate)."""
 
 
-def gaussian(rng: np.random.Generator, n: int, std: np.ndarray) -> Tensor:
+def gaussian(rng: np.random.Generator, n: int, std: np.ndarray) -> np.ndarray:
     """(n, 3, 2) float32 Gaussian noise with ``std`` per parameter column (2,)."""
-    return torch.from_numpy((rng.normal(0.0, 1.0, size=(n, 3, 2)) * std).astype(np.float32))
+    return (rng.normal(0.0, 1.0, size=(n, 3, 2)) * std).astype(np.float32)
 
 
 def explore_decisions(

@@ -172,6 +172,10 @@ class TrainConfig:
     """Base ε of the Ape-X ladder: worker i uses ε^(1 + spread·i/(N−1)) [-]."""
     noise_std: float = 0.3
     """Base exploration noise σ of the ladder (same exponent) [action units]."""
+    explore_hold: float = 0.0
+    """Time an AV's exploration noise is held [s] (rounded to whole decisions): one perturbed
+    policy for about a wave's period shows its effect on the waves in the return; 0 = a
+    fresh draw at every decision, as runs before it."""
     ladder_spread: float = 3.0
     """Exponent spread of the exploration ladder over the workers [-]."""
     checkpoint_every: float = 300.0
@@ -276,6 +280,8 @@ class TrainConfig:
             self._bad("decision_interval", "must be in (0, 5] s")
         if not self.horizon > self.decision_interval:
             self._bad("horizon", "must exceed decision_interval (γ = 1 - interval / horizon)")
+        if not 0 <= self.explore_hold <= 600:
+            self._bad("explore_hold", "must be in [0, 600] s")
         if not 1 <= self.n_step <= 200:
             self._bad("n_step", "must be in [1, 200] decisions")
         if self.twin and self.baseline in ("p-ddpg", "q-pamdp", "transfuser"):
