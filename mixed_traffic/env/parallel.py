@@ -285,7 +285,7 @@ class MixedTrafficEnv(ParallelEnv):
         checks.check_step(self._phase, actions, self.config.episode_length)
         decision, params = stack_actions(actions, self.agents, self._act_space)  # action
         decision = self._allowed(decision)
-        self._extras.command(self._table.slots_of(self.agents), decision, params)
+        self._extras.command(self._table.slots_of, self.agents, decision, params)
         steer, accel = to_physical(decision, params, self.config.vehicle)
         cmd = self._control(steer, accel, decision)  # control
         snap = self._advance()  # SUMO step + density boundary

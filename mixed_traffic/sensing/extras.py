@@ -3,6 +3,8 @@ feed, ``EnvConfig.v2x``) and ``memory`` (slow summaries, ``SensorConfig.memory``
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from mixed_traffic.config import EnvConfig
@@ -30,9 +32,12 @@ class ExtraKeys:
         self.feed.drop(slots)
         self.memory.drop(slots)
 
-    def command(self, slots: np.ndarray, decision: np.ndarray, params: np.ndarray) -> None:
-        """The command the agents at ``slots`` execute this step (``SlowMemory.command``)."""
-        self.memory.command(slots, decision, params)
+    def command(self, slots_of: Callable[[list[str]], np.ndarray], agents: list[str],
+                decision: np.ndarray, params: np.ndarray) -> None:  # fmt: skip
+        """The command ``agents`` execute this step (``SlowMemory.command``); ``slots_of``
+        looks up their slots, only where the memory is on."""
+        if self.memory.on:
+            self.memory.command(slots_of(agents), decision, params)
 
     def keys(self, hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray, slots: np.ndarray,
              route_table: np.ndarray, route_len: np.ndarray,

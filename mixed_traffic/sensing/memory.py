@@ -77,8 +77,6 @@ class SlowMemory:
     def command(self, slots: np.ndarray, decision: np.ndarray, params: np.ndarray) -> None:
         """Remember the command the agents at ``slots`` (A,) execute this step: ``decision``
         (A,) and ``params`` (A, 3, 2) [action units]."""
-        if not self.on or not len(slots):
-            return
         rows = np.arange(len(slots))
         self._command[slots, :3] = np.eye(3, dtype=np.float32)[decision]
         self._command[slots, 3] = params[rows, decision, 1]
