@@ -110,11 +110,13 @@ def test_policy_respects_mask_with_exploration() -> None:
 
 
 @pytest.mark.parametrize(
-    ("ego_fusion", "multi_pass"), [(True, False), (False, False), (True, True)]
+    ("ego_fusion", "multi_pass", "extra"),
+    [(True, False, 0), (False, False, 0), (True, True, 0), (True, False, 18), (False, True, 12)],
 )
 @pytest.mark.parametrize("b", [1, 7, 128])
-def test_fused_matches_reference(b: int, ego_fusion: bool, multi_pass: bool) -> None:
-    cfg = LCAConfig(ego_fusion=ego_fusion)
+def test_fused_matches_reference(b: int, ego_fusion: bool, multi_pass: bool, extra: int) -> None:
+    """Also with the observation's extra vector (memory and downstream) in the fusion."""
+    cfg = LCAConfig(ego_fusion=ego_fusion, extra=extra)
     torch.manual_seed(3)
     actor, critic = Actor(cfg), Critic(cfg, multi_pass=multi_pass)
     obs = _obs(b, cfg, seed=b)
@@ -126,6 +128,9 @@ def test_fused_matches_reference(b: int, ego_fusion: bool, multi_pass: bool) -> 
     assert hold is None
     torch.testing.assert_close(p, p_ref, atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(q, q_ref, atol=1e-5, rtol=1e-4)
+    if extra:  # the vector is read: another extra changes the answer
+        obs["extra"] = obs["extra"] + 0.5
+        assert not torch.allclose(FusedActorCritic(actor, critic)(obs)[0], p)
 
 
 def test_multi_pass_q_sees_only_its_own_parameters() -> None:

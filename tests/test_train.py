@@ -17,8 +17,11 @@ import torch
 from agents.checkpoint import load_checkpoint
 from agents.collection.workers import RolloutWorker
 from agents.rules.acc_lc import AccLcPolicy
+from agents.rules.obs_batch import stack_obs
 from agents.training.config import TrainConfig
 from agents.training.trainer import Trainer
+from mixed_traffic.config import EnvConfig, SensorConfig
+from mixed_traffic.env import parallel_env
 from mixed_traffic.experiments.train import main
 from mixed_traffic.world.registry import load_scenario
 
@@ -62,6 +65,33 @@ def test_two_worker_smoke_cli(tmp_path: Path) -> None:
     from agents.policies import AutoPolicy
 
     assert AutoPolicy(out / "auto.pt").checkpoint.is_file()
+
+
+def test_a_run_with_memory_and_v2x_reads_the_opt_in_keys(tmp_path: Path) -> None:
+    """The env's ``memory`` and ``downstream`` keys reach the replay and the fusion layer, and
+    the trained policy refuses an env without them."""
+    from agents.policies import make_policy
+
+    info = Trainer(_cfg(tmp_path, workers=1, env_steps=800, memory=True, v2x=True)).run()
+    assert info["updates"] > 0
+    learner, _ = load_checkpoint(tmp_path / "auto.pt")
+    assert learner.lca_cfg.extra == 12 + 3 * 2
+    for memory in (True, False):
+        policy = make_policy("auto", checkpoint=tmp_path / "auto.pt")
+        env = parallel_env(config=EnvConfig(scenario="straight-3lane", density=60.0,
+                                            penetration=0.2, episode_length=2.0, v2x=True,
+                                            sensors=SensorConfig(memory=memory)))  # fmt: skip
+        try:
+            obs, _ = env.reset(seed=0)
+            batch = stack_obs(obs, env.agents)
+            if memory:
+                decision, _ = policy.act(batch, env.agents)
+                assert decision.shape == (len(env.agents),)
+            else:
+                with pytest.raises(ValueError, match="reads 18 opt-in observation features"):
+                    policy.act(batch, env.agents)
+        finally:
+            env.close()
 
 
 def test_resume_continues_counters(tmp_path: Path) -> None:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agents.rules.obs_batch import OBS_KEYS
+from agents.rules.obs_batch import EXTRA, OBS_KEYS
 
 Rows = dict[str, np.ndarray | dict[str, np.ndarray]]
 """Closed transitions: ``obs``/``next_obs`` dicts of (n, ...) arrays, ``decision``, ``params``
@@ -74,8 +74,9 @@ class Intervals:
         names = [agents[i] for i in idx.tolist()]
         closed = self._close(names, obs, idx, np.zeros(len(idx), bool), ended=False)
         labelled, ldec, lpar = label
+        keys = _keys(obs)
         for a, i in zip(names, idx.tolist()):
-            rows = {k: obs[k][i] for k in OBS_KEYS}
+            rows = {k: obs[k][i] for k in keys}
             self._open[a] = _Open(rows, int(decision[i]), u[i], float(labelled[i]),
                                   int(ldec[i]), lpar[i])  # fmt: skip
         return closed
@@ -117,8 +118,8 @@ class Intervals:
                 queue.pop(0)
         rows = np.array(rows, np.int64)
         return {
-            "obs": {k: _stack([t.obs[k] for t in items], obs[k]) for k in OBS_KEYS},
-            "next_obs": {k: obs[k][idx[rows]] for k in OBS_KEYS},
+            "obs": {k: _stack([t.obs[k] for t in items], obs[k]) for k in _keys(obs)},
+            "next_obs": {k: obs[k][idx[rows]] for k in _keys(obs)},
             "decision": np.array([t.decision for t in items], np.int64),
             "params": _stack([t.u for t in items], np.zeros((0, 3, 2), np.float32)),
             "reward": np.array([r for r, _ in returns], np.float32),
@@ -136,6 +137,11 @@ class Intervals:
             reward += discount * t.reward
             discount *= self.gamma_step**t.steps
         return reward, discount
+
+
+def _keys(obs: dict[str, np.ndarray]) -> tuple[str, ...]:
+    """The keys a transition keeps: the batch's, with its ``EXTRA`` vector where it has one."""
+    return (*OBS_KEYS, EXTRA) if EXTRA in obs else OBS_KEYS
 
 
 def _stack(rows: list[np.ndarray], like: np.ndarray) -> np.ndarray:

@@ -38,7 +38,7 @@ from agents.driver import Driver
 from agents.learners.rbpdqn import LearnerConfig, Policy, build_nets
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
-from agents.policies import OBS_KEYS, make_policy, stack_obs, to_actions
+from agents.policies import make_policy, stack_obs, to_actions
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
 from mixed_traffic.world.registry import load_scenario
@@ -170,8 +170,8 @@ class LocalBuffer:
     def take(self) -> Chunk:
         parts, self._parts, self.size = self._parts, [], 0
         cat = np.concatenate
-        out: Chunk = {k: {o: cat([p[k][o] for p in parts]).astype(np.float32) for o in OBS_KEYS}
-                      for k in ("obs", "next_obs")}  # fmt: skip
+        out: Chunk = {k: {o: cat([p[k][o] for p in parts]).astype(np.float32)
+                          for o in parts[0][k]} for k in ("obs", "next_obs")}  # fmt: skip
         for k, dtype in _ROW_DTYPES.items():
             out[k] = cat([p[k] for p in parts]).astype(dtype)
         return out

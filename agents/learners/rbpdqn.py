@@ -40,6 +40,7 @@ from torch import Tensor, nn
 from agents.nets.fused import FusedActorCritic
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import FOLLOW, LEAD_SPREAD, Actor, Critic, masked_q, select
+from agents.rules.obs_batch import EXTRA
 
 
 @dataclass(frozen=True)
@@ -367,8 +368,8 @@ STEER_NOISE_FACTOR = 0.05
 
 def obs_to_torch(obs: dict[str, np.ndarray]) -> dict[str, Tensor]:
     """numpy (A, ...) → float32 tensors, zero-copy when already float32 and contiguous (the
-    network's keys, and the hold gate's ``LEAD_SPREAD`` where given)."""
-    keys = (*OBS_KEYS, LEAD_SPREAD) if LEAD_SPREAD in obs else OBS_KEYS
+    network's keys, its ``EXTRA`` vector and the hold gate's ``LEAD_SPREAD`` where given)."""
+    keys = (*OBS_KEYS, *(k for k in (EXTRA, LEAD_SPREAD) if k in obs))
     return {k: torch.from_numpy(np.ascontiguousarray(obs[k], dtype=np.float32)) for k in keys}
 
 
@@ -402,6 +403,8 @@ class Policy:
         self._fused = (
             FusedActorCritic(actor, critic) if fused and default and not actor.scores else None
         )
+        self.extra = getattr(c, "extra", 0)
+        """X: width of the ``EXTRA`` vector the networks read (0: none)."""
 
     def sync(self) -> None:
         """Re-snapshot weights after the networks were updated or loaded."""
@@ -454,6 +457,7 @@ class Policy:
         executed and stored); then with probability ``epsilon`` a uniformly random unmasked
         decision replaces the argmax. The gate is never explored.
         """
+        self.check_extra(obs)
         t = obs_to_torch(obs)
         mask = t["action_mask"] > 0.5
         if explore:
@@ -469,6 +473,14 @@ class Policy:
             dec = explore_decisions(dec, mask.numpy(), self.epsilon, rng)
         hold = np.zeros(len(dec), bool) if score is None else (score > 0).numpy()
         return Choice(dec, params.numpy().copy(), hold)
+
+    def check_extra(self, obs: dict[str, np.ndarray]) -> None:
+        """ValueError unless ``obs`` holds the ``EXTRA`` vector the networks were trained on."""
+        got = np.shape(obs[EXTRA])[-1] if EXTRA in obs else 0
+        if got != self.extra:
+            raise ValueError(f"the policy reads {self.extra} opt-in observation features "
+                             f"(sensors.memory: 12, v2x: 3 segments x 2), the env gives {got}: "
+                             "run the env with the keys it was trained with")  # fmt: skip
 
     def draw_noise(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """(n, 3, 2) float32 Gaussian noise: std ``noise_std``, times ``steer_noise_factor`` for

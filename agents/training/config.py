@@ -11,7 +11,9 @@ from dataclasses import asdict, dataclass, fields, replace
 from typing import Any, NoReturn
 
 from agents.nets.lca import LCAConfig
+from agents.rules.obs_batch import extra_width
 from mixed_traffic.config import WEATHERS, EnvConfig
+from mixed_traffic.env.api import observation_space
 
 BACKENDS = ("process", "ray")
 RESIDUAL_BC_ACCEL = 0.05
@@ -94,6 +96,12 @@ class TrainConfig:
     """Decisions per stored transition [-]: n-step returns bootstrap n decisions ahead, so a
     reward reaches the values of earlier decisions n times faster
     (:mod:`agents.collection.intervals`); 1 = one-step, as runs before it."""
+    memory: bool = False
+    """The policy reads the env's ``memory`` key (slow means and spreads of its own and its
+    leader's speed, its last command: ``SensorConfig.memory``) in its fusion layer."""
+    v2x: bool = False
+    """The policy reads the env's ``downstream`` key (the V2X feed, ``EnvConfig.v2x``) in its
+    fusion layer."""
     twin: bool = False
     """Twin critics against over-estimation (clipped double Q, ``LearnerConfig.twin``;
     rbp-dqn and its ablations only)."""
@@ -341,13 +349,20 @@ def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:
         cfg.baseline, {}
     )
     s = env_base.sensors
+    shapes = {k: v.shape for k, v in observation_space(env_base).spaces.items()}
     return LCAConfig(z=s.history, m=s.waypoints, ego_fusion=cfg.ego_fusion,
-                     lidar_range=s.lidar_range, camera_range=s.camera_range, **flags)  # fmt: skip
+                     lidar_range=s.lidar_range, camera_range=s.camera_range,
+                     extra=extra_width(shapes), **flags)  # fmt: skip
 
 
 def env_base_config(cfg: TrainConfig, env_base: EnvConfig | None = None) -> EnvConfig:
     """Fixed env fields for every episode: episode length and w_impact (0 for NoIMP and
     DRL-MF, which ignores its impact on the traffic behind)."""
     base = replace(env_base or EnvConfig(), episode_length=cfg.episode_length)
+    base = replace(
+        base,
+        v2x=base.v2x or cfg.v2x,
+        sensors=replace(base.sensors, memory=base.sensors.memory or cfg.memory),
+    )
     w4 = 0.0 if cfg.ablation == "noimp" or cfg.baseline == "drl-mf" else cfg.impact_weight
     return replace(base, reward=replace(base.reward, w_impact=w4))
