@@ -10,6 +10,7 @@ policy, so ACC-LC does not import this module) and are re-exported here.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -17,6 +18,7 @@ import numpy as np
 
 from agents.rules.obs_batch import OBS_KEYS, stack_obs, to_actions
 from agents.rules.spec import RULE_CONFIGS, PolicySpec, build_config, parse_policy
+from mixed_traffic.config import EnvConfig
 from mixed_traffic.schema import STUDY_POLICIES
 
 SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "auto.pt"
@@ -76,6 +78,25 @@ def checkpoint_path(name: str, checkpoint: str | Path | None = None) -> Path:
     if name == "ppo-ring":
         return PPO_RING
     return SHIPPED_CHECKPOINT if name in ("auto", "auto-raw") else STUDY_CHECKPOINTS / f"{name}.pt"
+
+
+def with_inputs(config: EnvConfig, name: str, checkpoint: str | Path | None = None) -> EnvConfig:
+    """``config`` with the opt-in observation keys (``memory``, ``downstream``) that learned
+    policy ``name`` was trained with switched on, as its checkpoint's training env had them;
+    ``config`` itself for every other policy."""
+    base = parse_policy(name).base
+    if base not in ("auto", "auto-raw") and base not in STUDY_POLICIES:
+        return config
+    from agents.checkpoint import read_checkpoint
+
+    meta = read_checkpoint(checkpoint_path(base, checkpoint))["meta"]
+    trained = EnvConfig.from_dict(meta.get("env_base", {}))
+    if trained.sensors.memory:
+        sensors = replace(config.sensors, memory=True, memory_taus=trained.sensors.memory_taus)
+        config = replace(config, sensors=sensors)
+    if trained.v2x:
+        config = replace(config, v2x=True, v2x_feed=trained.v2x_feed)
+    return config
 
 
 class AutoPolicy:

@@ -22,6 +22,7 @@ from agents.training.config import TrainConfig
 from agents.training.trainer import Trainer
 from mixed_traffic.config import EnvConfig, SensorConfig
 from mixed_traffic.env import parallel_env
+from mixed_traffic.experiments.runner import run_episode
 from mixed_traffic.experiments.train import main
 from mixed_traffic.world.registry import load_scenario
 
@@ -76,6 +77,11 @@ def test_a_run_with_memory_and_v2x_reads_the_opt_in_keys(tmp_path: Path) -> None
     assert info["updates"] > 0
     learner, _ = load_checkpoint(tmp_path / "auto.pt")
     assert learner.lca_cfg.extra == 12 + 3 * 2
+    # the runner switches on the keys the checkpoint was trained with
+    plain = EnvConfig(scenario="straight-3lane", density=60.0, penetration=0.2, episode_length=2.0)
+    record = run_episode(plain, "auto", 0.0, checkpoint=tmp_path / "auto.pt")
+    assert record["status"] == "ok"
+    assert record["config"]["v2x"] and record["config"]["sensors"]["memory"]
     for memory in (True, False):
         policy = make_policy("auto", checkpoint=tmp_path / "auto.pt")
         env = parallel_env(config=EnvConfig(scenario="straight-3lane", density=60.0,

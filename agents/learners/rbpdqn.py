@@ -40,7 +40,7 @@ from torch import Tensor, nn
 from agents.nets.fused import FusedActorCritic
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import FOLLOW, LEAD_SPREAD, Actor, Critic, masked_q, select
-from agents.rules.obs_batch import EXTRA
+from agents.rules.obs_batch import EXTRA, with_extra
 
 
 @dataclass(frozen=True)
@@ -457,6 +457,7 @@ class Policy:
         executed and stored); then with probability ``epsilon`` a uniformly random unmasked
         decision replaces the argmax. The gate is never explored.
         """
+        obs = with_extra(obs)
         self.check_extra(obs)
         t = obs_to_torch(obs)
         mask = t["action_mask"] > 0.5

@@ -37,12 +37,18 @@ def stack_obs(
 ) -> dict[str, np.ndarray]:
     """{agent: {key: x}} -> {key: (A, ...)} in the order of ``agents``, plus ``EXTRA`` where
     the observations hold opt-in keys."""
-    out = {k: np.stack([obs[a][k] for a in agents]) for k in OBS_KEYS}
     first = obs[agents[0]] if agents else {}
-    extra = [np.stack([obs[a][k] for a in agents]).reshape(len(agents), -1)
-             for k in EXTRA_KEYS if k in first]  # fmt: skip
-    if extra:
-        out[EXTRA] = np.concatenate(extra, axis=1).astype(np.float32)
+    keys = (*OBS_KEYS, *(k for k in EXTRA_KEYS if k in first))
+    return with_extra({k: np.stack([obs[a][k] for a in agents]) for k in keys})
+
+
+def with_extra(batch: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``batch`` {key: (A, ...)} with its ``EXTRA`` vector: the opt-in keys it holds,
+    flattened and concatenated in ``EXTRA_KEYS`` order (none without them)."""
+    out = dict(batch)
+    parts = [np.reshape(out[k], (len(out[k]), -1)) for k in EXTRA_KEYS if k in out]
+    if parts and EXTRA not in out:
+        out[EXTRA] = np.concatenate(parts, axis=1).astype(np.float32)
     return out
 
 

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from agents.policies import with_inputs
 from agents.rules.spec import parse_policy
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.checks import check_warmup
@@ -101,6 +102,7 @@ def run_episode(
         SumoError: SUMO failed to start.
     """
     policy = check_policy(policy)
+    config = with_inputs(config, policy, checkpoint)  # the opt-in keys it was trained with
     t0 = time.perf_counter()
     # the env validates the config against its scenario before anything else is done
     env = MixedTrafficEnv(config=config, warmup=warmup, sumo_drives_avs=sumo_drives(policy),
