@@ -132,7 +132,8 @@ class Driver:
         self.policy, self.cfg, self.noise_hold = policy, cfg, noise_hold
         self.k = steps_per_decision(cfg.decision_interval, step_length)
         self.teacher = teacher if teacher is not None else AccLcPolicy(dt=step_length)
-        steer = cfg.steer_delta if cfg.steer_control else 0.0  # HEAD: ACC-LC steers
+        # HEAD and the set-speed form: ACC-LC steers
+        steer = cfg.steer_delta if cfg.steer_control and not cfg.set_speed else 0.0
         self.delta = np.array([steer, cfg.accel_delta], np.float32)
         self.rss = RssConfig()
         self.cap_factor = 1.0
@@ -169,7 +170,8 @@ class Driver:
         with_teacher = self.cfg.residual or labels or mode == "teacher"
         self.plan = None
         t_dec, t_par, cap = self._teacher(obs, n) if with_teacher else _no_teacher(n)
-        lead = self._track(agents) if self.cfg.hold_gate and self.plan is not None else None
+        tracks = self.cfg.hold_gate or self.cfg.set_speed
+        lead = self._track(agents) if tracks and self.plan is not None else None
         due = np.array([self._held.get(a, (0,))[0] <= 0 for a in agents], bool)
         if due.any():
             spread = None if lead is None else lead.spread
@@ -177,8 +179,10 @@ class Driver:
         decision, u, hold = self._hold(agents, obs, mask, t_dec)
         self._steps += n
         self._holds += int(hold.sum())
-        held = None if lead is None else self._held_ab(t_par, hold, lead)
+        held = None if lead is None or not self.cfg.hold_gate else self._held_ab(t_par, hold, lead)
         params = self._execute(u, t_par, cap, held)
+        if lead is not None and self.cfg.set_speed:
+            params[:, FOLLOW, 1] = self._set_speed_ab(params[:, FOLLOW, 1], u, lead)
         return Command(decision, params, due, u, hold, t_dec, t_par)
 
     # ------------------------------------------------------------------ steps of act()
@@ -223,6 +227,14 @@ class Driver:
         a = held_accel(from_ab(t_par[:, FOLLOW, 1], c), self.plan.features["v"], lead.ref,
                        lead.free, cfg.hold_gain, cfg.hold_brake)  # fmt: skip
         return np.where(hold, to_ab(a, c), np.nan)
+
+    def _set_speed_ab(self, ab: np.ndarray, u: np.ndarray, lead: Lead) -> np.ndarray:
+        """(A,) the follow row's accel_brake ``ab`` bounded by the tracking of the set speed
+        that u's follow row sets (``LearnerConfig.set_speed``), where the leader is tracked."""
+        c, cfg = self.teacher.c, self.cfg
+        v_set = lead.ref + cfg.set_speed_span * (1.0 + u[:, FOLLOW, 0])
+        track = to_ab(cfg.hold_gain * (v_set - self.plan.features["v"]), c)
+        return np.where(lead.free, np.minimum(ab, track), ab).astype(np.float32)
 
     def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,
                 t_dec: np.ndarray, t_par: np.ndarray, mode: str,

@@ -6,12 +6,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from agents.driver import Driver, held_accel, lane_switched, steps_per_decision, track_leader
 from agents.learners.rbpdqn import RBPDQN, LearnerConfig, Policy
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import LEAD_SPREAD
 from agents.policies import stack_obs, to_actions
+from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
 from mixed_traffic.env.api import EGO_SCALE
 
@@ -94,6 +96,56 @@ def test_exploration_noise_is_held_for_its_decisions(hold: int) -> None:
     assert not np.array_equal(runs[0][0], runs[1][0])
     with pytest.raises(ValueError, match="noise_hold=0 must be >= 1"):
         Driver(policy, cfg, 0.1, noise_hold=0)
+
+
+def _set_speed_ring(u: float | None, seed: int = 0) -> dict:
+    """One 300 s episode of the 230 m ring with one AV whose set-speed parameter is ``u``
+    (``None``: all human); its metrics, and per step the driver's check of the form."""
+    from agents.rules.acc_lc_longitudinal import to_ab
+
+    cfg = EnvConfig(scenario="ring", ring_vehicles=22, ring_length=(230.0,), penetration=1 / 22,
+                    episode_length=300.0, seed=seed)  # fmt: skip
+    env = parallel_env(config=cfg, sumo_drives_avs=u is None)
+    lc = LearnerConfig(residual=True, set_speed=True)
+    learner = RBPDQN(LCAConfig(), lc)
+    with torch.no_grad():  # the follow row's set-speed output: tanh(bias) = u
+        learner.actor.head[2].bias.view(3, 2)[1, 0] = float(
+            np.arctanh(np.clip(u or 0.0, -0.999, 0.999))
+        )
+    driver = Driver(Policy(learner.actor, learner.critic, threads=1), lc, 0.1)
+    obs, _ = env.reset(seed=seed)
+    bound = 0
+    try:
+        while env.sim_time < 299.95:
+            agents = list(env.agents)
+            if u is None or not agents:
+                obs, *_ = env.step({})
+                continue
+            cmd = driver.act(stack_obs(obs, agents), agents)
+            ref = np.array([driver._ref[a][0] for a in agents])
+            v = driver.plan.features["v"]
+            track = to_ab(
+                lc.hold_gain * (ref + lc.set_speed_span * (1 + cmd.u[:, 1, 0]) - v),
+                driver.teacher.c,
+            )
+            follow = np.minimum(cmd.teacher_params[:, 1, 1], track)
+            seen = driver.plan.features["present"][:, 1, 0]
+            np.testing.assert_allclose(cmd.params[seen, 1, 1], follow[seen], atol=1e-6)
+            bound += int((track[seen] < cmd.teacher_params[seen, 1, 1]).sum())
+            obs, *_ = env.step(to_actions(agents, cmd.decision, cmd.params))
+        return {**env.episode_metrics(), "bound": bound}
+    finally:
+        env.close()
+
+
+def test_the_set_speed_form_reaches_follower_stopper_like_damping() -> None:
+    """Issue 43 item 3: the follow row's parameter sets a speed; at u = -1 (hold the leader's
+    40 s mean) one AV damps the ring's waves to under half the all-human speed spread and
+    drives faster; the tracking binds only where it is below ACC-LC's acceleration."""
+    human, held = _set_speed_ring(None), _set_speed_ring(-1.0)
+    assert held["bound"] > 100  # the set speed did drive
+    assert held["speed_std"] < 0.5 * human["speed_std"]
+    assert held["mean_speed"] > human["mean_speed"]
 
 
 def test_the_governor_caps_only_the_correction_that_lifts_the_acceleration() -> None:

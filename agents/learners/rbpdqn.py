@@ -129,6 +129,17 @@ class LearnerConfig:
     [s]; longer than a stop-and-go wave's period (about 30 s on the 260 m ring)."""
     hold_gain: float = 0.5
     """Gain of the held AV's speed tracking: acceleration per m/s below the reference [1/s]."""
+    set_speed: bool = False
+    """Residual form with a set speed (issue 43 item 3): the follow row's first parameter,
+    unused for steering (ACC-LC steers, as ``steer_control=False``), sets a speed that the row
+    tracks with ``hold_gain``: v_set = ref + ``set_speed_span``·(1 + u), with ref the leader's
+    speed averaged over ``hold_tau``; the row's acceleration is the smaller of that tracking
+    and the residual one, so ACC-LC's gap keeping still brakes. u = -1 holds ref, as
+    FollowerStopper holds its mean speed (a set speed below the mean would slow a ring down
+    without end), u = 0 sets ref + span and u = 1 ref + 2·span (loose). Without a leader, or
+    with a signal or give-way line in view, the residual row drives."""
+    set_speed_span: float = 2.5
+    """Reach of the set speed above the leader's mean at u = 0 [m/s]."""
     twin: bool = False
     """Clipped double Q (TD3, Fujimoto et al. 2018) against over-estimation: a second critic,
     trained on the same target, which takes the smaller of the two target critics' Q at the

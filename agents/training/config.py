@@ -96,6 +96,10 @@ class TrainConfig:
     """Decisions per stored transition [-]: n-step returns bootstrap n decisions ahead, so a
     reward reaches the values of earlier decisions n times faster
     (:mod:`agents.collection.intervals`); 1 = one-step, as runs before it."""
+    set_speed: bool = False
+    """Residual form with a set speed (``LearnerConfig.set_speed``): the follow row's first
+    parameter sets a speed between the leader's 40 s mean (u = -1, FollowerStopper-like
+    damping) and 5 m/s above it, which the row tracks unless ACC-LC brakes harder."""
     memory: bool = False
     """The policy reads the env's ``memory`` key (slow means and spreads of its own and its
     leader's speed, its last command: ``SensorConfig.memory``) in its fusion layer."""
@@ -290,6 +294,8 @@ class TrainConfig:
             self._bad("horizon", "must exceed decision_interval (γ = 1 - interval / horizon)")
         if not 0 <= self.explore_hold <= 600:
             self._bad("explore_hold", "must be in [0, 600] s")
+        if self.set_speed and not self.residual:
+            self._bad("set_speed", "the set speed bounds the residual form's row: use --residual")
         if not 1 <= self.n_step <= 200:
             self._bad("n_step", "must be in [1, 200] decisions")
         if self.twin and self.baseline in ("p-ddpg", "q-pamdp", "transfuser"):

@@ -78,7 +78,7 @@ def _learner_config(cfg: TrainConfig) -> LearnerConfig:
                          accel_delta=cfg.accel_delta, teacher_bonus=cfg.teacher_bonus,
                          decision_interval=cfg.decision_interval, multi_pass=cfg.multi_pass,
                          speed_governor=cfg.speed_governor,
-                         rss_governor=cfg.rss_governor, twin=cfg.twin,
+                         rss_governor=cfg.rss_governor, twin=cfg.twin, set_speed=cfg.set_speed,
                          # u of the residual form is already in bounded units, and ACC-LC's
                          # decisions get a selection bonus instead of the DQfD margin
                          **({"bc_steer_weight": 1.0, "demo_weight": 0.0} if cfg.residual
