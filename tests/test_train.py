@@ -240,6 +240,29 @@ def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None
     assert full.mean() > 0.6 and (chunk["discount"][~full] > 0.95**3).all()
 
 
+def test_wave_episodes_take_their_share_with_the_fleet_reward(tmp_path: Path) -> None:
+    """With ``wave_share`` a worker starts a wave episode (a drawn ring with one AV, or the
+    wave road at 5 % AVs, 300 s) once its wave agent-steps fall below the share; the training
+    reward carries the fleet terms."""
+    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1, demo_steps=0, wave_share=0.5,
+                      fleet_weights=(1.0, 0.5, 0.0)))  # fmt: skip
+    worker = RolloutWorker(tr.worker_specs()[0])
+    worker.set_weights(tr.weights())
+    try:
+        worker.collect(20)  # the first episode: straight-3lane, 2 s
+        assert not worker.wave and worker.env_cfg.scenario == "straight-3lane"
+        while not worker.wave:
+            worker.collect(20)
+        cfg = worker.env_cfg
+        assert cfg.episode_length == 300.0 and cfg.scenario in ("ring", "wave-highway")
+        assert cfg.penetration == (1 / 22 if cfg.scenario == "ring" else 0.05)
+        assert cfg.reward.w_local_speed == 1.0 and cfg.reward.w_follower_comfort == 0.5
+        worker.collect(50)
+        assert worker._steps["wave"] > 0 and worker._steps["other"] > 0
+    finally:
+        worker.close()
+
+
 def test_each_scenario_samples_the_densities_it_can_hold() -> None:
     ring = load_scenario("ring-220m")
     assert ring.feasible_densities((60.0, 180.0, 0.0)) == (60.0, None)

@@ -101,9 +101,28 @@ class WorkerSpec:
     """Decisions per stored transition (n-step returns, ``agents.collection.intervals``)."""
     explore_hold: float = 0.0
     """Time an AV's exploration noise is held [s] (0: a fresh draw at every decision)."""
+    wave_share: float = 0.0
+    """Share of the agent-steps driven in wave episodes (``wave_episode``) [-]."""
     crash_after_chunks: int = 0
     """Test hook: SIGKILL itself after sending this many chunks (incarnation 0 only)."""
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+WAVE_RING = (220.0, 270.0)
+"""Lengths a wave episode's 22-car ring is drawn from [m] (the ring task's training range)."""
+WAVE_SECONDS = 300.0
+"""Shortest wave episode [s]: waves form after 60-90 s and take minutes to clear."""
+
+
+def wave_episode(base: EnvConfig, rng: np.random.Generator) -> EnvConfig:
+    """A wave episode of ``base``'s settings: one AV on a 22-car ring of a drawn length, or
+    ``wave-highway`` at 5 % AVs (its default density), at least ``WAVE_SECONDS`` long."""
+    length = max(base.episode_length, WAVE_SECONDS)
+    if rng.random() < 0.5:
+        return replace(base, scenario="ring", density=None, ring_length=WAVE_RING,
+                       ring_vehicles=22, penetration=1 / 22, episode_length=length)  # fmt: skip
+    return replace(base, scenario="wave-highway", density=None, penetration=0.05,
+                   episode_length=length)  # fmt: skip
 
 
 def exploration_ladder(n_workers: int, base_eps: float, base_noise: float, spread: float) -> list:
@@ -201,6 +220,8 @@ class RolloutWorker:
         self._demo: Any = None
         self.demo_done = 0
         self.episode = 0
+        self._steps = {"wave": 0, "other": 0}  # agent-steps driven per kind of episode
+        self.wave = False
         self.seq = 0
         self.env: Any = None
         self._buf = LocalBuffer()
@@ -230,13 +251,17 @@ class RolloutWorker:
         s = self.spec
         self.rng = np.random.default_rng([s.seed, s.worker_id, s.run, s.incarnation, self.episode])
         self.episode += 1
-        scenario = str(self.rng.choice(s.scenarios))
-        densities = self._densities[scenario]
+        self.wave = self._steps["wave"] < s.wave_share * sum(self._steps.values())
+        if self.wave:
+            cfg = wave_episode(s.env_base, self.rng)
+        else:
+            scenario = str(self.rng.choice(s.scenarios))
+            densities = self._densities[scenario]
+            cfg = replace(s.env_base, scenario=scenario,
+                          density=densities[int(self.rng.integers(len(densities)))],
+                          penetration=float(self.rng.choice(s.penetrations)))  # fmt: skip
         cfg = replace(
-            s.env_base,
-            scenario=scenario,
-            density=densities[int(self.rng.integers(len(densities)))],
-            penetration=float(self.rng.choice(s.penetrations)),
+            cfg,
             weather=str(self.rng.choice(s.weathers)),
             seed=int(self.rng.integers(2**31 - 1)),
             second_instance="error",  # never a silent slow TraCI fallback in a worker
@@ -313,6 +338,7 @@ class RolloutWorker:
             terminal = np.array([bool(term[a]) for a in ended])
             self._buf.add(self.intervals.end(ended, stack_obs(obs2, ended), terminal, arrived))
         self.acted.update(agents)
+        self._steps["wave" if self.wave else "other"] += len(agents)
         self.ep_reward += float(r.sum())
         self.ep_actions += len(agents)
         if mode == "teacher":

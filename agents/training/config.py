@@ -125,6 +125,17 @@ class TrainConfig:
     """w4, weight of the impact term r4 in the training episodes' reward [-] (the paper's 0.2
     made r4 0.4 % of the reward's magnitude under ACC-LC; 2.0 makes it about 5 %, docs/agent.md).
     The NoIMP ablation sets it to 0."""
+    fleet_weights: tuple[float, ...] = (0.0, 0.0, 0.0)
+    """Weights of the fleet reward terms in the training episodes' reward [-]: w5
+    (r5_local_speed, the traffic around the AV), w6 (r6_follower_comfort, its followers'
+    accelerations) and w8 (r8_uniform_flow, Flow's desired velocity; ``RewardConfig``). An
+    AV's own choice changes its own return by little; these terms pay it for the traffic's.
+    Zeros = the paper's reward."""
+    wave_share: float = 0.0
+    """Share of each worker's agent-steps driven in wave episodes [-]: a 22-car ring of a
+    length drawn from 220-270 m with one AV, or ``wave-highway`` at 5 % AVs, each at least
+    300 s long (waves form after 60-90 s). A worker starts one whenever its wave share is
+    below this; 0 = none."""
     bootstrap_arrival: bool = True
     """Bootstrap at the end of the route from the last observation (False: arrival is a
     terminal state of value 0, which punishes progress)."""
@@ -307,6 +318,10 @@ class TrainConfig:
             self._bad("demo_policy", "the residual form corrects ACC-LC: use acc-lc")
         if not 0 <= self.impact_weight <= 10:
             self._bad("impact_weight", "must be in [0, 10]")
+        if len(self.fleet_weights) != 3 or not all(0 <= w <= 100 for w in self.fleet_weights):
+            self._bad("fleet_weights", "must be three weights (w5, w6, w8) in [0, 100]")
+        if not 0 <= self.wave_share < 1:
+            self._bad("wave_share", "must be in [0, 1)")
         for name in ("teacher_bonus", "reward_scale"):
             if not getattr(self, name) >= 0:
                 self._bad(name, "must be >= 0")
@@ -371,4 +386,7 @@ def env_base_config(cfg: TrainConfig, env_base: EnvConfig | None = None) -> EnvC
         sensors=replace(base.sensors, memory=base.sensors.memory or cfg.memory),
     )
     w4 = 0.0 if cfg.ablation == "noimp" or cfg.baseline == "drl-mf" else cfg.impact_weight
-    return replace(base, reward=replace(base.reward, w_impact=w4))
+    w5, w6, w8 = cfg.fleet_weights
+    reward = replace(base.reward, w_impact=w4, w_local_speed=w5, w_follower_comfort=w6,
+                     w_uniform=w8)  # fmt: skip
+    return replace(base, reward=reward)

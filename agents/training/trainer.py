@@ -261,7 +261,7 @@ class Trainer:
                 demo_policy=cfg.demo_policy, expert_labels=cfg.expert_labels,
                 learner=self.learner.cfg, reward_scale=cfg.reward_scale,
                 bootstrap_arrival=cfg.bootstrap_arrival, n_step=cfg.n_step,
-                explore_hold=cfg.explore_hold,
+                explore_hold=cfg.explore_hold, wave_share=cfg.wave_share,
                 crash_after_chunks=cfg.crash_after_chunks if i == 0 and self.c["run"] == 0 else 0,
             )
             for i in range(cfg.workers)
