@@ -144,10 +144,24 @@ class Driver:
         self._held: dict[str, list] = {}
         # per exploring agent: [decisions left, held noise (3, 2)]
         self._noise: dict[str, list] = {}
+        self.fixed_u: np.ndarray | None = None
+        """(3, 2) u that replaces the network's at every decision (``auto-mean``; None: the
+        network's own)."""
+        self._u_sum, self._u_count = np.zeros((3, 2)), 0  # the network's u at its decisions
         # per agent: the hold's reference speed [m/s] and the leader's variance about it
         self._ref: dict[str, tuple[float, float]] = {}
         self._alpha = min(1.0, step_length / cfg.hold_tau)
         self._steps = self._holds = 0  # agent-steps driven, and of them with the gate open
+
+    @property
+    def u_mean(self) -> np.ndarray | None:
+        """(3, 2) mean of the network's u over its decisions so far (None before any)."""
+        return self._u_sum / self._u_count if self._u_count else None
+
+    @property
+    def u_decisions(self) -> int:
+        """Decisions the network took so far (the count behind :attr:`u_mean`)."""
+        return self._u_count
 
     @property
     def hold_share(self) -> float | None:
@@ -263,6 +277,10 @@ class Driver:
                 else None
             )
             dec, u, hold = self.policy.choose(sub, mode == "explore", rng, bonus, noise)
+            self._u_sum += u.sum(axis=0)
+            self._u_count += len(u)
+            if self.fixed_u is not None:
+                u = np.broadcast_to(self.fixed_u, u.shape).astype(np.float32)
         hold &= residual
         for j, i in enumerate(idx.tolist()):
             self._held[agents[i]] = [self.k, int(dec[j]), u[j], bool(hold[j])]

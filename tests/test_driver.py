@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ from agents.driver import Driver, held_accel, lane_switched, steps_per_decision,
 from agents.learners.rbpdqn import RBPDQN, LearnerConfig, Policy
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import LEAD_SPREAD
-from agents.policies import stack_obs, to_actions
+from agents.policies import make_policy, stack_obs, to_actions
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
 from mixed_traffic.env.api import EGO_SCALE
@@ -323,3 +324,35 @@ def test_held_avs_do_not_ratchet_the_flow_down_in_rain(open_gate: Path) -> None:
     held = run_episode(config, "auto", 60.0, checkpoint=open_gate)["metrics"]
     assert held["collisions"] == 0
     assert held["mean_speed"] >= 0.85 * acc["mean_speed"]
+
+
+def test_auto_mean_holds_the_mean_of_autos_parameters(tmp_path, monkeypatch) -> None:
+    """``auto-mean`` (issue 43): AUTO's decisions with its continuous parameters replaced by
+    their mean over the reference states; the mean is AUTO's own over those episodes' decisions,
+    computed once per checkpoint and cached."""
+    from mixed_traffic.experiments import runner
+
+    monkeypatch.setenv("MIXED_TRAFFIC_CACHE", str(tmp_path))
+    short = (EnvConfig(scenario="straight", density=120.0, penetration=0.5, episode_length=3.0,
+                       seed=1),)  # fmt: skip
+    monkeypatch.setattr(runner, "REFERENCE_STATES", short)
+    u = runner.reference_u(None)
+    own = runner.run_episode(short[0], "auto", 0.0)["diagnostics"]
+    np.testing.assert_allclose(u.ravel(), own["u_mean"], atol=1e-6)
+    assert own["u_decisions"] > 0 and len(list((tmp_path / "auto_mean").glob("*.json"))) == 1
+    record = runner.run_episode(replace(short[0], seed=2), "auto-mean", 0.0)
+    assert record["status"] == "ok" and record["cell"]["policy"] == "auto-mean"
+    # the driver executes the fixed u at every decision, whatever its network says
+    policy = make_policy("auto-mean")
+    policy.driver.fixed_u = u
+    env = parallel_env(config=replace(short[0], seed=2))
+    try:
+        obs, _ = env.reset(seed=2)
+        for _ in range(10):
+            agents = list(env.agents)
+            cmd = policy.driver.act(stack_obs(obs, agents), agents)
+            np.testing.assert_allclose(cmd.u, np.broadcast_to(u, cmd.u.shape), atol=1e-6)
+            obs, *_ = env.step(to_actions(agents, cmd.decision, cmd.params))
+    finally:
+        env.close()
+    assert not np.allclose(policy.driver.u_mean, u)  # the network's own u differed
