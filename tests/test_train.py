@@ -209,17 +209,23 @@ def test_policy_transitions_carry_the_demonstrators_labels(tmp_path: Path) -> No
     assert np.abs(chunk["label_params"] - chunk["params"]).max() > 0.1
 
 
+def _collect(out: Path, n: int, **kw) -> dict:
+    """One worker's first chunk of ``n`` transitions of an untrained residual policy (6 s
+    episodes, no demonstrations)."""
+    tr = Trainer(_cfg(out, workers=1, env_steps=1, demo_steps=0, episode_length=6.0, **kw))
+    worker = RolloutWorker(tr.worker_specs()[0])
+    worker.set_weights(tr.weights())
+    try:
+        return worker.collect(n)
+    finally:
+        worker.close()
+
+
 def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None:
     """The residual form: one transition per 0.5 s decision (discount γ = 0.95 over a whole
     interval, more where a trip ended sooner), labels u = 0 and ACC-LC's decision, and an
     untrained network drives as ACC-LC plus the exploration noise on u."""
-    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1, demo_steps=0, episode_length=6.0))
-    worker = RolloutWorker(tr.worker_specs()[0])
-    worker.set_weights(tr.weights())
-    try:
-        chunk = worker.collect(200)
-    finally:
-        worker.close()
+    chunk = _collect(tmp_path / "n1", 200, n_step=1)
     n = len(chunk["decision"])
     assert chunk["labelled"].max() == 0.0 and not chunk["label_params"].any()
     np.testing.assert_array_equal(chunk["label_decision"], AccLcPolicy().act(chunk["obs"])[0])
@@ -228,14 +234,7 @@ def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None
     assert chunk["sim_steps"] * 0.5 > n / 5 * 0.1  # far fewer transitions than agent-steps
     assert 0 < np.abs(chunk["params"]).max() <= 1.0  # u: exploration noise around 0
     # 3-step returns: three whole intervals discount 0.95^3, the ends of trips less
-    tr = Trainer(_cfg(tmp_path / "n3", workers=1, env_steps=1, demo_steps=0, episode_length=6.0,
-                      n_step=3))  # fmt: skip
-    worker = RolloutWorker(tr.worker_specs()[0])
-    worker.set_weights(tr.weights())
-    try:
-        chunk = worker.collect(200)
-    finally:
-        worker.close()
+    chunk = _collect(tmp_path / "n3", 200, n_step=3)
     full = np.isclose(chunk["discount"], 0.95**3, atol=1e-5)
     assert full.mean() > 0.6 and (chunk["discount"][~full] > 0.95**3).all()
 

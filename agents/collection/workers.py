@@ -103,6 +103,8 @@ class WorkerSpec:
     """Time an AV's exploration noise is held [s] (0: a fresh draw at every decision)."""
     wave_share: float = 0.0
     """Share of the agent-steps driven in wave episodes (``wave_episode``) [-]."""
+    wave_kinds: tuple[str, ...] = ("ring", "wave-highway")
+    """The wave episodes drawn from."""
     crash_after_chunks: int = 0
     """Test hook: SIGKILL itself after sending this many chunks (incarnation 0 only)."""
     extra: dict[str, Any] = field(default_factory=dict)
@@ -114,11 +116,13 @@ WAVE_SECONDS = 300.0
 """Shortest wave episode [s]: waves form after 60-90 s and take minutes to clear."""
 
 
-def wave_episode(base: EnvConfig, rng: np.random.Generator) -> EnvConfig:
-    """A wave episode of ``base``'s settings: one AV on a 22-car ring of a drawn length, or
-    ``wave-highway`` at 5 % AVs (its default density), at least ``WAVE_SECONDS`` long."""
+def wave_episode(base: EnvConfig, rng: np.random.Generator,
+                 kinds: tuple[str, ...] = ("ring", "wave-highway")) -> EnvConfig:  # fmt: skip
+    """A wave episode of ``base``'s settings, of a kind drawn from ``kinds``: one AV on a 22-car
+    ring of a drawn length, or ``wave-highway`` at 5 % AVs (its default density), at least
+    ``WAVE_SECONDS`` long."""
     length = max(base.episode_length, WAVE_SECONDS)
-    if rng.random() < 0.5:
+    if str(rng.choice(kinds)) == "ring":
         return replace(base, scenario="ring", density=None, ring_length=WAVE_RING,
                        ring_vehicles=22, penetration=1 / 22, episode_length=length)  # fmt: skip
     return replace(base, scenario="wave-highway", density=None, penetration=0.05,
@@ -253,7 +257,7 @@ class RolloutWorker:
         self.episode += 1
         self.wave = self._steps["wave"] < s.wave_share * sum(self._steps.values())
         if self.wave:
-            cfg = wave_episode(s.env_base, self.rng)
+            cfg = wave_episode(s.env_base, self.rng, s.wave_kinds)
         else:
             scenario = str(self.rng.choice(s.scenarios))
             densities = self._densities[scenario]

@@ -136,6 +136,8 @@ class TrainConfig:
     length drawn from 220-270 m with one AV, or ``wave-highway`` at 5 % AVs, each at least
     300 s long (waves form after 60-90 s). A worker starts one whenever its wave share is
     below this; 0 = none."""
+    wave_kinds: tuple[str, ...] = ("ring", "wave-highway")
+    """The wave episodes drawn from (``auto-ring`` trains on rings alone)."""
     bootstrap_arrival: bool = True
     """Bootstrap at the end of the route from the last observation (False: arrival is a
     terminal state of value 0, which punishes progress)."""
@@ -322,6 +324,8 @@ class TrainConfig:
             self._bad("fleet_weights", "must be three weights (w5, w6, w8) in [0, 100]")
         if not 0 <= self.wave_share < 1:
             self._bad("wave_share", "must be in [0, 1)")
+        if not self.wave_kinds or not set(self.wave_kinds) <= {"ring", "wave-highway"}:
+            self._bad("wave_kinds", "choose one or both of ring, wave-highway")
         for name in ("teacher_bonus", "reward_scale"):
             if not getattr(self, name) >= 0:
                 self._bad(name, "must be >= 0")

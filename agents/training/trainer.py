@@ -262,6 +262,7 @@ class Trainer:
                 learner=self.learner.cfg, reward_scale=cfg.reward_scale,
                 bootstrap_arrival=cfg.bootstrap_arrival, n_step=cfg.n_step,
                 explore_hold=cfg.explore_hold, wave_share=cfg.wave_share,
+                wave_kinds=cfg.wave_kinds,
                 crash_after_chunks=cfg.crash_after_chunks if i == 0 and self.c["run"] == 0 else 0,
             )
             for i in range(cfg.workers)
