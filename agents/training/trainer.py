@@ -80,9 +80,11 @@ def _learner_config(cfg: TrainConfig) -> LearnerConfig:
                          speed_governor=cfg.speed_governor,
                          rss_governor=cfg.rss_governor, twin=cfg.twin, set_speed=cfg.set_speed,
                          # u of the residual form is already in bounded units, and ACC-LC's
-                         # decisions get a selection bonus instead of the DQfD margin
-                         **({"bc_steer_weight": 1.0, "demo_weight": 0.0} if cfg.residual
-                            else {}))  # fmt: skip
+                         # decisions get a selection bonus instead of the DQfD margin; a set
+                         # speed is cloned as lightly as the acceleration (at 1.0 the pull to
+                         # u = 0 held it there in the first auto-ring pilot)
+                         **({"bc_steer_weight": cfg.accel_bc_weight if cfg.set_speed else 1.0,
+                             "demo_weight": 0.0} if cfg.residual else {}))  # fmt: skip
 
 
 def _fresh_counters(cfg: TrainConfig) -> dict[str, Any]:
