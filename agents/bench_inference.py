@@ -15,7 +15,7 @@ import time
 import numpy as np
 import torch
 
-from agents.learning.rbpdqn import Policy
+from agents.learners.rbpdqn import Policy
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
 

@@ -2,7 +2,7 @@
 
 ``python -m mixed_traffic.bench --section learner`` (or ``python -m agents.bench_learner``)
 prints, per batch size and torch thread count: updates/s and samples/s (batch × updates/s) of
-:meth:`agents.learning.rbpdqn.RBPDQN.update` and of the reference learner (the code before
+:meth:`agents.learners.rbpdqn.RBPDQN.update` and of the reference learner (the code before
 issue 22: module-by-module forward with the slicing GRU, per-parameter Adam, clipping and soft
 updates), their ratio, and the transitions/s training could take in at ``TrainConfig``'s
 ``update_ratio``.
@@ -28,10 +28,10 @@ import torch
 from torch import Tensor, nn
 
 from agents.bench_inference import random_obs
-from agents.learning.config import TrainConfig
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig
-from agents.learning.replay import ReplayBuffer
+from agents.learners.rbpdqn import RBPDQN, LearnerConfig
+from agents.learners.replay import ReplayBuffer
 from agents.nets.lca import HistoryGRU, LCAConfig, fast_tanh
+from agents.training.config import TrainConfig
 
 
 class _ReferenceGRU(HistoryGRU):

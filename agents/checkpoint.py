@@ -1,4 +1,4 @@
-"""Atomic, validated checkpoints of an :class:`agents.learning.rbpdqn.RBPDQN` learner.
+"""Atomic, validated checkpoints of an :class:`agents.learners.rbpdqn.RBPDQN` learner.
 
 File content (``torch.save`` of a plain dict, loadable with ``weights_only=True``):
 ``{"format": FORMAT, "learner": learner.state_dict(), "meta": {...}}`` where ``meta`` holds at
@@ -16,8 +16,8 @@ from typing import Any
 import torch
 
 from agents.driver import Driver
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy, build_nets
-from agents.learning.variants import make_learner
+from agents.learners.rbpdqn import RBPDQN, LearnerConfig, Policy, build_nets
+from agents.learners.variants import make_learner
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
 from mixed_traffic.provenance import atomic_write

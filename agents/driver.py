@@ -27,7 +27,9 @@ Two forms (``LearnerConfig.residual``):
 
 Modes of :meth:`Driver.act`: ``greedy`` (evaluation), ``explore`` (Gaussian noise on u and
 ε-random decisions; needs an rng) and ``teacher`` (ACC-LC drives: u = 0 in the residual form,
-ACC-LC's parameters in the paper's).
+ACC-LC's parameters in the paper's). An agent's noise is held for ``noise_hold`` decisions
+(1: a fresh draw at each), so that an exploring AV drives one perturbed policy long enough for
+its effect on the traffic (a wave forming or damped) to show in the return.
 """
 
 from __future__ import annotations
@@ -37,7 +39,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from agents.learning.rbpdqn import LearnerConfig, Policy
+from agents.learners.rbpdqn import LearnerConfig, Policy
 from agents.nets.networks import FOLLOW, LEAD_SPREAD
 from agents.rules.acc_lc import AccLcPlan, AccLcPolicy
 from agents.rules.acc_lc_config import LANE_C
@@ -122,12 +124,16 @@ class Driver:
     """Batched decisions for the agents of one env step, with the hold between decisions."""
 
     def __init__(self, policy: Policy | None, cfg: LearnerConfig, step_length: float,
-                 teacher: AccLcPolicy | None = None) -> None:  # fmt: skip
-        """``policy`` may be None for teacher-only driving; ``teacher`` defaults to ACC-LC."""
-        self.policy, self.cfg = policy, cfg
+                 teacher: AccLcPolicy | None = None, noise_hold: int = 1) -> None:  # fmt: skip
+        """``policy`` may be None for teacher-only driving; ``teacher`` defaults to ACC-LC;
+        ``noise_hold``: decisions an exploration draw is held [-]."""
+        if noise_hold < 1:
+            raise ValueError(f"noise_hold={noise_hold} must be >= 1 decision")
+        self.policy, self.cfg, self.noise_hold = policy, cfg, noise_hold
         self.k = steps_per_decision(cfg.decision_interval, step_length)
         self.teacher = teacher if teacher is not None else AccLcPolicy(dt=step_length)
-        steer = cfg.steer_delta if cfg.steer_control else 0.0  # HEAD: ACC-LC steers
+        # HEAD and the set-speed form: ACC-LC steers
+        steer = cfg.steer_delta if cfg.steer_control and not cfg.set_speed else 0.0
         self.delta = np.array([steer, cfg.accel_delta], np.float32)
         self.rss = RssConfig()
         self.cap_factor = 1.0
@@ -136,10 +142,26 @@ class Driver:
         """ACC-LC's plan of the last :meth:`act` (None where ACC-LC was not evaluated)."""
         # per agent: [steps left, held decision, held u (3, 2), hold gate open]
         self._held: dict[str, list] = {}
+        # per exploring agent: [decisions left, held noise (3, 2)]
+        self._noise: dict[str, list] = {}
+        self.fixed_u: np.ndarray | None = None
+        """(3, 2) u that replaces the network's at every decision (``auto-mean``; None: the
+        network's own)."""
+        self._u_sum, self._u_count = np.zeros((3, 2)), 0  # the network's u at its decisions
         # per agent: the hold's reference speed [m/s] and the leader's variance about it
         self._ref: dict[str, tuple[float, float]] = {}
         self._alpha = min(1.0, step_length / cfg.hold_tau)
         self._steps = self._holds = 0  # agent-steps driven, and of them with the gate open
+
+    @property
+    def u_mean(self) -> np.ndarray | None:
+        """(3, 2) mean of the network's u over its decisions so far (None before any)."""
+        return self._u_sum / self._u_count if self._u_count else None
+
+    @property
+    def u_decisions(self) -> int:
+        """Decisions the network took so far (the count behind :attr:`u_mean`)."""
+        return self._u_count
 
     @property
     def hold_share(self) -> float | None:
@@ -162,7 +184,8 @@ class Driver:
         with_teacher = self.cfg.residual or labels or mode == "teacher"
         self.plan = None
         t_dec, t_par, cap = self._teacher(obs, n) if with_teacher else _no_teacher(n)
-        lead = self._track(agents) if self.cfg.hold_gate and self.plan is not None else None
+        tracks = self.cfg.hold_gate or self.cfg.set_speed
+        lead = self._track(agents) if tracks and self.plan is not None else None
         due = np.array([self._held.get(a, (0,))[0] <= 0 for a in agents], bool)
         if due.any():
             spread = None if lead is None else lead.spread
@@ -170,8 +193,10 @@ class Driver:
         decision, u, hold = self._hold(agents, obs, mask, t_dec)
         self._steps += n
         self._holds += int(hold.sum())
-        held = None if lead is None else self._held_ab(t_par, hold, lead)
+        held = None if lead is None or not self.cfg.hold_gate else self._held_ab(t_par, hold, lead)
         params = self._execute(u, t_par, cap, held)
+        if lead is not None and self.cfg.set_speed:
+            params[:, FOLLOW, 1] = self._set_speed_ab(params[:, FOLLOW, 1], u, lead)
         return Command(decision, params, due, u, hold, t_dec, t_par)
 
     # ------------------------------------------------------------------ steps of act()
@@ -180,6 +205,7 @@ class Driver:
         if len(self._held) > len(agents) or any(a not in self._held for a in agents):
             live = set(agents)
             self._held = {a: h for a, h in self._held.items() if a in live}
+            self._noise = {a: h for a, h in self._noise.items() if a in live}
 
     def _teacher(self, obs: Mapping[str, np.ndarray], n: int) -> tuple[np.ndarray, ...]:
         """ACC-LC's (decision (A,), params (A, 3, 2), the governors' accel_brake cap (A, 3))."""
@@ -216,6 +242,14 @@ class Driver:
                        lead.free, cfg.hold_gain, cfg.hold_brake)  # fmt: skip
         return np.where(hold, to_ab(a, c), np.nan)
 
+    def _set_speed_ab(self, ab: np.ndarray, u: np.ndarray, lead: Lead) -> np.ndarray:
+        """(A,) the follow row's accel_brake ``ab`` bounded by the tracking of the set speed
+        that u's follow row sets (``LearnerConfig.set_speed``), where the leader is tracked."""
+        c, cfg = self.teacher.c, self.cfg
+        v_set = lead.ref + cfg.set_speed_span * (1.0 + u[:, FOLLOW, 0])
+        track = to_ab(cfg.hold_gain * (v_set - self.plan.features["v"]), c)
+        return np.where(lead.free, np.minimum(ab, track), ab).astype(np.float32)
+
     def _decide(self, obs: Mapping[str, np.ndarray], agents: list[str], idx: np.ndarray,
                 t_dec: np.ndarray, t_par: np.ndarray, mode: str,
                 rng: np.random.Generator | None,
@@ -237,10 +271,31 @@ class Driver:
             sub = {k: np.asarray(v)[idx] for k, v in obs.items()}
             if spread is not None:
                 sub[LEAD_SPREAD] = spread[idx]
-            dec, u, hold = self.policy.choose(sub, mode == "explore", rng, bonus)
+            noise = (
+                self._held_noise([agents[i] for i in idx.tolist()], rng)
+                if mode == "explore"
+                else None
+            )
+            dec, u, hold = self.policy.choose(sub, mode == "explore", rng, bonus, noise)
+            self._u_sum += u.sum(axis=0)
+            self._u_count += len(u)
+            if self.fixed_u is not None:
+                u = np.broadcast_to(self.fixed_u, u.shape).astype(np.float32)
         hold &= residual
         for j, i in enumerate(idx.tolist()):
             self._held[agents[i]] = [self.k, int(dec[j]), u[j], bool(hold[j])]
+
+    def _held_noise(self, names: list[str], rng: np.random.Generator) -> np.ndarray:
+        """(D, 3, 2) exploration noise of the deciding agents ``names``: a fresh draw for each
+        (the rng's stream does not depend on the holds), kept where an agent's is still held."""
+        fresh = self.policy.draw_noise(rng, len(names))
+        for j, a in enumerate(names):
+            h = self._noise.get(a)
+            if h is None or h[0] <= 0:
+                h = self._noise[a] = [self.noise_hold, fresh[j].copy()]
+            fresh[j] = h[1]
+            h[0] -= 1
+        return fresh
 
     def _hold(self, agents: list[str], obs: Mapping[str, np.ndarray], mask: np.ndarray,
               t_dec: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip

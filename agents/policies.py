@@ -10,6 +10,7 @@ policy, so ACC-LC does not import this module) and are re-exported here.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -17,7 +18,8 @@ import numpy as np
 
 from agents.rules.obs_batch import OBS_KEYS, stack_obs, to_actions
 from agents.rules.spec import RULE_CONFIGS, PolicySpec, build_config, parse_policy
-from mixed_traffic.schema import STUDY_POLICIES
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.schema import AUTO_POLICIES, STUDY_POLICIES
 
 SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "auto.pt"
 PPO_RING = SHIPPED_CHECKPOINT.parent / "ppo_ring.zip"
@@ -75,7 +77,26 @@ def checkpoint_path(name: str, checkpoint: str | Path | None = None) -> Path:
                          "python -m mixed_traffic.benchmark.ppo")  # fmt: skip
     if name == "ppo-ring":
         return PPO_RING
-    return SHIPPED_CHECKPOINT if name in ("auto", "auto-raw") else STUDY_CHECKPOINTS / f"{name}.pt"
+    return SHIPPED_CHECKPOINT if name in AUTO_POLICIES else STUDY_CHECKPOINTS / f"{name}.pt"
+
+
+def with_inputs(config: EnvConfig, name: str, checkpoint: str | Path | None = None) -> EnvConfig:
+    """``config`` with the opt-in observation keys (``memory``, ``downstream``) that learned
+    policy ``name`` was trained with switched on, as its checkpoint's training env had them;
+    ``config`` itself for every other policy."""
+    base = parse_policy(name).base
+    if base not in AUTO_POLICIES and base not in STUDY_POLICIES:
+        return config
+    from agents.checkpoint import read_checkpoint
+
+    meta = read_checkpoint(checkpoint_path(base, checkpoint))["meta"]
+    trained = EnvConfig.from_dict(meta.get("env_base", {}))
+    if trained.sensors.memory:
+        sensors = replace(config.sensors, memory=True, memory_taus=trained.sensors.memory_taus)
+        config = replace(config, sensors=sensors)
+    if trained.v2x:
+        config = replace(config, v2x=True, v2x_feed=trained.v2x_feed)
+    return config
 
 
 class AutoPolicy:
@@ -134,7 +155,7 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
         ppo = PpoPolicy(checkpoint_path(base, checkpoint), dt=dt, name=base)
         ppo.interface.cap_factor = cap_factor(family)
         return ppo
-    if base in ("auto", "auto-raw") or base in STUDY_POLICIES:
+    if base in AUTO_POLICIES or base in STUDY_POLICIES:
         from agents.rules.tuned import cap_factor
 
         path = checkpoint_path(base, checkpoint)

@@ -98,8 +98,20 @@ class SensorConfig:
     """Detection ranges as a multiple of ``lidar_range`` and ``camera_range`` [-] (the
     detection-range study, paper §V-J). Distances stay scaled by the nominal ranges a policy
     was trained with, so above 1 they read beyond ±1 (the boxes widen to the factor)."""
+    memory: bool = False
+    """Add the ``memory`` key: slow summaries of the agent's own and its leader's speed and
+    its last command (:mod:`mixed_traffic.sensing.memory`)."""
+    memory_taus: tuple[float, ...] = (10.0, 40.0)
+    """Time constants of ``memory``'s exponential means and spreads [s]."""
 
     def __post_init__(self) -> None:
+        taus = self.memory_taus
+        ok = isinstance(taus, tuple) and 1 <= len(taus) <= 8
+        ok = ok and all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in taus)
+        if not ok or not all(0.0 < x <= 3600.0 for x in taus):
+            raise ValueError(f"SensorConfig.memory_taus={taus!r} must be 1-8 time constants "
+                             "in (0, 3600] s")  # fmt: skip
+        _check_bool(self, "memory")
         _check_range(self, "lidar_range", 0.0, 500.0, lo_open=True)
         _check_range(self, "camera_range", 0.0, 500.0, lo_open=True)
         _check_range(self, "range_factor", 0.0, 2.0, lo_open=True)

@@ -93,10 +93,13 @@ ABLATIONS = ("auto-noimp", "auto-novec", "auto-nostar", "auto-nolane", "auto-noh
 STUDY_POLICIES = ("rbp-dqn", *BASELINES, *ABLATIONS)
 """Policies of ``python -m mixed_traffic.study``, each its own checkpoint in
 agents/checkpoints/study/; rbp-dqn is AUTO's training pipeline at the study's budget."""
-LEARNED = ("auto", "auto-raw", "ppo", "ppo-ring", *STUDY_POLICIES)
+AUTO_POLICIES = ("auto", "auto-raw", "auto-mean")
+"""AUTO's checkpoint with the safety module, without it, and with its continuous parameters
+replaced by their mean over a reference set of states (``runner.reference_u``)."""
+LEARNED = (*AUTO_POLICIES, "ppo", "ppo-ring", *STUDY_POLICIES)
 """Policies that load a checkpoint."""
 POLICIES = (
-    "auto", "auto-raw", "acc-lc", "acc-lc-tuned", "acc-lc-conservative", "idm", "random",
+    *AUTO_POLICIES, "acc-lc", "acc-lc-tuned", "acc-lc-conservative", "idm", "random",
     "follower-stopper",
     "pi-saturation", "ppo", "ppo-ring", *STUDY_POLICIES,
 )  # fmt: skip

@@ -11,8 +11,9 @@ import torch
 
 from agents.bench_inference import random_obs
 from agents.checkpoint import load_checkpoint, load_policy, save_checkpoint
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy, obs_to_torch
-from agents.learning.replay import ReplayBuffer
+from agents.learners.rbpdqn import RBPDQN, LearnerConfig, Policy, obs_to_torch
+from agents.learners.replay import ReplayBuffer
+from agents.learners.variants import make_learner
 from agents.nets.fused import FusedActorCritic
 from agents.nets.lca import LCA, LCAConfig
 from agents.nets.networks import FOLLOW, Actor, Critic, masked_q, select
@@ -109,11 +110,13 @@ def test_policy_respects_mask_with_exploration() -> None:
 
 
 @pytest.mark.parametrize(
-    ("ego_fusion", "multi_pass"), [(True, False), (False, False), (True, True)]
+    ("ego_fusion", "multi_pass", "extra"),
+    [(True, False, 0), (False, False, 0), (True, True, 0), (True, False, 18), (False, True, 12)],
 )
 @pytest.mark.parametrize("b", [1, 7, 128])
-def test_fused_matches_reference(b: int, ego_fusion: bool, multi_pass: bool) -> None:
-    cfg = LCAConfig(ego_fusion=ego_fusion)
+def test_fused_matches_reference(b: int, ego_fusion: bool, multi_pass: bool, extra: int) -> None:
+    """Also with the observation's extra vector (memory and downstream) in the fusion."""
+    cfg = LCAConfig(ego_fusion=ego_fusion, extra=extra)
     torch.manual_seed(3)
     actor, critic = Actor(cfg), Critic(cfg, multi_pass=multi_pass)
     obs = _obs(b, cfg, seed=b)
@@ -125,6 +128,9 @@ def test_fused_matches_reference(b: int, ego_fusion: bool, multi_pass: bool) -> 
     assert hold is None
     torch.testing.assert_close(p, p_ref, atol=1e-5, rtol=1e-4)
     torch.testing.assert_close(q, q_ref, atol=1e-5, rtol=1e-4)
+    if extra:  # the vector is read: another extra changes the answer
+        obs["extra"] = obs["extra"] + 0.5
+        assert not torch.allclose(FusedActorCritic(actor, critic)(obs)[0], p)
 
 
 def test_multi_pass_q_sees_only_its_own_parameters() -> None:
@@ -257,6 +263,38 @@ def test_td_target_uses_each_rows_discount() -> None:
     y = learner.td_target(batch)
     gamma = torch.tensor([0.95, 0.99, 0.9, 0.5])
     torch.testing.assert_close(y, batch["reward"] + gamma * best)
+
+
+def test_twin_critics_take_the_smaller_target_at_the_first_critics_best_decision(tmp_path) -> None:
+    cfg = LCAConfig()
+    learner = RBPDQN(cfg, LearnerConfig(twin=True))
+    single = RBPDQN(cfg)  # the same seed: the first pair is the one-critic learner's
+    assert all(torch.equal(a, b) for a, b in zip(learner.critic.parameters(),
+                                                 single.critic.parameters()))  # fmt: skip
+    batch = _batch(16, cfg)
+    batch["done"][:] = 0.0
+    nxt = batch["next_obs"]
+    with torch.no_grad():
+        u = learner.actor_targ(nxt)
+        q1 = masked_q(learner.critic_targ(nxt, u), nxt["action_mask"])
+        best, arg = q1.max(dim=1)
+        q2 = learner.critic2_targ(nxt, u).gather(1, arg[:, None])[:, 0]
+    assert not torch.equal(q2, best)  # the twin is its own draw
+    torch.testing.assert_close(learner.td_target(batch),
+                               batch["reward"] + 0.9 * torch.minimum(best, q2))  # fmt: skip
+    assert (learner.td_target(batch) <= single.td_target(batch) + 1e-6).all()
+    before = [p.detach().clone() for p in learner.critic2.parameters()]
+    learner.update(batch)  # both critics learn
+    assert any(not torch.equal(a, b) for a, b in zip(before, learner.critic2.parameters()))
+    path = save_checkpoint(tmp_path / "twin.pt", learner)
+    loaded, _ = load_checkpoint(path)
+    assert loaded.cfg.twin and all(
+        torch.equal(a, b) for a, b in zip(loaded.critic2.parameters(), learner.critic2.parameters())
+    )
+    batch2 = _batch(16, cfg, seed=3)
+    assert loaded.update(batch2) == learner.update(batch2)  # resumes with the twin's optimiser
+    with pytest.raises(ValueError, match="twin critics apply to rbp-dqn only"):
+        make_learner(cfg, LearnerConfig(twin=True, algorithm="p-ddpg"))
 
 
 def test_residual_form_starts_at_zero() -> None:

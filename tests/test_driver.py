@@ -2,16 +2,19 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from agents.driver import Driver, held_accel, lane_switched, steps_per_decision, track_leader
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig, Policy
+from agents.learners.rbpdqn import RBPDQN, LearnerConfig, Policy
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import LEAD_SPREAD
-from agents.policies import stack_obs, to_actions
+from agents.policies import make_policy, stack_obs, to_actions
+from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
 from mixed_traffic.env.api import EGO_SCALE
 
@@ -62,6 +65,88 @@ def test_zero_residual_drives_as_acc_lc_and_decides_every_interval(interval: flo
     assert changes > 0  # the merge makes ACC-LC change lanes
     assert driver.hold_share == 0.0  # no gate: never held
     assert set(gaps) == {steps_per_decision(interval, 0.1) - 1}
+
+
+@pytest.mark.parametrize("hold", [1, 3])
+def test_exploration_noise_is_held_for_its_decisions(hold: int) -> None:
+    """An untrained residual network (u = 0) explores with u = its noise: each agent keeps one
+    draw for ``hold`` decisions, and agents draw apart."""
+    cfg = LearnerConfig(residual=True, decision_interval=0.1)
+    learner = RBPDQN(LCAConfig(z=5, m=10), cfg)
+    policy = Policy(learner.actor, learner.critic, noise_std=0.3, epsilon=0.0, threads=1)
+    driver = Driver(policy, cfg, 0.1, noise_hold=hold)
+    env = parallel_env(scenario="straight-3lane", density=60, penetration=0.5, episode_length=3,
+                       seed=1)  # fmt: skip
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=1)
+    us: dict[str, list[np.ndarray]] = {}
+    try:
+        while env.agents:
+            agents = list(env.agents)
+            cmd = driver.act(stack_obs(obs, agents), agents, "explore", rng)
+            for a, u in zip(agents, cmd.u):
+                us.setdefault(a, []).append(u.copy())
+            obs, *_ = env.step(to_actions(agents, cmd.decision, cmd.params))
+    finally:
+        env.close()
+    runs = [u for u in us.values() if len(u) >= 6]
+    assert len(runs) >= 2
+    for u in runs:  # a new draw exactly every ``hold`` decisions
+        changed = [not np.array_equal(a, b) for a, b in zip(u, u[1:])]
+        assert changed == [(i + 1) % hold == 0 for i in range(len(changed))]
+    assert not np.array_equal(runs[0][0], runs[1][0])
+    with pytest.raises(ValueError, match="noise_hold=0 must be >= 1"):
+        Driver(policy, cfg, 0.1, noise_hold=0)
+
+
+def _set_speed_ring(u: float | None, seed: int = 0) -> dict:
+    """One 300 s episode of the 230 m ring with one AV whose set-speed parameter is ``u``
+    (``None``: all human); its metrics, and per step the driver's check of the form."""
+    from agents.rules.acc_lc_longitudinal import to_ab
+
+    cfg = EnvConfig(scenario="ring", ring_vehicles=22, ring_length=(230.0,), penetration=1 / 22,
+                    episode_length=300.0, seed=seed)  # fmt: skip
+    env = parallel_env(config=cfg, sumo_drives_avs=u is None)
+    lc = LearnerConfig(residual=True, set_speed=True)
+    learner = RBPDQN(LCAConfig(), lc)
+    with torch.no_grad():  # the follow row's set-speed output: tanh(bias) = u
+        learner.actor.head[2].bias.view(3, 2)[1, 0] = float(
+            np.arctanh(np.clip(u or 0.0, -0.999, 0.999))
+        )
+    driver = Driver(Policy(learner.actor, learner.critic, threads=1), lc, 0.1)
+    obs, _ = env.reset(seed=seed)
+    bound = 0
+    try:
+        while env.sim_time < 299.95:
+            agents = list(env.agents)
+            if u is None or not agents:
+                obs, *_ = env.step({})
+                continue
+            cmd = driver.act(stack_obs(obs, agents), agents)
+            ref = np.array([driver._ref[a][0] for a in agents])
+            v = driver.plan.features["v"]
+            track = to_ab(
+                lc.hold_gain * (ref + lc.set_speed_span * (1 + cmd.u[:, 1, 0]) - v),
+                driver.teacher.c,
+            )
+            follow = np.minimum(cmd.teacher_params[:, 1, 1], track)
+            seen = driver.plan.features["present"][:, 1, 0]
+            np.testing.assert_allclose(cmd.params[seen, 1, 1], follow[seen], atol=1e-6)
+            bound += int((track[seen] < cmd.teacher_params[seen, 1, 1]).sum())
+            obs, *_ = env.step(to_actions(agents, cmd.decision, cmd.params))
+        return {**env.episode_metrics(), "bound": bound}
+    finally:
+        env.close()
+
+
+def test_the_set_speed_form_reaches_follower_stopper_like_damping() -> None:
+    """Issue 43 item 3: the follow row's parameter sets a speed; at u = -1 (hold the leader's
+    40 s mean) one AV damps the ring's waves to under half the all-human speed spread and
+    drives faster; the tracking binds only where it is below ACC-LC's acceleration."""
+    human, held = _set_speed_ring(None), _set_speed_ring(-1.0)
+    assert held["bound"] > 100  # the set speed did drive
+    assert held["speed_std"] < 0.5 * human["speed_std"]
+    assert held["mean_speed"] > human["mean_speed"]
 
 
 def test_the_governor_caps_only_the_correction_that_lifts_the_acceleration() -> None:
@@ -120,7 +205,7 @@ def test_a_closed_gate_is_the_same_policy_and_is_not_trained(tmp_path) -> None:
 
     from agents.bench_inference import random_obs
     from agents.checkpoint import load_checkpoint, save_checkpoint, with_hold_gate
-    from agents.learning.fleet_search import get_theta, set_theta
+    from agents.training.fleet_search import get_theta, set_theta
 
     lca = LCAConfig(z=5, m=10)
     learner = RBPDQN(lca, LearnerConfig(residual=True))
@@ -175,7 +260,7 @@ def test_an_eager_residual_speeds_without_the_governor_and_not_with_it(tmp_path)
     import dataclasses
 
     from agents.checkpoint import save_checkpoint
-    from agents.learning.fleet_search import get_theta, set_theta
+    from agents.training.fleet_search import get_theta, set_theta
     from mixed_traffic.config import EnvConfig
     from mixed_traffic.experiments.runner import run_episode
 
@@ -201,8 +286,8 @@ def test_an_eager_residual_speeds_without_the_governor_and_not_with_it(tmp_path)
 def open_gate(tmp_path_factory) -> Path:
     """The shipped AUTO with its hold gate forced open (bias only: it holds in every state)."""
     from agents.checkpoint import load_checkpoint, save_checkpoint, with_hold_gate
-    from agents.learning.fleet_search import get_theta, set_theta
     from agents.policies import SHIPPED_CHECKPOINT
+    from agents.training.fleet_search import get_theta, set_theta
 
     learner, meta = load_checkpoint(SHIPPED_CHECKPOINT)
     gated = with_hold_gate(learner)
@@ -239,3 +324,35 @@ def test_held_avs_do_not_ratchet_the_flow_down_in_rain(open_gate: Path) -> None:
     held = run_episode(config, "auto", 60.0, checkpoint=open_gate)["metrics"]
     assert held["collisions"] == 0
     assert held["mean_speed"] >= 0.85 * acc["mean_speed"]
+
+
+def test_auto_mean_holds_the_mean_of_autos_parameters(tmp_path, monkeypatch) -> None:
+    """``auto-mean`` (issue 43): AUTO's decisions with its continuous parameters replaced by
+    their mean over the reference states; the mean is AUTO's own over those episodes' decisions,
+    computed once per checkpoint and cached."""
+    from mixed_traffic.experiments import runner
+
+    monkeypatch.setenv("MIXED_TRAFFIC_CACHE", str(tmp_path))
+    short = (EnvConfig(scenario="straight", density=120.0, penetration=0.5, episode_length=3.0,
+                       seed=1),)  # fmt: skip
+    monkeypatch.setattr(runner, "REFERENCE_STATES", short)
+    u = runner.reference_u(None)
+    own = runner.run_episode(short[0], "auto", 0.0)["diagnostics"]
+    np.testing.assert_allclose(u.ravel(), own["u_mean"], atol=1e-6)
+    assert own["u_decisions"] > 0 and len(list((tmp_path / "auto_mean").glob("*.json"))) == 1
+    record = runner.run_episode(replace(short[0], seed=2), "auto-mean", 0.0)
+    assert record["status"] == "ok" and record["cell"]["policy"] == "auto-mean"
+    # the driver executes the fixed u at every decision, whatever its network says
+    policy = make_policy("auto-mean")
+    policy.driver.fixed_u = u
+    env = parallel_env(config=replace(short[0], seed=2))
+    try:
+        obs, _ = env.reset(seed=2)
+        for _ in range(10):
+            agents = list(env.agents)
+            cmd = policy.driver.act(stack_obs(obs, agents), agents)
+            np.testing.assert_allclose(cmd.u, np.broadcast_to(u, cmd.u.shape), atol=1e-6)
+            obs, *_ = env.step(to_actions(agents, cmd.decision, cmd.params))
+    finally:
+        env.close()
+    assert not np.allclose(policy.driver.u_mean, u)  # the network's own u differed

@@ -12,7 +12,9 @@ import pytest
 import torch
 
 from agents.checkpoint import load_checkpoint, save_checkpoint
-from agents.learning.fleet_search import (
+from agents.learners.rbpdqn import RBPDQN, LearnerConfig
+from agents.nets.lca import LCAConfig
+from agents.training.fleet_search import (
     Adam,
     SearchConfig,
     accel_rows,
@@ -22,8 +24,6 @@ from agents.learning.fleet_search import (
     set_theta,
     unsafe_events,
 )
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig
-from agents.nets.lca import LCAConfig
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.fleet import FleetConfig, FleetSearch, main, scenario_pool
 

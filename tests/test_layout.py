@@ -90,6 +90,29 @@ def test_no_import_circles() -> None:
     assert _circles(ROOT, "mixed_traffic", "agents", "analysis") == []
 
 
+#: agents/ from the ground up, the way TorchRL keeps nets, losses, collectors and trainers apart:
+#: each layer imports only layers before it.
+AGENT_LAYERS = (("agents.rules", "agents.nets"), ("agents.learners",),
+                ("agents.longitudinal", "agents.ppo_policy", "agents.driver"), ("agents.checkpoint",),
+                ("agents.policies",), ("agents.collection",), ("agents.training",),
+                ("agents.bench_inference", "agents.bench_learner"))  # fmt: skip
+
+
+def _layer(module: str) -> int | None:
+    for i, layer in enumerate(AGENT_LAYERS):
+        if any(module == p or module.startswith(p + ".") for p in layer):
+            return i
+    return None
+
+
+def test_agents_import_only_the_layers_below() -> None:
+    paths = {m: p for m, p in _modules("agents").items() if m != "agents"}
+    assert [m for m in paths if _layer(m) is None] == []  # a new module takes its place
+    upward = [f"{m} -> {dep}" for m, path in paths.items()
+              for dep in _imports(m, path, set(paths)) if _layer(dep) > _layer(m)]  # fmt: skip
+    assert upward == []
+
+
 _PROBE = """
 import importlib, os, sys
 heavy, preload, modules = sys.argv[1], sys.argv[2].split(","), sys.argv[3:]

@@ -16,7 +16,7 @@ import torch
 
 from agents.bench_learner import _ReferenceGRU, random_batches, reference_learner
 from agents.checkpoint import load_checkpoint
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig
+from agents.learners.rbpdqn import RBPDQN, LearnerConfig
 from agents.nets.lca import HistoryGRU, LCAConfig
 
 CHECKPOINT = Path(__file__).resolve().parents[1] / "agents" / "checkpoints" / "auto.pt"

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agents.learning.config import TrainConfig
+from agents.training.config import TrainConfig
 from mixed_traffic.config import EnvConfig, SensorConfig
 from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.experiments import evaluate, sweep

@@ -12,7 +12,7 @@ from agents.rules.spec import parse_policy
 from agents.rules.tuned import TUNED_FILE, tuned_params
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.evaluate import main as evaluate
-from mixed_traffic.experiments.runner import run_episode
+from mixed_traffic.experiments.runner import run_episode, sumo_drives
 from mixed_traffic.experiments.sweep import SweepConfig
 from mixed_traffic.experiments.tune_acc_lc import default_choice, ranked, setting_table
 
@@ -28,6 +28,8 @@ def test_specs_are_canonical_and_reach_the_rule() -> None:
     assert stern.c.dx0 == (4.0, 5.0, 6.0) and stern.c.window == 20.0
     # the conservative variant keeps its own base under the changed field
     assert make_policy("acc-lc-conservative:T=1.0").c.s0 == 3.0
+    # whether SUMO drives the AVs is read from the parsed spec, not the raw text
+    assert sumo_drives(" idm ") and not sumo_drives("acc-lc:T=1.0")
 
 
 @pytest.mark.parametrize(

@@ -158,7 +158,7 @@ def test_rss_caps_per_lane_and_the_driver_governor() -> None:
     lane's leader would bound a change too, while the ego still overlaps it). The driver's
     RSS governor lifts no row above its column's cap unless ACC-LC's own is higher."""
     from agents.driver import Driver
-    from agents.learning.rbpdqn import LearnerConfig
+    from agents.learners.rbpdqn import LearnerConfig
     from agents.rules.acc_lc_config import AccLcConfig
     from agents.rules.rss import rss_caps
 

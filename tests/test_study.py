@@ -12,8 +12,8 @@ import torch
 from pypdf import PdfReader
 
 from agents.bench_inference import random_obs
-from agents.learning.rbpdqn import LearnerConfig, Policy, build_nets, obs_to_torch
-from agents.learning.variants import PDDPG, QPAMDP, Imitation, make_learner
+from agents.learners.rbpdqn import LearnerConfig, Policy, build_nets, obs_to_torch
+from agents.learners.variants import PDDPG, QPAMDP, Imitation, make_learner
 from agents.nets.lca import LCAConfig
 from agents.nets.raster import CHANNELS, COLS_PER_LANE, ROWS, rasterize
 from mixed_traffic.experiments import study

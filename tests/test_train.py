@@ -1,4 +1,4 @@
-"""Multi-worker training (agents.learning.trainer, agents.collection.workers, mixed_traffic.experiments.train) on real SUMO.
+"""Multi-worker training (agents.training.trainer, agents.collection.workers, mixed_traffic.experiments.train) on real SUMO.
 
 Tiny budgets: a few thousand transitions of 2 s episodes on one straight scenario.
 """
@@ -16,9 +16,13 @@ import torch
 
 from agents.checkpoint import load_checkpoint
 from agents.collection.workers import RolloutWorker
-from agents.learning.config import TrainConfig, feasible_densities
-from agents.learning.trainer import Trainer
 from agents.rules.acc_lc import AccLcPolicy
+from agents.rules.obs_batch import stack_obs
+from agents.training.config import TrainConfig
+from agents.training.trainer import Trainer
+from mixed_traffic.config import EnvConfig, SensorConfig
+from mixed_traffic.env import parallel_env
+from mixed_traffic.experiments.runner import run_episode
 from mixed_traffic.experiments.train import main
 from mixed_traffic.world.registry import load_scenario
 
@@ -64,6 +68,38 @@ def test_two_worker_smoke_cli(tmp_path: Path) -> None:
     assert AutoPolicy(out / "auto.pt").checkpoint.is_file()
 
 
+def test_a_run_with_memory_and_v2x_reads_the_opt_in_keys(tmp_path: Path) -> None:
+    """The env's ``memory`` and ``downstream`` keys reach the replay and the fusion layer, and
+    the trained policy refuses an env without them."""
+    from agents.policies import make_policy
+
+    info = Trainer(_cfg(tmp_path, workers=1, env_steps=800, memory=True, v2x=True)).run()
+    assert info["updates"] > 0
+    learner, _ = load_checkpoint(tmp_path / "auto.pt")
+    assert learner.lca_cfg.extra == 12 + 3 * 2
+    # the runner switches on the keys the checkpoint was trained with
+    plain = EnvConfig(scenario="straight-3lane", density=60.0, penetration=0.2, episode_length=2.0)
+    record = run_episode(plain, "auto", 0.0, checkpoint=tmp_path / "auto.pt")
+    assert record["status"] == "ok"
+    assert record["config"]["v2x"] and record["config"]["sensors"]["memory"]
+    for memory in (True, False):
+        policy = make_policy("auto", checkpoint=tmp_path / "auto.pt")
+        env = parallel_env(config=EnvConfig(scenario="straight-3lane", density=60.0,
+                                            penetration=0.2, episode_length=2.0, v2x=True,
+                                            sensors=SensorConfig(memory=memory)))  # fmt: skip
+        try:
+            obs, _ = env.reset(seed=0)
+            batch = stack_obs(obs, env.agents)
+            if memory:
+                decision, _ = policy.act(batch, env.agents)
+                assert decision.shape == (len(env.agents),)
+            else:
+                with pytest.raises(ValueError, match="reads 18 opt-in observation features"):
+                    policy.act(batch, env.agents)
+        finally:
+            env.close()
+
+
 def test_resume_continues_counters(tmp_path: Path) -> None:
     first = Trainer(_cfg(tmp_path, workers=1, env_steps=1500, checkpoint_every=1e-9)).run()
     snaps = sorted((tmp_path / "snapshots").glob("*.pt"))  # one per periodic checkpoint
@@ -106,15 +142,20 @@ def test_provenance_names_the_revision_the_run_started_at(tmp_path: Path, monkey
 def test_init_fine_tunes_from_a_checkpoint(tmp_path: Path) -> None:
     first = Trainer(_cfg(tmp_path / "a", workers=1, env_steps=1000)).run()
     src = tmp_path / "a" / "auto.pt"
-    tr = Trainer(_cfg(tmp_path / "b", workers=1, env_steps=800, demo_steps=0, init=str(src)))
+    # the second stage adds twin critics and 3-step returns: the one-critic weights fill the
+    # first critic, the twin keeps its own initialisation
+    stage = dict(workers=1, demo_steps=0, twin=True, n_step=3)
+    tr = Trainer(_cfg(tmp_path / "b", env_steps=800, init=str(src), **stage))
     source, _ = load_checkpoint(src)
     for pa, pb in zip(tr.learner.actor.parameters(), source.actor.parameters(), strict=True):
         assert torch.equal(pa, pb)
+    assert tr.learner.critic2 is not None
     assert tr.c["env_steps"] == 0 and len(tr.replay) == 0 and tr.learner.steps == 0
     info = tr.run()
     assert info["init"]["env_steps"] == first["env_steps"] and info["init"]["path"] == str(src)
     assert info["updates"] > 0 and info["env_steps"] >= 800
-    resumed = Trainer(_cfg(tmp_path / "b", workers=1, env_steps=900), resume=True)
+    assert load_checkpoint(tmp_path / "b" / "auto.pt")[0].cfg.twin
+    resumed = Trainer(_cfg(tmp_path / "b", env_steps=900, **stage), resume=True)
     assert resumed.c["init"]["path"] == str(src)  # provenance survives a resume
     src.write_bytes(b"not a checkpoint")
     with pytest.raises(ValueError, match=r"auto\.pt.*corrupt"):
@@ -168,17 +209,23 @@ def test_policy_transitions_carry_the_demonstrators_labels(tmp_path: Path) -> No
     assert np.abs(chunk["label_params"] - chunk["params"]).max() > 0.1
 
 
+def _collect(out: Path, n: int, **kw) -> dict:
+    """One worker's first chunk of ``n`` transitions of an untrained residual policy (6 s
+    episodes, no demonstrations)."""
+    tr = Trainer(_cfg(out, workers=1, env_steps=1, demo_steps=0, episode_length=6.0, **kw))
+    worker = RolloutWorker(tr.worker_specs()[0])
+    worker.set_weights(tr.weights())
+    try:
+        return worker.collect(n)
+    finally:
+        worker.close()
+
+
 def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None:
     """The residual form: one transition per 0.5 s decision (discount γ = 0.95 over a whole
     interval, more where a trip ended sooner), labels u = 0 and ACC-LC's decision, and an
     untrained network drives as ACC-LC plus the exploration noise on u."""
-    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1, demo_steps=0, episode_length=6.0))
-    worker = RolloutWorker(tr.worker_specs()[0])
-    worker.set_weights(tr.weights())
-    try:
-        chunk = worker.collect(200)
-    finally:
-        worker.close()
+    chunk = _collect(tmp_path / "n1", 200, n_step=1)
     n = len(chunk["decision"])
     assert chunk["labelled"].max() == 0.0 and not chunk["label_params"].any()
     np.testing.assert_array_equal(chunk["label_decision"], AccLcPolicy().act(chunk["obs"])[0])
@@ -186,14 +233,41 @@ def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None
     assert full.mean() > 0.8 and (chunk["discount"][~full] > 0.95).all()
     assert chunk["sim_steps"] * 0.5 > n / 5 * 0.1  # far fewer transitions than agent-steps
     assert 0 < np.abs(chunk["params"]).max() <= 1.0  # u: exploration noise around 0
+    # 3-step returns: three whole intervals discount 0.95^3, the ends of trips less
+    chunk = _collect(tmp_path / "n3", 200, n_step=3)
+    full = np.isclose(chunk["discount"], 0.95**3, atol=1e-5)
+    assert full.mean() > 0.6 and (chunk["discount"][~full] > 0.95**3).all()
+
+
+def test_wave_episodes_take_their_share_with_the_fleet_reward(tmp_path: Path) -> None:
+    """With ``wave_share`` a worker starts a wave episode (a drawn ring with one AV, or the
+    wave road at 5 % AVs, 300 s) once its wave agent-steps fall below the share; the training
+    reward carries the fleet terms."""
+    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1, demo_steps=0, wave_share=0.5,
+                      fleet_weights=(1.0, 0.5, 0.0)))  # fmt: skip
+    worker = RolloutWorker(tr.worker_specs()[0])
+    worker.set_weights(tr.weights())
+    try:
+        worker.collect(20)  # the first episode: straight-3lane, 2 s
+        assert not worker.wave and worker.env_cfg.scenario == "straight-3lane"
+        while not worker.wave:
+            worker.collect(20)
+        cfg = worker.env_cfg
+        assert cfg.episode_length == 300.0 and cfg.scenario in ("ring", "wave-highway")
+        assert cfg.penetration == (1 / 22 if cfg.scenario == "ring" else 0.05)
+        assert cfg.reward.w_local_speed == 1.0 and cfg.reward.w_follower_comfort == 0.5
+        worker.collect(50)
+        assert worker._steps["wave"] > 0 and worker._steps["other"] > 0
+    finally:
+        worker.close()
 
 
 def test_each_scenario_samples_the_densities_it_can_hold() -> None:
     ring = load_scenario("ring-220m")
-    assert feasible_densities(ring, (60.0, 180.0, 0.0)) == (60.0, None)
-    assert feasible_densities(load_scenario("straight-3lane"), (60.0, 180.0)) == (60.0, 180.0)
+    assert ring.feasible_densities((60.0, 180.0, 0.0)) == (60.0, None)
+    assert load_scenario("straight-3lane").feasible_densities((60.0, 180.0)) == (60.0, 180.0)
     with pytest.raises(ValueError, match="ring-220m"):
-        feasible_densities(ring, (180.0,))
+        ring.feasible_densities((180.0,))
 
 
 def test_worker_crash_is_recovered(tmp_path: Path) -> None:
@@ -230,6 +304,12 @@ def test_ray_backend_smoke_with_crash(tmp_path: Path) -> None:
         (["--env-steps", "10", "--lr-final", "0.1"], "lr_final"),
         (["--env-steps", "10", "--decision-interval", "0"], "decision_interval"),
         (["--env-steps", "10", "--horizon", "0.4"], "horizon"),
+        (["--env-steps", "10", "--n-step", "0"], "TrainConfig.n_step=0"),
+        (["--env-steps", "10", "--set-speed", "--no-residual"], "TrainConfig.set_speed=True"),
+        (
+            ["--env-steps", "10", "--twin", "--baseline", "p-ddpg"],
+            "twin critics apply to rbp-dqn only",
+        ),
         (["--env-steps", "10", "--demo-policy", "random"], "residual form corrects ACC-LC"),
         (["--env-steps", "10", "--scenarios", "ring-220m", "--densities", "180"], "ring-220m"),
     ],

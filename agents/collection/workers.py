@@ -1,7 +1,7 @@
 """Rollout workers (paper §IV-F, Algorithm 1: worker with a LocalBuffer) and their transports.
 
 A :class:`RolloutWorker` owns one env (libsumo allows one simulation per process), a local
-copy of the actor/critic wrapped in a single-threaded :class:`agents.learning.rbpdqn.Policy`, and a
+copy of the actor/critic wrapped in a single-threaded :class:`agents.learners.rbpdqn.Policy`, and a
 :class:`LocalBuffer`. :meth:`RolloutWorker.collect` drives the env until at least ``n``
 transitions are buffered and returns them as one :data:`Chunk` (the LocalBuffer flush). The
 episode in progress carries over between calls.
@@ -11,7 +11,7 @@ seed from ``np.random.default_rng([seed, worker_id, run, incarnation, episode])`
 generator drives exploration, so a worker's trajectory is a pure function of those numbers and
 the weights it is given.
 
-Transports (the learner side lives in :mod:`agents.learning.trainer`):
+Transports (the learner side lives in :mod:`agents.training.trainer`):
 
 - in-process: the learner calls ``collect`` directly (``--workers 1``: deterministic);
 - :func:`process_main`: a spawned process sends chunks through its own pipe and reads weights
@@ -35,11 +35,10 @@ from torch.nn.utils import parameters_to_vector, vector_to_parameters
 
 from agents.collection.intervals import Intervals, Rows
 from agents.driver import Driver
-from agents.learning.config import feasible_densities
-from agents.learning.rbpdqn import LearnerConfig, Policy, build_nets
+from agents.learners.rbpdqn import LearnerConfig, Policy, build_nets
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
-from agents.policies import OBS_KEYS, make_policy, stack_obs, to_actions
+from agents.policies import make_policy, stack_obs, to_actions
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
 from mixed_traffic.world.registry import load_scenario
@@ -51,7 +50,7 @@ Chunk = dict[str, Any]
 ``obs``/``next_obs`` dicts of float32 (n, ...) arrays, ``decision`` (n,) int64, ``params``
 (n, 3, 2) float32 (the network output u the agent held), ``reward``, ``done`` and ``discount``
 (n,) float32, the expert labels ``labelled`` (n,) float32, ``label_decision`` (n,) int64 and
-``label_params`` (n, 3, 2) float32 (see :class:`agents.learning.replay.ReplayBuffer`); plus
+``label_params`` (n, 3, 2) float32 (see :class:`agents.learners.replay.ReplayBuffer`); plus
 ``worker_id``, ``incarnation``, ``seq`` (1-based chunk number of this incarnation), ``demo``
 (decisions in the chunk taken by the demonstrator), ``sim_steps`` (simulation steps taken),
 ``trips``/``terminals``/``collisions`` (AV trips that ended in the chunk: arrived or terminal;
@@ -98,9 +97,36 @@ class WorkerSpec:
     bootstrap_arrival: bool = True
     """An arrival at the end of the route bootstraps from its last observation (False: a
     terminal state of value 0, as every other trip end)."""
+    n_step: int = 1
+    """Decisions per stored transition (n-step returns, ``agents.collection.intervals``)."""
+    explore_hold: float = 0.0
+    """Time an AV's exploration noise is held [s] (0: a fresh draw at every decision)."""
+    wave_share: float = 0.0
+    """Share of the agent-steps driven in wave episodes (``wave_episode``) [-]."""
+    wave_kinds: tuple[str, ...] = ("ring", "wave-highway")
+    """The wave episodes drawn from."""
     crash_after_chunks: int = 0
     """Test hook: SIGKILL itself after sending this many chunks (incarnation 0 only)."""
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+WAVE_RING = (220.0, 270.0)
+"""Lengths a wave episode's 22-car ring is drawn from [m] (the ring task's training range)."""
+WAVE_SECONDS = 300.0
+"""Shortest wave episode [s]: waves form after 60-90 s and take minutes to clear."""
+
+
+def wave_episode(base: EnvConfig, rng: np.random.Generator,
+                 kinds: tuple[str, ...] = ("ring", "wave-highway")) -> EnvConfig:  # fmt: skip
+    """A wave episode of ``base``'s settings, of a kind drawn from ``kinds``: one AV on a 22-car
+    ring of a drawn length, or ``wave-highway`` at 5 % AVs (its default density), at least
+    ``WAVE_SECONDS`` long."""
+    length = max(base.episode_length, WAVE_SECONDS)
+    if str(rng.choice(kinds)) == "ring":
+        return replace(base, scenario="ring", density=None, ring_length=WAVE_RING,
+                       ring_vehicles=22, penetration=1 / 22, episode_length=length)  # fmt: skip
+    return replace(base, scenario="wave-highway", density=None, penetration=0.05,
+                   episode_length=length)  # fmt: skip
 
 
 def exploration_ladder(n_workers: int, base_eps: float, base_noise: float, spread: float) -> list:
@@ -167,8 +193,8 @@ class LocalBuffer:
     def take(self) -> Chunk:
         parts, self._parts, self.size = self._parts, [], 0
         cat = np.concatenate
-        out: Chunk = {k: {o: cat([p[k][o] for p in parts]).astype(np.float32) for o in OBS_KEYS}
-                      for k in ("obs", "next_obs")}  # fmt: skip
+        out: Chunk = {k: {o: cat([p[k][o] for p in parts]).astype(np.float32)
+                          for o in parts[0][k]} for k in ("obs", "next_obs")}  # fmt: skip
         for k, dtype in _ROW_DTYPES.items():
             out[k] = cat([p[k] for p in parts]).astype(dtype)
         return out
@@ -186,7 +212,7 @@ class RolloutWorker:
         torch.set_num_threads(1)
         self.spec = spec
         # each scenario's feasible densities, once (an episode samples among them)
-        self._densities = {n: feasible_densities(load_scenario(n), spec.densities)
+        self._densities = {n: load_scenario(n).feasible_densities(spec.densities)
                            for n in set(spec.scenarios)}  # fmt: skip
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(0)  # overwritten by the first set_weights
@@ -198,6 +224,8 @@ class RolloutWorker:
         self._demo: Any = None
         self.demo_done = 0
         self.episode = 0
+        self._steps = {"wave": 0, "other": 0}  # agent-steps driven per kind of episode
+        self.wave = False
         self.seq = 0
         self.env: Any = None
         self._buf = LocalBuffer()
@@ -227,13 +255,17 @@ class RolloutWorker:
         s = self.spec
         self.rng = np.random.default_rng([s.seed, s.worker_id, s.run, s.incarnation, self.episode])
         self.episode += 1
-        scenario = str(self.rng.choice(s.scenarios))
-        densities = self._densities[scenario]
+        self.wave = self._steps["wave"] < s.wave_share * sum(self._steps.values())
+        if self.wave:
+            cfg = wave_episode(s.env_base, self.rng, s.wave_kinds)
+        else:
+            scenario = str(self.rng.choice(s.scenarios))
+            densities = self._densities[scenario]
+            cfg = replace(s.env_base, scenario=scenario,
+                          density=densities[int(self.rng.integers(len(densities)))],
+                          penetration=float(self.rng.choice(s.penetrations)))  # fmt: skip
         cfg = replace(
-            s.env_base,
-            scenario=scenario,
-            density=densities[int(self.rng.integers(len(densities)))],
-            penetration=float(self.rng.choice(s.penetrations)),
+            cfg,
             weather=str(self.rng.choice(s.weathers)),
             seed=int(self.rng.integers(2**31 - 1)),
             second_instance="error",  # never a silent slow TraCI fallback in a worker
@@ -248,11 +280,13 @@ class RolloutWorker:
         self.obs, _ = self.env.reset(seed=cfg.seed, options={"allow_no_agents": True})
         self.ep_reward, self.ep_actions = 0.0, 0
         lc = s.learner
-        self.driver = Driver(self.policy, lc, self.env.config.step_length, self._demonstrator())
+        hold = max(1, round(s.explore_hold / lc.decision_interval))
+        self.driver = Driver(self.policy, lc, self.env.config.step_length, self._demonstrator(),
+                             noise_hold=hold)  # fmt: skip
         # γ per decision_interval, so per simulation step of any scenario's length
         gamma_step = lc.gamma ** (self.env.config.step_length / lc.decision_interval)
         self.intervals = Intervals(gamma_step, s.reward_scale or 1.0 - gamma_step,
-                                   s.bootstrap_arrival)  # fmt: skip
+                                   s.bootstrap_arrival, s.n_step)  # fmt: skip
 
     def _step(self) -> None:
         """One env step for all current agents; closed transitions go to the LocalBuffer."""
@@ -308,6 +342,7 @@ class RolloutWorker:
             terminal = np.array([bool(term[a]) for a in ended])
             self._buf.add(self.intervals.end(ended, stack_obs(obs2, ended), terminal, arrived))
         self.acted.update(agents)
+        self._steps["wave" if self.wave else "other"] += len(agents)
         self.ep_reward += float(r.sum())
         self.ep_actions += len(agents)
         if mode == "teacher":

@@ -157,8 +157,11 @@ class FusedActorCritic:
             w8 = m.fuse[0].weight  # (D, 3D), (D, 4D) with ego fusion
             wf.append(torch.cat([w8[:, i * d : (i + 1) * d] @ wv for i in range(N_LANES)], dim=1))
         self.wf_t = _stack_t(wf)  # (2, 3D, D)
-        # ego fusion: the fusion layer's last D input columns take h_ego directly
-        self.we_t = _stack_t([m.fuse[0].weight[:, N_LANES * d :] for m in lcas])  # (2, D|0, D)
+        # ego fusion: the fusion layer's next D input columns take h_ego directly, the last X
+        # the observation's extra vector
+        ego = [N_LANES * d + (d if m.cfg.ego_fusion else 0) for m in lcas]
+        self.we_t = _stack_t([m.fuse[0].weight[:, N_LANES * d : e] for m, e in zip(lcas, ego)])
+        self.wx_t = _stack_t([m.fuse[0].weight[:, e:] for m, e in zip(lcas, ego)])  # (2, X, D)
         self.bf = torch.stack([m.fuse[0].bias for m in lcas])[:, None, :]
         self.actor_head = [t.detach().clone() for t in self.actor.head.parameters()]
         gate = self.actor.gate
@@ -209,6 +212,8 @@ class FusedActorCritic:
         e_s = torch.baddbmm(self.bf, e, self.wf_t, out=buf["es"])  # (2, B, D)
         if self.we_t.shape[1]:
             e_s.baddbmm_(h_ego, self.we_t)
+        if self.wx_t.shape[1]:
+            e_s.baddbmm_(obs["extra"].unsqueeze(0).expand(2, -1, -1), self.wx_t)
         torch.relu_(e_s)
         w1, b1, w2, b2 = self.actor_head
         hid = torch.relu(torch.addmm(b1, e_s[0], w1.t()))

@@ -71,10 +71,16 @@ class LCAConfig:
     """LiDAR range the observation's distances are scaled by [m] (rasters draw in metres)."""
     camera_range: float = 60.0
     """Camera range the observation's light distances are scaled by [m]."""
+    extra: int = 0
+    """X: width of the observation's ``extra`` vector (the env's opt-in keys ``memory`` and
+    ``downstream``, flattened: ``agents.rules.obs_batch``), which joins the fusion beside the
+    lane vectors and the ego embedding [features]; 0 = none (lca only)."""
 
     def __post_init__(self) -> None:
         if self.encoder not in ENCODERS:
             raise ValueError(f"LCAConfig.encoder={self.encoder!r}: choose from {ENCODERS}")
+        if self.extra and self.encoder != "lca":
+            raise ValueError(f"LCAConfig.extra={self.extra}: only the lca encoder reads it")
 
     @property
     def lane_dim(self) -> int:
@@ -106,6 +112,7 @@ class LCAConfig:
             "lights": (N_LANES, self.z, LIGHT_DIM),
             "node_mask": (N_LANES, N_NODE_TYPES),
             "action_mask": (N_LANES,),
+            **({"extra": (self.extra,)} if self.extra else {}),
         }
 
 
@@ -189,7 +196,7 @@ class LCA(nn.Module):
         if not cfg.star:
             # Complete graph: one self-attention layer over [ego, 9 nodes] (NoSTAR).
             self.sa_qkv = nn.Linear(d, 3 * d, bias=False)
-        fuse_in = (N_LANES * d if cfg.lane_wise else d) + (d if cfg.ego_fusion else 0)
+        fuse_in = (N_LANES * d if cfg.lane_wise else d) + (d if cfg.ego_fusion else 0) + cfg.extra
         self.fuse = nn.Sequential(nn.Linear(fuse_in, d), nn.ReLU())  # W8
 
     def embed_nodes(self, obs: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
@@ -216,7 +223,9 @@ class LCA(nn.Module):
             b, d = h_ego.shape
             e = self._lane_attention(h_ego, nodes.reshape(b, 1, -1, d), mask.reshape(b, 1, -1))
             e = e[:, 0]
-        return self.fuse(torch.cat((e, h_ego), dim=1) if self.cfg.ego_fusion else e)
+        parts = (e, *((h_ego,) if self.cfg.ego_fusion else ()),
+                 *((obs["extra"],) if self.cfg.extra else ()))  # fmt: skip
+        return self.fuse(torch.cat(parts, dim=1))
 
     def _lane_attention(self, h_ego: Tensor, nodes: Tensor, mask: Tensor) -> Tensor:
         """Star-graph cross attention per lane.

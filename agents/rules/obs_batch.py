@@ -25,11 +25,36 @@ OBS_KEYS = (
 )
 
 
+EXTRA_KEYS = ("memory", "downstream")
+"""The env's opt-in keys (``SensorConfig.memory``, ``EnvConfig.v2x``), in the order they
+join the ``extra`` vector."""
+EXTRA = "extra"
+"""(A, X) the opt-in keys present, flattened and concatenated (absent without any)."""
+
+
 def stack_obs(
     obs: Mapping[str, Mapping[str, np.ndarray]], agents: list[str]
 ) -> dict[str, np.ndarray]:
-    """{agent: {key: x}} -> {key: (A, ...)} in the order of ``agents``."""
-    return {k: np.stack([obs[a][k] for a in agents]) for k in OBS_KEYS}
+    """{agent: {key: x}} -> {key: (A, ...)} in the order of ``agents``, plus ``EXTRA`` where
+    the observations hold opt-in keys."""
+    first = obs[agents[0]] if agents else {}
+    keys = (*OBS_KEYS, *(k for k in EXTRA_KEYS if k in first))
+    return with_extra({k: np.stack([obs[a][k] for a in agents]) for k in keys})
+
+
+def with_extra(batch: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """``batch`` {key: (A, ...)} with its ``EXTRA`` vector: the opt-in keys it holds,
+    flattened and concatenated in ``EXTRA_KEYS`` order (none without them)."""
+    out = dict(batch)
+    parts = [np.reshape(out[k], (len(out[k]), -1)) for k in EXTRA_KEYS if k in out]
+    if parts and EXTRA not in out:
+        out[EXTRA] = np.concatenate(parts, axis=1).astype(np.float32)
+    return out
+
+
+def extra_width(space_shapes: Mapping[str, tuple[int, ...]]) -> int:
+    """X: the width of ``EXTRA`` for observations of the given per-key shapes (0: none)."""
+    return sum(int(np.prod(space_shapes[k])) for k in EXTRA_KEYS if k in space_shapes)
 
 
 def to_actions(

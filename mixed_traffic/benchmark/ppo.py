@@ -278,9 +278,9 @@ def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
     human = selection.human(cfg.out, _validation(cfg), _warmup(cfg))
     model = _model(cfg, venv)
     curves = read_curves(cfg.out)
-    seconds = curves[-1]["train_seconds"] if curves else _init_seconds(cfg)
     interface = interface_config(cfg)
-    meta: dict[str, Any] = {}
+    meta = _resume(cfg, model, curves, human)
+    seconds = float(meta.get("train_seconds", _init_seconds(cfg)))
     while model.num_timesteps < cfg.steps:
         returns: list[float] = []
         start = time.monotonic()
@@ -294,21 +294,49 @@ def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
                 "revision": git_revision(), "sumo": sumo_version(),
                 "library": _library()}  # fmt: skip
         _save(cfg, model, meta)
-        row = {"leg": len(curves) + 1, "timesteps": model.num_timesteps,
-               "env_steps": model.num_timesteps * interface.hold, "train_seconds": round(seconds, 1),
-               "episodes": len(returns),
-               "mean_return": float(np.mean(returns)) if returns else float("nan"),
-               **_validate(cfg, human)}  # fmt: skip
-        _append_curve(cfg, row)
-        curves.append(row)
-        best = selection.keep_best(cfg.out, row, curves, meta)
-        if progress:
-            print(f"leg {row['leg']}: {row['timesteps']} decisions, {seconds / 60:.1f} min, "
-                  f"return {row['mean_return']:.2f}, validation std x{row['val_std_ratio']:.2f} "
-                  f"speed x{row['val_speed_ratio']:.2f}, collisions {row['val_collisions']}"
-                  f"{' (best so far)' if best else ''}", file=sys.stderr)  # fmt: skip
+        _record(cfg, curves, meta, returns, human, progress)
     venv.close()
     return meta
+
+
+def _resume(cfg: PpoConfig, model: Any, curves: list[dict[str, float]],
+            human: list[dict[str, float]]) -> dict[str, Any]:  # fmt: skip
+    """Finish the last leg's record where a kill cut it short: a checkpoint without its curve
+    row gets the row (its returns are lost), and a row whose ``best.zip`` copy was cut off gets
+    the copy. The run's checkpoint metadata ({} before its first leg)."""
+    if not (cfg.out / "model.zip").is_file():
+        return {}
+    meta = read_meta(cfg.out / "model.zip")
+    if not curves or curves[-1]["timesteps"] < model.num_timesteps:
+        _record(cfg, curves, meta, [], human, progress=False)
+    else:
+        selection.keep_best(cfg.out, curves[-1], curves, meta)
+    return meta
+
+
+def _record(
+    cfg: PpoConfig,
+    curves: list[dict[str, float]],
+    meta: dict[str, Any],
+    returns: list[float],
+    human: list[dict[str, float]],
+    progress: bool,
+) -> None:
+    """Validate the leg that ``model.zip`` holds, append its curve row (to ``curves`` too) and
+    keep it as ``best.zip`` if it ranks first."""
+    steps = int(meta["timesteps"])
+    row = {"leg": len(curves) + 1, "timesteps": steps,
+           "env_steps": steps * interface_config(cfg).hold, "train_seconds": meta["train_seconds"],
+           "episodes": len(returns), "mean_return": float(np.mean(returns)) if returns else float("nan"),
+           **_validate(cfg, human)}  # fmt: skip
+    _append_curve(cfg, row)
+    curves.append(row)
+    best = selection.keep_best(cfg.out, row, curves, meta)
+    if progress:
+        print(f"leg {row['leg']}: {steps} decisions, {meta['train_seconds'] / 60:.1f} min, "
+              f"return {row['mean_return']:.2f}, validation std x{row['val_std_ratio']:.2f} "
+              f"speed x{row['val_speed_ratio']:.2f}, collisions {row['val_collisions']}"
+              f"{' (best so far)' if best else ''}", file=sys.stderr)  # fmt: skip
 
 
 def _init_seconds(cfg: PpoConfig) -> float:

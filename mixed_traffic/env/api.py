@@ -2,7 +2,8 @@
 the vehicle. ``agents`` (ACC-LC, the safety module, learned policies) import from here and
 from ``mixed_traffic.config`` only, never from the env's internals.
 
-- Observation layout and scales (``docs/env.md``): features are divided by these constants.
+- Observation layout and scales (``docs/env.md``): features are divided by these constants;
+  ``observation_space`` gives a config's per-agent space (with its opt-in keys).
 - Action conversion: normalised ``(steering, accel_brake)`` <-> physical [rad, m/s²].
 - Vehicle model: the kinematic bicycle step the env integrates, and the curvature window its
   lane-following feed-forward uses.
@@ -12,7 +13,12 @@ from ``mixed_traffic.config`` only, never from the env's internals.
 from mixed_traffic.env.action import N_DECISIONS, N_PARAMS, to_accel_brake, to_physical
 from mixed_traffic.env.control import CURVATURE_WINDOW, bicycle_frenet_step
 from mixed_traffic.env.termination import DEAD_END_DISTANCE
-from mixed_traffic.sensing.observation import EGO_SCALE, SPEED_SCALE, WAYPOINT_SCALE
+from mixed_traffic.sensing.observation import (
+    EGO_SCALE,
+    SPEED_SCALE,
+    WAYPOINT_SCALE,
+    observation_space,
+)
 
 __all__ = [
     "CURVATURE_WINDOW",
@@ -23,6 +29,7 @@ __all__ = [
     "SPEED_SCALE",
     "WAYPOINT_SCALE",
     "bicycle_frenet_step",
+    "observation_space",
     "to_accel_brake",
     "to_physical",
 ]

@@ -67,12 +67,7 @@ from pettingzoo.utils.conversions import parallel_to_aec
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import checks
-from mixed_traffic.env.action import (
-    action_space,
-    allowed_decisions,
-    stack_actions,
-    to_physical,
-)
+from mixed_traffic.env.action import action_space, allowed_decisions, stack_actions, to_physical
 from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
 from mixed_traffic.env.av_metrics import AVMetrics
 from mixed_traffic.env.control import BicycleController
@@ -85,10 +80,10 @@ from mixed_traffic.env.termination import agent_events
 from mixed_traffic.env.truth import SpeedView, gather
 from mixed_traffic.paths import scratch_dir
 from mixed_traffic.schema import METRICS
+from mixed_traffic.sensing.extras import ExtraKeys
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
 from mixed_traffic.sensing.perception import Perception
-from mixed_traffic.sensing.v2x import DownstreamFeed
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.boundary import PeriodicBoundary, make_boundary
 from mixed_traffic.world.demand import av_count, make_demand, reference_speed, write_demand
@@ -157,7 +152,7 @@ class MixedTrafficEnv(ParallelEnv):
                                     gui=render_mode == "human")  # fmt: skip
         self._renderer: Any = None
         self._use_map()
-        self._feed = DownstreamFeed(cfg, len(self.possible_agents), self.scenario.ring)
+        self._extras = ExtraKeys(cfg, len(self.possible_agents), self.scenario.ring)
         self._tmp = scratch_dir()
         self._episode_rng = np.random.default_rng(cfg.seed)
         # per episode, set by reset()
@@ -234,7 +229,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._noise_rng = np.random.default_rng(noise_seed)
         self._controller.reset()
         self._builder.reset()
-        self._feed.reset(np.random.default_rng(v2x_seed))
+        self._extras.reset(np.random.default_rng(v2x_seed))
         every = max(1, round(TRACE_INTERVAL / cfg.step_length)) if self.trace else 0
         self._flow = FlowRecorder(self.hdmap, self.scenario.measurement, cfg.step_length,
                                   self.warmup, every, cfg.av_window)  # fmt: skip
@@ -290,6 +285,7 @@ class MixedTrafficEnv(ParallelEnv):
         checks.check_step(self._phase, actions, self.config.episode_length)
         decision, params = stack_actions(actions, self.agents, self._act_space)  # action
         decision = self._allowed(decision)
+        self._extras.command(self._table.slots_of, self.agents, decision, params)
         steer, accel = to_physical(decision, params, self.config.vehicle)
         cmd = self._control(steer, accel, decision)  # control
         snap = self._advance()  # SUMO step + density boundary
@@ -372,7 +368,7 @@ class MixedTrafficEnv(ParallelEnv):
         for a in new:
             table.set_route(a, self._route_rows(self._backend.vehicle_route(a)))
         self._builder.drop(new)
-        self._feed.drop(table.slots_of(new))
+        self._extras.drop(table.slots_of(new))
         if not self.config.fixed_fleet:
             table.agents += new
         return new
@@ -423,7 +419,9 @@ class MixedTrafficEnv(ParallelEnv):
         if not ids:
             return {}
         t = self._table
-        extra = self._feed.keys(self.hdmap, snap, rows.r, rows.slots, t.route_table, t.route_len)
+        extra = self._extras.keys(
+            self.hdmap, snap, rows.r, rows.slots, t.route_table, t.route_len, sensed
+        )
         obs = self._builder.build(snap, ids, rows.r, sensed, routes, extra)
         self._batches.add(ids, self._builder.last_batch)
         self._last_obs.update(obs)
@@ -474,7 +472,7 @@ class MixedTrafficEnv(ParallelEnv):
         of a whole step's arrays), so memory stays flat. A fixed fleet keeps a compact copy
         of each last observation: it is returned until the agent enters again."""
         self._builder.drop(done)
-        self._feed.drop(self._table.slots_of(done))
+        self._extras.drop(self._table.slots_of(done))
         for a in done:
             last = self._last_obs.pop(a, None)
             if last is not None and self.config.fixed_fleet:

@@ -89,9 +89,9 @@ def city_grid(n: int) -> Path:
 def _env_and_policy(config: EnvConfig, policy: str):
     """The env of ``config`` and the runner's batched policy (None: SUMO drives the AVs)."""
     from mixed_traffic.env.parallel import MixedTrafficEnv
-    from mixed_traffic.experiments.runner import SUMO_DRIVEN, batch_policy
+    from mixed_traffic.experiments.runner import batch_policy, sumo_drives
 
-    env = MixedTrafficEnv(config=config, sumo_drives_avs=policy in SUMO_DRIVEN)
+    env = MixedTrafficEnv(config=config, sumo_drives_avs=sumo_drives(policy))
     return env, batch_policy(policy, config, None, env.scenario.family)
 
 

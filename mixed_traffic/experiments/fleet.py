@@ -2,7 +2,7 @@
 
     python -m mixed_traffic.experiments.fleet --init runs/auto/auto.pt --out runs/fleet --minutes 60
 
-Evolution strategies (:mod:`agents.learning.fleet_search`) on the actor's accel outputs, judged
+Evolution strategies (:mod:`agents.training.fleet_search`) on the actor's accel outputs, judged
 by what the whole traffic does: every candidate drives the AVs (``auto-raw``, no safety module)
 of a whole episode sampled from the train-split scenarios, densities, penetrations and weathers,
 through the one episode runner. Each iteration also runs the current policy against ACC-LC on
@@ -44,8 +44,8 @@ CURVE_FIELDS = ("iteration", "minutes", "episodes", "mean_d", "unsafe", "gain", 
 
 
 def _search_config() -> Any:
-    """The default ES step (imported late: ``agents.learning`` loads torch)."""
-    from agents.learning.fleet_search import SearchConfig
+    """The default ES step (imported late: ``agents.training`` loads torch)."""
+    from agents.training.fleet_search import SearchConfig
 
     return SearchConfig()
 
@@ -88,7 +88,7 @@ class FleetConfig:
     """What the search moves: ``accel`` (the actor's accel_brake outputs) or ``gate`` (its
     hold gate, added closed to a checkpoint without one; ``LearnerConfig.hold_gate``)."""
     search: Any = field(default_factory=_search_config)
-    """The evolution-strategies step (``agents.learning.fleet_search.SearchConfig``)."""
+    """The evolution-strategies step (``agents.training.fleet_search.SearchConfig``)."""
     progress: bool = True
     """Show a progress bar."""
 
@@ -159,15 +159,14 @@ class FleetSearch:
 
     def __init__(self, cfg: FleetConfig) -> None:
         from agents.checkpoint import load_checkpoint, with_hold_gate
-        from agents.learning.config import feasible_densities
-        from agents.learning.curves import trim_curves
-        from agents.learning.fleet_search import Adam, get_theta
+        from agents.training.curves import trim_curves
+        from agents.training.fleet_search import Adam, get_theta
         from mixed_traffic.world.registry import load_scenario
 
         self.cfg, self.out = cfg, cfg.out
         # every check before OUT is touched: a refused run leaves no base.pt to resume from
         self.pool = scenario_pool(cfg.scenarios)
-        self.densities = {n: feasible_densities(load_scenario(n), cfg.densities)
+        self.densities = {n: load_scenario(n).feasible_densities(cfg.densities)
                           for names in self.pool.values() for n in names}  # fmt: skip
         try:
             check_folder(self.out)
@@ -231,7 +230,7 @@ class FleetSearch:
 
     def _iterate(self, executor: ProcessPoolExecutor, ctx: Any) -> tuple[dict, ProcessPoolExecutor]:
         """Run one iteration's episodes and move θ; (curve row, the live executor)."""
-        from agents.learning.fleet_search import episode_score, es_gradient, unsafe_events
+        from agents.training.fleet_search import episode_score, es_gradient, unsafe_events
 
         cfg, s, it = self.cfg, self.cfg.search, self.state["iteration"]
         rng = np.random.default_rng([cfg.seed, it])
@@ -276,7 +275,7 @@ class FleetSearch:
     def _candidate(self, name: str, theta: np.ndarray) -> str:
         """A checkpoint of the actor with ``theta`` in OUT/candidates/ → its path."""
         from agents.checkpoint import save_checkpoint
-        from agents.learning.fleet_search import set_theta
+        from agents.training.fleet_search import set_theta
 
         set_theta(self.learner.actor, theta, self.cfg.target)
         return str(save_checkpoint(self.out / "candidates" / f"{name}.pt", self.learner, self.meta))
@@ -284,8 +283,8 @@ class FleetSearch:
     def _commit(self, row: dict) -> None:
         """Checkpoint, then state, then the curve row (a kill in between redoes the iteration)."""
         from agents.checkpoint import save_checkpoint
-        from agents.learning.curves import write_curves
-        from agents.learning.fleet_search import set_theta
+        from agents.training.curves import write_curves
+        from agents.training.fleet_search import set_theta
 
         row["minutes"] = round(self.state["minutes"], 2)
         self.state.update(iteration=row["iteration"], episodes=row["episodes"],

@@ -11,6 +11,8 @@ models with the AV vType's parameters, and at 0 % AVs every vehicle is a human d
 
 from __future__ import annotations
 
+import hashlib
+import json
 import os
 import time
 from pathlib import Path
@@ -19,11 +21,13 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
+from agents.policies import with_inputs
 from agents.rules.spec import parse_policy
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.checks import check_warmup
 from mixed_traffic.env.parallel import MixedTrafficEnv
-from mixed_traffic.provenance import file_digest, json_safe, record_meta
+from mixed_traffic.paths import cache_dir
+from mixed_traffic.provenance import atomic_write, file_digest, json_safe, record_meta
 from mixed_traffic.schema import CELL_KEYS, METRICS
 from mixed_traffic.world.registry import load_scenario
 
@@ -31,6 +35,11 @@ DEFAULT_WARMUP = 30.0
 """Simulated time before density and speed are averaged [s]."""
 SUMO_DRIVEN = ("idm",)
 """Policies under which SUMO drives the AVs (no agent acts)."""
+
+
+def sumo_drives(policy: str) -> bool:
+    """Whether SUMO drives the AVs under ``policy`` (a name or spec such as ``idm``)."""
+    return parse_policy(policy).base in SUMO_DRIVEN
 
 
 def validate(config: EnvConfig, warmup: float, policy: str | None = None) -> EnvConfig:
@@ -96,15 +105,19 @@ def run_episode(
         SumoError: SUMO failed to start.
     """
     policy = check_policy(policy)
-    base = parse_policy(policy).base
+    config = with_inputs(config, policy, checkpoint)  # the opt-in keys it was trained with
+    # before this episode's simulation: the reference runs its own (one per process)
+    fixed_u = reference_u(checkpoint) if parse_policy(policy).base == "auto-mean" else None
     t0 = time.perf_counter()
     # the env validates the config against its scenario before anything else is done
-    env = MixedTrafficEnv(config=config, warmup=warmup, sumo_drives_avs=base in SUMO_DRIVEN,
+    env = MixedTrafficEnv(config=config, warmup=warmup, sumo_drives_avs=sumo_drives(policy),
                           render_mode="rgb_array" if gif else None, trace=trace is not None)  # fmt: skip
     config, meta = env.config, record_meta(env.config)  # the scenario's defaults filled in
     frames = _Gif(gif)
     try:
         agent = batch_policy(policy, config, checkpoint, env.scenario.family)
+        if fixed_u is not None:
+            agent.driver.fixed_u = fixed_u
         infer_s, decisions = _drive(env, agent, frames, progress)
         metrics: dict[str, Any] = dict.fromkeys(METRICS)
         metrics.update(env.episode_metrics())
@@ -121,6 +134,9 @@ def run_episode(
         diagnostics.update(agent.safety.shares)
     if getattr(agent, "driver", None) is not None:
         diagnostics["hold_share"] = agent.driver.hold_share
+        u_mean = agent.driver.u_mean
+        diagnostics["u_mean"] = None if u_mean is None else u_mean.ravel().tolist()
+        diagnostics["u_decisions"] = agent.driver.u_decisions
     record = {
         "cell": cell_of(config, policy),
         "status": "ok",
@@ -141,6 +157,40 @@ def run_episode(
     return record
 
 
+REFERENCE_STATES = (
+    EnvConfig(scenario="straight", density=120.0, penetration=0.5, episode_length=60.0),
+    EnvConfig(scenario="merge", penetration=0.5, episode_length=60.0),
+    EnvConfig(scenario="ring", ring_vehicles=22, ring_length=(260.0,), penetration=1 / 22,
+              episode_length=300.0),
+    EnvConfig(scenario="wave-highway", penetration=0.05, episode_length=120.0),
+)  # fmt: skip
+"""The reference set of ``auto-mean``: the states AUTO visits in these episodes (seed 0, the
+training split's road, merge, ring and wave road), every decision weighing the same."""
+
+
+def reference_u(checkpoint: str | Path | None,
+                configs: tuple[EnvConfig, ...] | None = None) -> np.ndarray:  # fmt: skip
+    """(3, 2) mean of AUTO's continuous parameters u (``checkpoint``'s; None: the shipped one)
+    over its decisions in ``configs`` (default ``REFERENCE_STATES``), cached per checkpoint
+    content and reference set."""
+    from agents.policies import checkpoint_path
+
+    configs = configs or REFERENCE_STATES
+    path = checkpoint_path("auto", checkpoint)
+    key = file_digest(path)[:16] + "-" + hashlib.sha256(repr(configs).encode()).hexdigest()[:8]
+    cache = cache_dir("auto_mean") / f"{key}.json"
+    if cache.is_file():
+        return np.array(json.loads(cache.read_text())["u_mean"])
+    runs = [run_episode(c, "auto", 0.0, checkpoint=path)["diagnostics"] for c in configs]
+    n = np.array([r["u_decisions"] for r in runs], np.float64)
+    means = np.array([r["u_mean"] if r["u_mean"] else [0.0] * 6 for r in runs])
+    u = (n @ means / max(n.sum(), 1.0)).reshape(3, 2)
+    text = json.dumps({"checkpoint": str(path), "reference": [describe(c) for c in configs],
+                       "decisions": n.tolist(), "u_mean": u.tolist()}, indent=1)  # fmt: skip
+    atomic_write(cache, lambda f: f.write(text.encode()))
+    return u
+
+
 def cell_of(config: EnvConfig, policy: str) -> dict[str, Any]:
     """The record's ``cell``: the policy and the config's cell keys."""
     cell = {k: getattr(config, k) for k in CELL_KEYS if k not in ("policy", "detection_range")}
@@ -149,7 +199,7 @@ def cell_of(config: EnvConfig, policy: str) -> dict[str, Any]:
 
 def batch_policy(name: str, config: EnvConfig, checkpoint: str | Path | None, family: str) -> Any:
     """The batched policy for an episode of ``config``, or None when SUMO drives the AVs."""
-    if parse_policy(name).base in SUMO_DRIVEN:
+    if sumo_drives(name):
         return None
     from agents.policies import make_policy  # torch only for learned policies
 

@@ -35,7 +35,15 @@ from mixed_traffic.provenance import (
     rewrite_records,
     write_record_atomic,
 )
-from mixed_traffic.schema import CELL_KEYS, FD_DIR, LEARNED, POLICIES, STUDY_POLICIES, TRACE_DIR
+from mixed_traffic.schema import (
+    AUTO_POLICIES,
+    CELL_KEYS,
+    FD_DIR,
+    LEARNED,
+    POLICIES,
+    STUDY_POLICIES,
+    TRACE_DIR,
+)
 from mixed_traffic.world.registry import load_scenario
 
 PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
@@ -115,8 +123,8 @@ class SweepConfig:
         except ValueError as e:
             bad("policies", str(e))
         object.__setattr__(self, "policies", specs)
-        if self.checkpoint is not None and not {"auto", "auto-raw"} & set(self.policies):
-            bad("checkpoint", "no auto or auto-raw policy in --policies would use it")
+        if self.checkpoint is not None and not set(AUTO_POLICIES) & set(self.policies):
+            bad("checkpoint", f"no {'/'.join(AUTO_POLICIES)} policy in --policies would use it")
         if self.checkpoint is not None:
             try:
                 check_checkpoint(self.checkpoint)
@@ -169,7 +177,7 @@ class SweepConfig:
 
     def cell_checkpoint(self, policy: str) -> Path | None:
         """The checkpoint option of ``policy``'s cells (None: the policy's default)."""
-        if policy in ("auto", "auto-raw"):
+        if policy in AUTO_POLICIES:
             return self.checkpoint
         if policy in STUDY_POLICIES and self.checkpoints is not None:
             return self.checkpoints / f"{policy}.pt"

@@ -1,6 +1,6 @@
 """``python -m mixed_traffic.train``: multi-worker RBP-DQN training (paper §IV-F, DESIGN §10).
 
-The options are built from :class:`agents.learning.trainer.TrainConfig` (field docstrings carry the
+The options are built from :class:`agents.training.trainer.TrainConfig` (field docstrings carry the
 units). This module composes: it resolves and validates the scenarios (train split only) and
 the density range per scenario before any worker starts, then runs :class:`Trainer` and, with
 ``--fleet-iterations``, the fleet-return search stage on its result (``--resume`` continues
@@ -37,7 +37,7 @@ _SHORT = {"workers", "backend", "address", "scenarios", "densities", "penetratio
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from agents.learning.config import TrainConfig
+    from agents.training.config import TrainConfig
 
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.train",
@@ -66,7 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) -> Any:
     """TrainConfig from the options; validates scenarios and densities (parser.error on bad)."""
-    from agents.learning.config import TrainConfig, feasible_densities
+    from agents.training.config import TrainConfig
     from mixed_traffic.provenance import check_folder
     from mixed_traffic.world.registry import list_scenarios, train_scenarios, train_split_scenario
 
@@ -89,7 +89,7 @@ def config_from_args(args: argparse.Namespace, parser: argparse.ArgumentParser) 
         except ValueError as e:
             parser.error(f"--scenarios: {e}")
         try:
-            feasible_densities(sc, cfg.densities)
+            sc.feasible_densities(cfg.densities)
         except ValueError as e:
             parser.error(f"--densities: {e}")
     return dataclasses.replace(cfg, scenarios=scen)
@@ -105,7 +105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as e:
         parser.error(str(e))
     env_base = dataclasses.replace(base, sensors=sensors)
-    from agents.learning.trainer import Trainer
+    from agents.training.trainer import Trainer
 
     argv_list = list(sys.argv[1:] if argv is None else argv)
     command = shlex.join(["python", "-m", "mixed_traffic.train", *argv_list])
@@ -128,7 +128,7 @@ def fleet_stage(cfg: Any) -> None:
     """Fleet-return search from OUT/auto.pt in OUT/fleet (resumed if there), for the run's
     ``fleet_iterations`` in all, on episodes sampled like the RBP-DQN stage's; its policy then
     replaces OUT/auto.pt."""
-    from agents.learning.trainer import atomic_write_json
+    from agents.training.trainer import atomic_write_json
     from mixed_traffic.experiments.fleet import FleetConfig, FleetSearch
     from mixed_traffic.provenance import atomic_write
 

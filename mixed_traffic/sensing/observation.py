@@ -42,6 +42,9 @@ action_mask (3,)       int8   allowed decisions: left change, follow, right chan
 downstream (S, 2)      f32    only with ``EnvConfig.v2x``: the V2X feed's mean speed / 40 m/s
                               and density / jam density in S segments ahead on the route
                               (:mod:`~mixed_traffic.sensing.v2x`); Box [0, 1]
+memory     (M,)        f32    only with ``SensorConfig.memory``: slow means and spreads of the
+                              own and the leader's speed and the last command
+                              (:mod:`~mixed_traffic.sensing.memory`); Box [-1, 1]
 ========== =========== ====== ========================================================
 
 Boxes are ``[-1, 1]`` float32 and every value is clipped into them; the masks are int8 0/1 for
@@ -81,6 +84,7 @@ from mixed_traffic.sensing.camera import NO_LIGHT, lane_signals
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import wrap_angle
 from mixed_traffic.sensing.lane_graph import CURRENT, lane_graph, next_route_edge
+from mixed_traffic.sensing.memory import memory_space
 from mixed_traffic.sensing.merges import exit_table
 from mixed_traffic.sensing.preview import limit_preview
 from mixed_traffic.world.hdmap import HDMap
@@ -145,6 +149,7 @@ def observation_space(config: EnvConfig) -> gym.spaces.Dict:
             "node_mask": gym.spaces.Box(0, 1, (3, 3), np.int8),
             "action_mask": gym.spaces.MultiBinary(3),
             **({"downstream": downstream_space(config)} if config.v2x else {}),
+            **({"memory": memory_space(config)} if config.sensors.memory else {}),
         }
     )
 

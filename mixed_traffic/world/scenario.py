@@ -167,6 +167,14 @@ class Scenario:
                              "not both")  # fmt: skip
         return density
 
+    def feasible_densities(self, densities: tuple[float, ...]) -> tuple[float | None, ...]:
+        """The ``densities`` [veh/km] this scenario can hold (up to its jam density), 0 as None
+        (its default); ValueError naming the scenario when none fits."""
+        out = tuple(d or None for d in densities if d <= self.max_density)
+        if not out:
+            raise ValueError(f"no density of {list(densities)} veh/km fits scenario {self.name!r}")
+        return out
+
     def check_density(self, density: float) -> None:
         """Raise ``ValueError`` unless 0 < ``density`` [veh/km] <= the jam density."""
         if not 0 < density <= self.max_density:

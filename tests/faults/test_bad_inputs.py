@@ -293,7 +293,7 @@ class WorkStarted(AssertionError):
 @pytest.fixture
 def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
     """Every entry into real work fails the test (and so can never hang it)."""
-    from agents.learning.trainer import Trainer
+    from agents.training.trainer import Trainer
 
     def started(*args: Any, **kwargs: Any) -> None:
         raise WorkStarted("work started before the bad input was refused")

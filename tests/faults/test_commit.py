@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from agents.learning.commit import commit, committed, remove_leftovers
+from agents.training.commit import commit, committed, remove_leftovers
 
 
 def _writer(text: str):

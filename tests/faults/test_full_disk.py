@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from agents.learning.commit import commit, committed
+from agents.training.commit import commit, committed
 from mixed_traffic.provenance import read_records, write_record_atomic
 
 

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 
 from agents.checkpoint import load_checkpoint
-from agents.learning.commit import committed
+from agents.training.commit import committed
 
 ROOT = Path(__file__).resolve().parents[2]
 BUDGET = 4000

@@ -1,20 +1,19 @@
 """Training run settings (:class:`TrainConfig`) and the env / encoder configs derived from them.
 
 ``python -m mixed_traffic.train`` builds its options from the fields of :class:`TrainConfig` (their
-docstrings carry the units); :class:`agents.learning.trainer.Trainer` runs one.
+docstrings carry the units); :class:`agents.training.trainer.Trainer` runs one.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, fields, replace
-from typing import TYPE_CHECKING, Any, NoReturn
+from typing import Any, NoReturn
 
 from agents.nets.lca import LCAConfig
+from agents.rules.obs_batch import extra_width
 from mixed_traffic.config import WEATHERS, EnvConfig
-
-if TYPE_CHECKING:
-    from mixed_traffic.world.scenario import Scenario
+from mixed_traffic.env.api import observation_space
 
 BACKENDS = ("process", "ray")
 RESIDUAL_BC_ACCEL = 0.05
@@ -69,7 +68,7 @@ class TrainConfig:
     expert_labels: bool = True
     """Label every transition the learning policy drives with the demonstrator's action for
     the same observation; behaviour cloning and the DQfD margin then target it (DAgger-style
-    deviation from the paper, see agents.learning.rbpdqn; off = BC on the taken action)."""
+    deviation from the paper, see agents.learners.rbpdqn; off = BC on the taken action)."""
     residual: bool = True
     """Train the residual form (``LearnerConfig.residual``): the actor learns a bounded
     correction to ACC-LC, starting from zero; False = the paper's form (the actor outputs the
@@ -93,6 +92,23 @@ class TrainConfig:
     horizon: float = 10.0
     """Effective horizon 1/(1 - γ) of the discount [s]: γ per decision = 1 - decision_interval
     / horizon (0.95 at 0.5 s; the paper's γ = 0.9 per 0.1 s step is a 1 s horizon)."""
+    n_step: int = 1
+    """Decisions per stored transition [-]: n-step returns bootstrap n decisions ahead, so a
+    reward reaches the values of earlier decisions n times faster
+    (:mod:`agents.collection.intervals`); 1 = one-step, as runs before it."""
+    set_speed: bool = False
+    """Residual form with a set speed (``LearnerConfig.set_speed``): the follow row's first
+    parameter sets a speed between the leader's 40 s mean (u = -1, FollowerStopper-like
+    damping) and 5 m/s above it, which the row tracks unless ACC-LC brakes harder."""
+    memory: bool = False
+    """The policy reads the env's ``memory`` key (slow means and spreads of its own and its
+    leader's speed, its last command: ``SensorConfig.memory``) in its fusion layer."""
+    v2x: bool = False
+    """The policy reads the env's ``downstream`` key (the V2X feed, ``EnvConfig.v2x``) in its
+    fusion layer."""
+    twin: bool = False
+    """Twin critics against over-estimation (clipped double Q, ``LearnerConfig.twin``;
+    rbp-dqn and its ablations only)."""
     steer_delta: float = 0.005
     """Residual form: largest steering correction [action units; 0.005 = 0.3°]. Held for a
     0.5 s decision at 30 m/s, 0.05 (3°) moved a car up to 2 m sideways: exploration noise on it
@@ -109,6 +125,19 @@ class TrainConfig:
     """w4, weight of the impact term r4 in the training episodes' reward [-] (the paper's 0.2
     made r4 0.4 % of the reward's magnitude under ACC-LC; 2.0 makes it about 5 %, docs/agent.md).
     The NoIMP ablation sets it to 0."""
+    fleet_weights: tuple[float, ...] = (0.0, 0.0, 0.0)
+    """Weights of the fleet reward terms in the training episodes' reward [-]: w5
+    (r5_local_speed, the traffic around the AV), w6 (r6_follower_comfort, its followers'
+    accelerations) and w8 (r8_uniform_flow, Flow's desired velocity; ``RewardConfig``). An
+    AV's own choice changes its own return by little; these terms pay it for the traffic's.
+    Zeros = the paper's reward."""
+    wave_share: float = 0.0
+    """Share of each worker's agent-steps driven in wave episodes [-]: a 22-car ring of a
+    length drawn from 220-270 m with one AV, or ``wave-highway`` at 5 % AVs, each at least
+    300 s long (waves form after 60-90 s). A worker starts one whenever its wave share is
+    below this; 0 = none."""
+    wave_kinds: tuple[str, ...] = ("ring", "wave-highway")
+    """The wave episodes drawn from (``auto-ring`` trains on rings alone)."""
     bootstrap_arrival: bool = True
     """Bootstrap at the end of the route from the last observation (False: arrival is a
     terminal state of value 0, which punishes progress)."""
@@ -149,7 +178,7 @@ class TrainConfig:
     """Paper §V-A method instead of RBP-DQN: transfuser (imitation of the demonstrator over
     raster and point tokens; needs --no-residual) | drl-mf (BP-DQN over a map-less raster and
     point cloud, no impact term; needs --no-residual) | head (BP-DQN, decisions and accel only,
-    ACC-LC's lane keeping steers) | p-ddpg | q-pamdp (``agents.learning.variants``)."""
+    ACC-LC's lane keeping steers) | p-ddpg | q-pamdp (``agents.learners.variants``)."""
     local_buffer: int = 256
     """B_l: transitions a worker buffers before flushing them to the learner [transitions]."""
     replay_capacity: int = 200_000
@@ -168,6 +197,10 @@ class TrainConfig:
     """Base ε of the Ape-X ladder: worker i uses ε^(1 + spread·i/(N−1)) [-]."""
     noise_std: float = 0.3
     """Base exploration noise σ of the ladder (same exponent) [action units]."""
+    explore_hold: float = 0.0
+    """Time an AV's exploration noise is held [s] (rounded to whole decisions): one perturbed
+    policy for about a wave's period shows its effect on the waves in the return; 0 = a
+    fresh draw at every decision, as runs before it."""
     ladder_spread: float = 3.0
     """Exponent spread of the exploration ladder over the workers [-]."""
     checkpoint_every: float = 300.0
@@ -272,6 +305,14 @@ class TrainConfig:
             self._bad("decision_interval", "must be in (0, 5] s")
         if not self.horizon > self.decision_interval:
             self._bad("horizon", "must exceed decision_interval (γ = 1 - interval / horizon)")
+        if not 0 <= self.explore_hold <= 600:
+            self._bad("explore_hold", "must be in [0, 600] s")
+        if self.set_speed and not self.residual:
+            self._bad("set_speed", "the set speed bounds the residual form's row: use --residual")
+        if not 1 <= self.n_step <= 200:
+            self._bad("n_step", "must be in [1, 200] decisions")
+        if self.twin and self.baseline in ("p-ddpg", "q-pamdp", "transfuser"):
+            self._bad("twin", f"twin critics apply to rbp-dqn only, not baseline {self.baseline}")
         for name in ("steer_delta", "accel_delta"):
             if not 0 < getattr(self, name) <= 2:
                 self._bad(name, "must be in (0, 2] action units")
@@ -279,6 +320,12 @@ class TrainConfig:
             self._bad("demo_policy", "the residual form corrects ACC-LC: use acc-lc")
         if not 0 <= self.impact_weight <= 10:
             self._bad("impact_weight", "must be in [0, 10]")
+        if len(self.fleet_weights) != 3 or not all(0 <= w <= 100 for w in self.fleet_weights):
+            self._bad("fleet_weights", "must be three weights (w5, w6, w8) in [0, 100]")
+        if not 0 <= self.wave_share < 1:
+            self._bad("wave_share", "must be in [0, 1)")
+        if not self.wave_kinds or not set(self.wave_kinds) <= {"ring", "wave-highway"}:
+            self._bad("wave_kinds", "choose one or both of ring, wave-highway")
         for name in ("teacher_bonus", "reward_scale"):
             if not getattr(self, name) >= 0:
                 self._bad(name, "must be >= 0")
@@ -319,17 +366,6 @@ class TrainConfig:
                       if k in names})  # fmt: skip
 
 
-def feasible_densities(
-    scenario: Scenario, densities: tuple[float, ...]
-) -> tuple[float | None, ...]:
-    """The ``densities`` [veh/km] ``scenario`` can hold (up to its jam density), 0 as None
-    (its default); ValueError naming the scenario when none fits."""
-    out = tuple(d or None for d in densities if d <= scenario.max_density)
-    if not out:
-        raise ValueError(f"no density of {list(densities)} veh/km fits scenario {scenario.name!r}")
-    return out
-
-
 def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:
     """Encoder config from the env's sensors, the ablation and the baseline."""
     flags = {"nohis": {"history": False}, "nolane": {"lane_wise": False},
@@ -338,13 +374,23 @@ def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:
         cfg.baseline, {}
     )
     s = env_base.sensors
+    shapes = {k: v.shape for k, v in observation_space(env_base).spaces.items()}
     return LCAConfig(z=s.history, m=s.waypoints, ego_fusion=cfg.ego_fusion,
-                     lidar_range=s.lidar_range, camera_range=s.camera_range, **flags)  # fmt: skip
+                     lidar_range=s.lidar_range, camera_range=s.camera_range,
+                     extra=extra_width(shapes), **flags)  # fmt: skip
 
 
 def env_base_config(cfg: TrainConfig, env_base: EnvConfig | None = None) -> EnvConfig:
     """Fixed env fields for every episode: episode length and w_impact (0 for NoIMP and
     DRL-MF, which ignores its impact on the traffic behind)."""
     base = replace(env_base or EnvConfig(), episode_length=cfg.episode_length)
+    base = replace(
+        base,
+        v2x=base.v2x or cfg.v2x,
+        sensors=replace(base.sensors, memory=base.sensors.memory or cfg.memory),
+    )
     w4 = 0.0 if cfg.ablation == "noimp" or cfg.baseline == "drl-mf" else cfg.impact_weight
-    return replace(base, reward=replace(base.reward, w_impact=w4))
+    w5, w6, w8 = cfg.fleet_weights
+    reward = replace(base.reward, w_impact=w4, w_local_speed=w5, w_follower_comfort=w6,
+                     w_uniform=w8)  # fmt: skip
+    return replace(base, reward=reward)

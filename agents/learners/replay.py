@@ -15,7 +15,6 @@ import torch
 
 from agents.nets.lca import LCAConfig
 
-OBS_KEYS = ("ego", "lanes", "vehicles", "lights", "node_mask", "action_mask")
 LABEL_KEYS = ("labelled", "label_decision", "label_params")
 
 
@@ -82,7 +81,7 @@ class ReplayBuffer:
             discount = discount[sl]
             n = self.capacity
         idx = (self.pos + np.arange(n)) % self.capacity
-        for k in OBS_KEYS:
+        for k in self.shapes:
             self.obs[k][idx] = obs[k]
             self.next_obs[k][idx] = next_obs[k]
         self.decision[idx] = decision
@@ -97,7 +96,7 @@ class ReplayBuffer:
         self.size = min(self.size + n, self.capacity)
 
     def sample(self, batch: int, rng: np.random.Generator) -> dict:
-        """Uniform sample with replacement → batch dict of torch tensors (see agents.learning.rbpdqn)."""
+        """Uniform sample with replacement → batch dict of torch tensors (see agents.learners.rbpdqn)."""
         if self.size == 0:
             raise ValueError("cannot sample from an empty replay buffer")
         idx = rng.integers(0, self.size, size=batch)
@@ -139,7 +138,7 @@ class ReplayBuffer:
         if sd["capacity"] != self.capacity:
             raise ValueError(f"replay capacity {sd['capacity']} != {self.capacity}")
         n = int(sd["size"])
-        for k in OBS_KEYS:
+        for k in self.shapes:
             got = tuple(sd["obs"][k].shape[1:])
             if got != self.obs[k].shape[1:]:
                 raise ValueError(f"replay obs '{k}' shape {got} != {self.obs[k].shape[1:]}")

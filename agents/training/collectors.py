@@ -1,4 +1,4 @@
-"""The learner's side of the worker transports (see :mod:`agents.learning.trainer` for the
+"""The learner's side of the worker transports (see :mod:`agents.training.trainer` for the
 topology): :func:`make_collector` picks one per backend; each has ``synchronous``,
 ``restarts``, ``publish(vec)`` (broadcast weights), ``poll(timeout) -> chunks`` and ``close()``.
 
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from agents.collection.workers import Chunk, RolloutWorker, SharedWeights, WorkerSpec, process_main
-from agents.learning.config import TrainConfig
+from agents.training.config import TrainConfig
 
 
 def make_collector(cfg: TrainConfig, specs: list[WorkerSpec], vec: np.ndarray, log: Any) -> Any:

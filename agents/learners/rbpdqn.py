@@ -1,6 +1,6 @@
 """RBP-DQN learner (paper §IV-F eq. train_actor / train_critic) and the batched inference policy.
 
-Batch layout (what :meth:`agents.learning.replay.ReplayBuffer.sample` returns), B = batch size:
+Batch layout (what :meth:`agents.learners.replay.ReplayBuffer.sample` returns), B = batch size:
 
 - ``obs``, ``next_obs``: dicts of float tensors (B, ...) per DESIGN §6 (``next_obs`` includes
   ``action_mask`` (B, 3), used to mask the TD target);
@@ -40,6 +40,7 @@ from torch import Tensor, nn
 from agents.nets.fused import FusedActorCritic
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import FOLLOW, LEAD_SPREAD, Actor, Critic, masked_q, select
+from agents.rules.obs_batch import EXTRA, with_extra
 
 
 @dataclass(frozen=True)
@@ -107,7 +108,7 @@ class LearnerConfig:
     """MP-DQN critic (``agents.nets.networks.Critic``): each decision's Q sees only its own
     parameters (False = the paper's P-DQN critic)."""
     algorithm: str = "rbp-dqn"
-    """Learning rule (``agents.learning.variants``): rbp-dqn (this class; BP-DQN with
+    """Learning rule (``agents.learners.variants``): rbp-dqn (this class; BP-DQN with
     ``regularize=False``) | p-ddpg | q-pamdp | imitation."""
     steer_control: bool = True
     """Residual form: the policy corrects the steering (False = HEAD: discrete lane decisions
@@ -128,6 +129,22 @@ class LearnerConfig:
     [s]; longer than a stop-and-go wave's period (about 30 s on the 260 m ring)."""
     hold_gain: float = 0.5
     """Gain of the held AV's speed tracking: acceleration per m/s below the reference [1/s]."""
+    set_speed: bool = False
+    """Residual form with a set speed (issue 43 item 3): the follow row's first parameter,
+    unused for steering (ACC-LC steers, as ``steer_control=False``), sets a speed that the row
+    tracks with ``hold_gain``: v_set = ref + ``set_speed_span``·(1 + u), with ref the leader's
+    speed averaged over ``hold_tau``; the row's acceleration is the smaller of that tracking
+    and the residual one, so ACC-LC's gap keeping still brakes. u = -1 holds ref, as
+    FollowerStopper holds its mean speed (a set speed below the mean would slow a ring down
+    without end), u = 0 sets ref + span and u = 1 ref + 2·span (loose). Without a leader, or
+    with a signal or give-way line in view, the residual row drives."""
+    set_speed_span: float = 2.5
+    """Reach of the set speed above the leader's mean at u = 0 [m/s]."""
+    twin: bool = False
+    """Clipped double Q (TD3, Fujimoto et al. 2018) against over-estimation: a second critic,
+    trained on the same target, which takes the smaller of the two target critics' Q at the
+    first's best decision. The actor and the acting policy use the first critic (rbp-dqn
+    only; False = one critic, as checkpoints before it)."""
 
     def to_dict(self) -> dict[str, float | int | bool]:
         return asdict(self)
@@ -168,27 +185,44 @@ class RBPDQN:
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(seed)
             self.actor, self.critic = build_nets(lca, self.cfg)
+            # the twin's own draw (after the first pair's: their weights are unchanged)
+            self.critic2 = build_nets(lca, self.cfg)[1] if self.cfg.twin else None
         if self.cfg.residual:  # u = 0 and Q = 0: the teacher bonus picks ACC-LC's decisions
             self.actor.zero_output()
-            self.critic.zero_output()
+            for critic in self._critics():
+                critic.zero_output()
         self.actor_targ = copy.deepcopy(self.actor).requires_grad_(False)
         self.critic_targ = copy.deepcopy(self.critic).requires_grad_(False)
+        self.critic2_targ = copy.deepcopy(self.critic2)
         self.actor_opt = torch.optim.Adam(
             self.actor.gradient_parameters(), lr=self.cfg.lr, fused=True
         )
         self.critic_opt = torch.optim.Adam(self.critic.parameters(), lr=self.cfg.lr, fused=True)
+        self.critic2_opt = None
+        if self.critic2 is not None:
+            self.critic2_targ.requires_grad_(False)
+            self.critic2_opt = torch.optim.Adam(self.critic2.parameters(), lr=self.cfg.lr,
+                                                fused=True)  # fmt: skip
         self.steps = 0
         self.compile = compile
         self._compiled: tuple | None = None
 
+    def _critics(self) -> list[nn.Module]:
+        return [self.critic] if self.critic2 is None else [self.critic, self.critic2]
+
     def td_target(self, batch: dict) -> Tensor:
         """y (B,) = r + γ(1 − done)·max over unmasked next decisions of Q_targ(s', p, u_targ(s')),
         with the batch's per-row ``discount`` as γ where it has one (decision intervals cut
-        short by the episode's end span fewer steps)."""
+        short by the episode's end span fewer steps). Twin critics: the smaller of the two
+        targets' Q at the first's best decision."""
         nxt = batch["next_obs"]
         with torch.no_grad():
-            q_next = masked_q(self.critic_targ(nxt, self.actor_targ(nxt)), nxt["action_mask"])
-            best = q_next.max(dim=-1).values
+            u_next = self.actor_targ(nxt)
+            q_next = masked_q(self.critic_targ(nxt, u_next), nxt["action_mask"])
+            best, arg = q_next.max(dim=-1)
+            if self.critic2_targ is not None:
+                q2 = self.critic2_targ(nxt, u_next).gather(1, arg[:, None])[:, 0]
+                best = torch.minimum(best, q2)
             # A row with every decision masked has no successor value; treat it as 0 rather
             # than letting -inf poison the loss (the env never emits such a row, DESIGN §6).
             best = torch.where(torch.isfinite(best), best, torch.zeros_like(best))
@@ -198,13 +232,16 @@ class RBPDQN:
             return batch["reward"] + gamma * (1.0 - batch["done"]) * best
 
     def critic_loss(self, batch: dict) -> Tensor:
-        """½·mean (y − Q(s, p_taken, A_taken))² + λ·DQfD margin loss on demonstrations."""
+        """½·mean (y − Q(s, p_taken, A_taken))² + λ·DQfD margin loss on demonstrations, summed
+        over the critics (each has its own parameters, so each gets its own gradient)."""
         y = self.td_target(batch)
-        q_all = self.critic(batch["obs"], batch["params"])  # (B, 3)
-        q = q_all.gather(1, batch["decision"][:, None])[:, 0]
-        loss = 0.5 * (y - q).pow(2).mean()
-        if self.cfg.demo_weight > 0 and "labelled" in batch:
-            loss = loss + self.cfg.demo_weight * self.margin_loss(q_all, batch)
+        loss = y.new_zeros(())
+        for critic in self._critics():
+            q_all = critic(batch["obs"], batch["params"])  # (B, 3)
+            q = q_all.gather(1, batch["decision"][:, None])[:, 0]
+            loss = loss + 0.5 * (y - q).pow(2).mean()
+            if self.cfg.demo_weight > 0 and "labelled" in batch:
+                loss = loss + self.cfg.demo_weight * self.margin_loss(q_all, batch)
         return loss
 
     def margin_loss(self, q_all: Tensor, batch: dict) -> Tensor:
@@ -248,6 +285,9 @@ class RBPDQN:
         critic_loss, actor_loss = self._losses()
         c_loss = critic_loss(batch)
         c_norm = self._step(c_loss, self.critic, self.critic_opt)
+        if self.critic2 is not None:  # its gradient came with the first's backward
+            self._clip_and_step(self.critic2, self.critic2_opt)
+            _soft_update(self.critic2_targ, self.critic2, self.cfg.tau)
         # Freeze the critic so the actor loss does not build critic parameter gradients.
         self.critic.requires_grad_(False)
         try:
@@ -280,8 +320,12 @@ class RBPDQN:
         """Backward, clip to ``grad_clip``, optimiser step. → gradient norm before clipping."""
         opt.zero_grad(set_to_none=True)
         loss.backward()
+        return self._clip_and_step(net, opt)
+
+    def _clip_and_step(self, net: nn.Module, opt: torch.optim.Optimizer) -> Tensor:
         norm = nn.utils.clip_grad_norm_(net.parameters(), self.cfg.grad_clip, foreach=True)
         opt.step()
+        opt.zero_grad(set_to_none=True)
         return norm
 
     def state_dict(self) -> dict:
@@ -294,7 +338,14 @@ class RBPDQN:
             "actor_opt": self.actor_opt.state_dict(),
             "critic_opt": self.critic_opt.state_dict(),
             "steps": self.steps,
+            **self._twin_state(),
         }
+
+    def _twin_state(self) -> dict:
+        if self.critic2 is None:
+            return {}
+        return {"critic2": self.critic2.state_dict(), "critic2_targ": self.critic2_targ.state_dict(),
+                "critic2_opt": self.critic2_opt.state_dict()}  # fmt: skip
 
     def load_state_dict(self, sd: dict) -> None:
         self.actor.load_state_dict(sd["actor"])
@@ -303,6 +354,11 @@ class RBPDQN:
         self.critic_targ.load_state_dict(sd["critic_targ"])
         self.actor_opt.load_state_dict(sd["actor_opt"])
         self.critic_opt.load_state_dict(sd["critic_opt"])
+        if self.critic2 is not None and "critic2" in sd:  # else (one-critic weights) its own init
+            self.critic2.load_state_dict(sd["critic2"])
+            self.critic2_targ.load_state_dict(sd["critic2_targ"])
+            self.critic2_opt.load_state_dict(sd["critic2_opt"])
+            _fused_adam(self.critic2_opt)
         self.set_lr(self.cfg.lr)  # the config's rate, not the saved one
         _fused_adam(self.actor_opt)
         _fused_adam(self.critic_opt)
@@ -310,7 +366,7 @@ class RBPDQN:
 
     def set_lr(self, lr: float) -> None:
         """Learning rate of both optimisers from the next update on [-]."""
-        for opt in (self.actor_opt, self.critic_opt):
+        for opt in filter(None, (self.actor_opt, self.critic_opt, self.critic2_opt)):
             for group in opt.param_groups:
                 group["lr"] = lr
 
@@ -323,8 +379,8 @@ STEER_NOISE_FACTOR = 0.05
 
 def obs_to_torch(obs: dict[str, np.ndarray]) -> dict[str, Tensor]:
     """numpy (A, ...) → float32 tensors, zero-copy when already float32 and contiguous (the
-    network's keys, and the hold gate's ``LEAD_SPREAD`` where given)."""
-    keys = (*OBS_KEYS, LEAD_SPREAD) if LEAD_SPREAD in obs else OBS_KEYS
+    network's keys, its ``EXTRA`` vector and the hold gate's ``LEAD_SPREAD`` where given)."""
+    keys = (*OBS_KEYS, *(k for k in (EXTRA, LEAD_SPREAD) if k in obs))
     return {k: torch.from_numpy(np.ascontiguousarray(obs[k], dtype=np.float32)) for k in keys}
 
 
@@ -358,6 +414,8 @@ class Policy:
         self._fused = (
             FusedActorCritic(actor, critic) if fused and default and not actor.scores else None
         )
+        self.extra = getattr(c, "extra", 0)
+        """X: width of the ``EXTRA`` vector the networks read (0: none)."""
 
     def sync(self) -> None:
         """Re-snapshot weights after the networks were updated or loaded."""
@@ -400,23 +458,25 @@ class Policy:
         explore: bool,
         rng: np.random.Generator | None = None,
         bonus: np.ndarray | None = None,
+        noise: np.ndarray | None = None,
     ) -> Choice:
         """obs numpy (A, ...) → :class:`Choice`.
 
         ``bonus`` (A, 3), if given, is added to Q before the masked argmax. Exploration:
-        Gaussian noise (std ``noise_std``, times ``steer_noise_factor`` for the steering
-        column) on all params, clipped to [-1, 1], and the critic scores the *noisy* params
-        (they are what gets executed and stored); then with probability ``epsilon`` a uniformly
-        random unmasked decision replaces the argmax. The gate is never explored.
+        Gaussian noise (``noise`` (A, 3, 2) if given, else :meth:`draw_noise`) on all params,
+        clipped to [-1, 1], and the critic scores the *noisy* params (they are what gets
+        executed and stored); then with probability ``epsilon`` a uniformly random unmasked
+        decision replaces the argmax. The gate is never explored.
         """
+        obs = with_extra(obs)
+        self.check_extra(obs)
         t = obs_to_torch(obs)
         mask = t["action_mask"] > 0.5
-        noise = None
         if explore:
             if rng is None:
                 raise ValueError("explore=True needs an rng")
-            std = self.noise_std * np.array([self.steer_noise_factor, 1.0], np.float32)
-            noise = gaussian(rng, len(mask), std)
+            noise = self.draw_noise(rng, len(mask)) if noise is None else noise
+        noise = torch.from_numpy(noise) if explore else None
         q, params, score = self.q_and_params(t, noise)
         if bonus is not None:
             q = q + torch.from_numpy(np.asarray(bonus, np.float32))
@@ -425,6 +485,20 @@ class Policy:
             dec = explore_decisions(dec, mask.numpy(), self.epsilon, rng)
         hold = np.zeros(len(dec), bool) if score is None else (score > 0).numpy()
         return Choice(dec, params.numpy().copy(), hold)
+
+    def check_extra(self, obs: dict[str, np.ndarray]) -> None:
+        """ValueError unless ``obs`` holds the ``EXTRA`` vector the networks were trained on."""
+        got = np.shape(obs[EXTRA])[-1] if EXTRA in obs else 0
+        if got != self.extra:
+            raise ValueError(f"the policy reads {self.extra} opt-in observation features "
+                             f"(sensors.memory: 12, v2x: 3 segments x 2), the env gives {got}: "
+                             "run the env with the keys it was trained with")  # fmt: skip
+
+    def draw_noise(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """(n, 3, 2) float32 Gaussian noise: std ``noise_std``, times ``steer_noise_factor`` for
+        the steering column."""
+        std = self.noise_std * np.array([self.steer_noise_factor, 1.0], np.float32)
+        return gaussian(rng, n, std)
 
 
 class Choice(NamedTuple):
@@ -438,9 +512,9 @@ class Choice(NamedTuple):
     """(A,) bool: the hold gate is open (always False without a gate)."""
 
 
-def gaussian(rng: np.random.Generator, n: int, std: np.ndarray) -> Tensor:
+def gaussian(rng: np.random.Generator, n: int, std: np.ndarray) -> np.ndarray:
     """(n, 3, 2) float32 Gaussian noise with ``std`` per parameter column (2,)."""
-    return torch.from_numpy((rng.normal(0.0, 1.0, size=(n, 3, 2)) * std).astype(np.float32))
+    return (rng.normal(0.0, 1.0, size=(n, 3, 2)) * std).astype(np.float32)
 
 
 def explore_decisions(

@@ -3,8 +3,8 @@
 Topology: each worker (:mod:`agents.collection.workers`) runs one env with a single-threaded copy of the
 policy and its own exploration (Ape-X ladder, :func:`agents.collection.workers.exploration_ladder`), and
 flushes its LocalBuffer in chunks of ≥ ``local_buffer`` transitions to the learner. The learner
-(this process) holds the GlobalBuffer (:class:`agents.learning.replay.ReplayBuffer`), runs
-:meth:`agents.learning.rbpdqn.RBPDQN.update` at ``update_ratio`` updates per transition received, and
+(this process) holds the GlobalBuffer (:class:`agents.learners.replay.ReplayBuffer`), runs
+:meth:`agents.learners.rbpdqn.RBPDQN.update` at ``update_ratio`` updates per transition received, and
 broadcasts weights every ``sync_every`` updates.
 
 Backends (:class:`TrainConfig.backend`):
@@ -21,14 +21,14 @@ A worker that dies (segfault, SIGKILL, exception) is restarted with a fresh env 
 everything it had sent is already in the replay, only its unsent LocalBuffer is lost.
 
 Outputs in ``out``: ``curves.csv`` (+ TensorBoard if installed); every ``checkpoint_every``
-seconds and at the end one commit (:mod:`agents.learning.commit`) of ``checkpoint.pt`` (learner
+seconds and at the end one commit (:mod:`agents.training.commit`) of ``checkpoint.pt`` (learner
 and optimisers), ``replay.pt`` and ``state.json`` (counters, RNG), from which ``--resume``
 continues after a kill -9 at any instant; a copy of the last ``checkpoint.pt`` in ``out``; with
 ``keep_snapshots`` each periodic checkpoint also as ``snapshots/<env steps>.pt``; then
 ``auto.pt`` + ``auto.json`` (command, git revision, wall time, env steps, config).
 
-The pieces: :mod:`agents.learning.config` (:class:`TrainConfig`), :mod:`agents.learning.collectors`
-(the learner's side of each backend), :mod:`agents.learning.curves` (``curves.csv``); this module
+The pieces: :mod:`agents.training.config` (:class:`TrainConfig`), :mod:`agents.training.collectors`
+(the learner's side of each backend), :mod:`agents.training.curves` (``curves.csv``); this module
 holds the :class:`Trainer` (learner loop, checkpoints, resume).
 """
 
@@ -47,13 +47,13 @@ import torch
 
 from agents.checkpoint import checkpoint_payload, load_checkpoint, save_checkpoint
 from agents.collection.workers import Chunk, WorkerSpec, exploration_ladder, weight_vector
-from agents.learning.collectors import make_collector
-from agents.learning.commit import commit, committed, remove_leftovers
-from agents.learning.config import TrainConfig, env_base_config, lca_config
-from agents.learning.curves import Window, progress, tensorboard, trim_curves, write_curves
-from agents.learning.rbpdqn import LearnerConfig
-from agents.learning.replay import ReplayBuffer
-from agents.learning.variants import make_learner
+from agents.learners.rbpdqn import LearnerConfig
+from agents.learners.replay import ReplayBuffer
+from agents.learners.variants import make_learner
+from agents.training.collectors import make_collector
+from agents.training.commit import commit, committed, remove_leftovers
+from agents.training.config import TrainConfig, env_base_config, lca_config
+from agents.training.curves import Window, progress, tensorboard, trim_curves, write_curves
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.provenance import atomic_write
 
@@ -78,11 +78,13 @@ def _learner_config(cfg: TrainConfig) -> LearnerConfig:
                          accel_delta=cfg.accel_delta, teacher_bonus=cfg.teacher_bonus,
                          decision_interval=cfg.decision_interval, multi_pass=cfg.multi_pass,
                          speed_governor=cfg.speed_governor,
-                         rss_governor=cfg.rss_governor,
+                         rss_governor=cfg.rss_governor, twin=cfg.twin, set_speed=cfg.set_speed,
                          # u of the residual form is already in bounded units, and ACC-LC's
-                         # decisions get a selection bonus instead of the DQfD margin
-                         **({"bc_steer_weight": 1.0, "demo_weight": 0.0} if cfg.residual
-                            else {}))  # fmt: skip
+                         # decisions get a selection bonus instead of the DQfD margin; a set
+                         # speed is cloned as lightly as the acceleration (at 1.0 the pull to
+                         # u = 0 held it there in the first auto-ring pilot)
+                         **({"bc_steer_weight": cfg.accel_bc_weight if cfg.set_speed else 1.0,
+                             "demo_weight": 0.0} if cfg.residual else {}))  # fmt: skip
 
 
 def _fresh_counters(cfg: TrainConfig) -> dict[str, Any]:
@@ -206,7 +208,7 @@ class Trainer:
         self.log(f"initialised from {path} ({meta.get('env_steps')} env steps)")
 
     def save(self, snapshot: bool = False) -> None:
-        """Commit checkpoint, replay and counters as one unit (:mod:`agents.learning.commit`);
+        """Commit checkpoint, replay and counters as one unit (:mod:`agents.training.commit`);
         then copy the checkpoint to ``out/checkpoint.pt`` (and a snapshot), each atomically."""
         payload = checkpoint_payload(self.learner, self._meta())
         replay = self.replay.state_dict()
@@ -260,14 +262,16 @@ class Trainer:
                 demo_quota=max(0, share - self.c["demo_received"][i]), demo_share=cfg.demo_share,
                 demo_policy=cfg.demo_policy, expert_labels=cfg.expert_labels,
                 learner=self.learner.cfg, reward_scale=cfg.reward_scale,
-                bootstrap_arrival=cfg.bootstrap_arrival,
+                bootstrap_arrival=cfg.bootstrap_arrival, n_step=cfg.n_step,
+                explore_hold=cfg.explore_hold, wave_share=cfg.wave_share,
+                wave_kinds=cfg.wave_kinds,
                 crash_after_chunks=cfg.crash_after_chunks if i == 0 and self.c["run"] == 0 else 0,
             )
             for i in range(cfg.workers)
         ]  # fmt: skip
 
     def make_collector(self) -> Any:
-        """The backend's collector (:mod:`agents.learning.collectors`), weights published."""
+        """The backend's collector (:mod:`agents.training.collectors`), weights published."""
         vec = self.weights()
         return make_collector(self.cfg, self.worker_specs(), vec, self.log)
 

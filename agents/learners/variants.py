@@ -1,6 +1,6 @@
 """The paper's learning rules other than RBP-DQN (§V-A, "compared methods of reinforcement
 learning" and TransFuser's imitation), on the same networks, replay and batches as
-:class:`agents.learning.rbpdqn.RBPDQN`; :func:`make_learner` picks one by
+:class:`agents.learners.rbpdqn.RBPDQN`; :func:`make_learner` picks one by
 ``LearnerConfig.algorithm``. BP-DQN is RBP-DQN with ``regularize=False``.
 
 - **P-DDPG** (Hausknecht & Stone 2016): the parameterized action collapsed into one continuous
@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from agents.learning.rbpdqn import RBPDQN, LearnerConfig, _soft_update
+from agents.learners.rbpdqn import RBPDQN, LearnerConfig, _soft_update
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import N_DECISIONS
 
@@ -105,6 +105,10 @@ def make_learner(
     classes = {"rbp-dqn": RBPDQN, "p-ddpg": PDDPG, "q-pamdp": QPAMDP, "imitation": Imitation}
     if cfg.algorithm not in classes:
         raise ValueError(f"LearnerConfig.algorithm={cfg.algorithm!r}: choose from {ALGORITHMS}")
+    if cfg.twin and cfg.algorithm != "rbp-dqn":
+        raise ValueError(
+            f"LearnerConfig.twin: twin critics apply to rbp-dqn only, not {cfg.algorithm!r}"
+        )
     return classes[cfg.algorithm](lca, cfg, seed=seed, compile=compile)
 
 
