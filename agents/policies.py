@@ -23,6 +23,8 @@ from mixed_traffic.schema import AUTO_POLICIES, STUDY_POLICIES
 
 SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "auto.pt"
 PPO_RING = SHIPPED_CHECKPOINT.parent / "ppo_ring.zip"
+AUTO_RING = SHIPPED_CHECKPOINT.parent / "auto_ring.pt"
+"""RBP-DQN trained on the ring family alone (issue 43: ``auto-ring``)."""
 """The shipped PPO policy of the benchmark's ring task (``--policy ppo-ring``)."""
 STUDY_CHECKPOINTS = SHIPPED_CHECKPOINT.parent / "study"
 """Checkpoints of the study policies (``mixed_traffic.schema.STUDY_POLICIES``), <name>.pt."""
@@ -77,6 +79,8 @@ def checkpoint_path(name: str, checkpoint: str | Path | None = None) -> Path:
                          "python -m mixed_traffic.benchmark.ppo")  # fmt: skip
     if name == "ppo-ring":
         return PPO_RING
+    if name == "auto-ring":
+        return AUTO_RING
     return SHIPPED_CHECKPOINT if name in AUTO_POLICIES else STUDY_CHECKPOINTS / f"{name}.pt"
 
 

@@ -93,9 +93,10 @@ ABLATIONS = ("auto-noimp", "auto-novec", "auto-nostar", "auto-nolane", "auto-noh
 STUDY_POLICIES = ("rbp-dqn", *BASELINES, *ABLATIONS)
 """Policies of ``python -m mixed_traffic.study``, each its own checkpoint in
 agents/checkpoints/study/; rbp-dqn is AUTO's training pipeline at the study's budget."""
-AUTO_POLICIES = ("auto", "auto-raw", "auto-mean")
+AUTO_POLICIES = ("auto", "auto-raw", "auto-mean", "auto-ring")
 """AUTO's checkpoint with the safety module, without it, and with its continuous parameters
-replaced by their mean over a reference set of states (``runner.reference_u``)."""
+replaced by their mean over a reference set of states (``runner.reference_u``); and the same
+learner trained on the ring family alone (its own checkpoint, with the safety module)."""
 LEARNED = (*AUTO_POLICIES, "ppo", "ppo-ring", *STUDY_POLICIES)
 """Policies that load a checkpoint."""
 POLICIES = (

@@ -356,3 +356,17 @@ def test_auto_mean_holds_the_mean_of_autos_parameters(tmp_path, monkeypatch) -> 
     finally:
         env.close()
     assert not np.allclose(policy.driver.u_mean, u)  # the network's own u differed
+
+
+def test_the_shipped_auto_ring_reads_its_memory_and_holds() -> None:
+    """``auto-ring`` (RBP-DQN on the ring family, set-speed form, the ``memory`` key): the runner
+    switches its key on, and on a ring it holds its leader's mean (u = -1 on the set speed)."""
+    from mixed_traffic.experiments.runner import run_episode
+
+    cfg = EnvConfig(scenario="ring", ring_vehicles=22, ring_length=(210.0,), penetration=1 / 22,
+                    episode_length=20.0, seed=0)  # fmt: skip
+    record = run_episode(cfg, "auto-ring", 0.0)
+    assert record["status"] == "ok" and record["config"]["sensors"]["memory"]
+    assert record["checkpoint"].endswith("auto_ring.pt")
+    u = np.array(record["diagnostics"]["u_mean"]).reshape(3, 2)
+    assert u[1, 0] < -0.9  # the follow row's set speed: hold
