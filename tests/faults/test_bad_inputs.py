@@ -80,7 +80,7 @@ SWEEP = [
     cli("sweep", "--values -0.1", "EnvConfig.penetration=-0.1", "penetration-below-0"),
     cli("sweep", "--policies magic", "policy 'magic' is not available", "unknown-policy"),
     cli("sweep", "--checkpoint {d}/garbage.pt", "garbage.pt: corrupt or unreadable", "bad-checkpoint"),
-    cli("sweep", "--policies acc-lc --checkpoint {ckpt}", "no auto/auto-raw/auto-mean policy", "unused-checkpoint"),
+    cli("sweep", "--policies acc-lc --checkpoint {ckpt}", "policy in --policies would use it", "unused-checkpoint"),
     cli("sweep", "--workers 0", "--workers=0: must be >= 1", "zero-workers"),
     cli("sweep", "--detection-range --values 3", "SensorConfig.range_factor=3.0", "range-above-2"),
     cli("sweep", "--detection-range --values 0", "SensorConfig.range_factor=0.0", "zero-range"),
