@@ -116,10 +116,10 @@ class Intervals:
                 del self._waiting[a]
             elif len(queue) >= self.n_step:
                 queue.pop(0)
-        rows = np.array(rows, np.int64)
+        rows, keys = np.array(rows, np.int64), _keys(obs)
         return {
-            "obs": {k: _stack([t.obs[k] for t in items], obs[k]) for k in _keys(obs)},
-            "next_obs": {k: obs[k][idx[rows]] for k in _keys(obs)},
+            "obs": {k: _stack([t.obs[k] for t in items], obs[k]) for k in keys},
+            "next_obs": {k: obs[k][idx[rows]] for k in keys},
             "decision": np.array([t.decision for t in items], np.int64),
             "params": _stack([t.u for t in items], np.zeros((0, 3, 2), np.float32)),
             "reward": np.array([r for r, _ in returns], np.float32),

@@ -116,8 +116,7 @@ WAVE_SECONDS = 300.0
 """Shortest wave episode [s]: waves form after 60-90 s and take minutes to clear."""
 
 
-def wave_episode(base: EnvConfig, rng: np.random.Generator,
-                 kinds: tuple[str, ...] = ("ring", "wave-highway")) -> EnvConfig:  # fmt: skip
+def wave_episode(base: EnvConfig, rng: np.random.Generator, kinds: tuple[str, ...]) -> EnvConfig:
     """A wave episode of ``base``'s settings, of a kind drawn from ``kinds``: one AV on a 22-car
     ring of a drawn length, or ``wave-highway`` at 5 % AVs (its default density), at least
     ``WAVE_SECONDS`` long."""
