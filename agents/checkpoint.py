@@ -20,6 +20,7 @@ from agents.learners.rbpdqn import RBPDQN, LearnerConfig, Policy, build_nets
 from agents.learners.variants import make_learner
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
+from agents.rules.tuned import teacher_rule
 from mixed_traffic.provenance import atomic_write
 
 FORMAT = "mixed_traffic.rbpdqn/1"
@@ -233,9 +234,12 @@ def load_policy(
 
 
 def load_driver(
-    path: str | os.PathLike, dt: float, z: int | None = None, m: int | None = None
+    path: str | os.PathLike, dt: float, z: int | None = None, m: int | None = None,
+    family: str | None = None,
 ) -> Driver:
     """Checkpoint → its :class:`agents.driver.Driver` (one thread, the checkpoint's form and
-    decision interval) for an env stepping ``dt`` [s]."""
+    decision interval, correcting its teacher rule as tuned for scenario ``family``) for an env
+    stepping ``dt`` [s]."""
     actor, critic, cfg = load_nets(path, z=z, m=m)
-    return Driver(Policy(actor, critic, threads=1), cfg, dt)
+    teacher = teacher_rule(cfg.teacher, family, dt)
+    return Driver(Policy(actor, critic, threads=1), cfg, dt, teacher)

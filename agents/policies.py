@@ -116,16 +116,18 @@ class AutoPolicy:
         safety: bool = True,
         dt: float = 0.1,
         name: str | None = None,
+        family: str | None = None,
     ) -> None:
         """``dt``: the env's simulation step [s]; ``name``: the policy's (default auto, or
-        auto-raw without the safety module)."""
+        auto-raw without the safety module); ``family``: the scenario family, for a policy
+        that corrects ``acc-lc-tuned``."""
         from agents.checkpoint import load_driver
         from agents.rules.safety import SafetyModule
 
         path = Path(checkpoint) if checkpoint is not None else SHIPPED_CHECKPOINT
         self.checkpoint = path.resolve()
         self.name = name or ("auto" if safety else "auto-raw")
-        self.driver = load_driver(path, dt, z=z, m=m)
+        self.driver = load_driver(path, dt, z=z, m=m, family=family)
         self.safety = SafetyModule(rule=self.driver.teacher) if safety else None
 
     def act(
@@ -163,7 +165,8 @@ def make_policy(name: str, *, seed: int = 0, checkpoint: str | Path | None = Non
         from agents.rules.tuned import cap_factor
 
         path = checkpoint_path(base, checkpoint)
-        policy = AutoPolicy(path, z=z, m=m, safety=base != "auto-raw", dt=dt, name=base)
+        policy = AutoPolicy(path, z=z, m=m, safety=base != "auto-raw", dt=dt, name=base,
+                            family=family)  # fmt: skip
         policy.driver.cap_factor = cap_factor(family)
         policy.params = {"speed_cap_factor": policy.driver.cap_factor}
         return policy

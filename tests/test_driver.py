@@ -370,3 +370,34 @@ def test_the_shipped_auto_ring_reads_its_memory_and_holds() -> None:
     assert record["checkpoint"].endswith("auto_ring.pt")
     u = np.array(record["diagnostics"]["u_mean"]).reshape(3, 2)
     assert u[1, 0] < -0.9  # the follow row's set speed: hold
+
+
+@pytest.mark.parametrize("family", ["straight", "merge"])
+def test_a_zero_residual_on_the_tuned_rule_drives_as_acc_lc_tuned(tmp_path, family: str) -> None:
+    """With teacher acc-lc-tuned, u = 0 executes the family's tuned ACC-LC (not the default),
+    loaded from a checkpoint through make_policy, as an evaluation builds it."""
+    from agents.checkpoint import save_checkpoint
+
+    sensors = EnvConfig().sensors
+    cfg = LearnerConfig(residual=True, decision_interval=0.5, teacher_bonus=0.02,
+                        teacher="acc-lc-tuned")
+    path = save_checkpoint(tmp_path / "tuned.pt", RBPDQN(LCAConfig(z=sensors.history,
+                                                                  m=sensors.waypoints), cfg))  # fmt: skip
+    auto = make_policy("auto-raw", checkpoint=path, family=family)
+    tuned, default = (make_policy(n, family=family) for n in ("acc-lc-tuned", "acc-lc"))
+    assert auto.driver.teacher.c == tuned.c != default.c
+    env = parallel_env(scenario=family, density=120, penetration=0.5, episode_length=8, seed=2)
+    obs, _ = env.reset(seed=2)
+    acted = 0
+    try:
+        while env.agents:
+            agents = list(env.agents)
+            batch = stack_obs(obs, agents)
+            got, want = auto.act(batch, agents), tuned.act(batch, agents)
+            np.testing.assert_array_equal(got[0], want[0])
+            np.testing.assert_allclose(got[1], want[1], atol=1e-6)
+            acted += len(agents)
+            obs, *_ = env.step(to_actions(agents, *got))
+    finally:
+        env.close()
+    assert acted > 100

@@ -39,6 +39,7 @@ from agents.learners.rbpdqn import LearnerConfig, Policy, build_nets
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
 from agents.policies import make_policy, stack_obs, to_actions
+from agents.rules.tuned import cap_factor
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
 from mixed_traffic.world.registry import load_scenario
@@ -220,7 +221,7 @@ class RolloutWorker:
         self.policy = Policy(self.actor, self.critic, spec.noise_std, spec.epsilon, threads=1,
                              **({"steer_noise_factor": 1.0} if spec.learner.residual else {}))  # fmt: skip
         self.has_weights = False
-        self._demo: Any = None
+        self._demos: dict[str | None, Any] = {}
         self.demo_done = 0
         self.episode = 0
         self._steps = {"wave": 0, "other": 0}  # agent-steps driven per kind of episode
@@ -243,11 +244,13 @@ class RolloutWorker:
         self.has_weights = True
 
     # ------------------------------------------------------------------ episodes
-    def _demonstrator(self) -> Any:
-        """The demonstrator policy (built on first use)."""
-        if self._demo is None:
-            self._demo = make_policy(self.spec.demo_policy, seed=self.spec.seed)
-        return self._demo
+    def _demonstrator(self, family: str | None) -> Any:
+        """The demonstrator policy for scenario ``family`` (``acc-lc-tuned`` is tuned per
+        family), built on first use."""
+        if family not in self._demos:
+            self._demos[family] = make_policy(self.spec.demo_policy, seed=self.spec.seed,
+                                              family=family)  # fmt: skip
+        return self._demos[family]
 
     def _start_episode(self) -> None:
         """Sample the next episode's env config and seed, and reset a fresh env."""
@@ -280,8 +283,10 @@ class RolloutWorker:
         self.ep_reward, self.ep_actions = 0.0, 0
         lc = s.learner
         hold = max(1, round(s.explore_hold / lc.decision_interval))
-        self.driver = Driver(self.policy, lc, self.env.config.step_length, self._demonstrator(),
-                             noise_hold=hold)  # fmt: skip
+        family = self.env.scenario.family
+        self.driver = Driver(self.policy, lc, self.env.config.step_length,
+                             self._demonstrator(family), noise_hold=hold)  # fmt: skip
+        self.driver.cap_factor = cap_factor(family)  # the governors' cap, as in evaluation
         # γ per decision_interval, so per simulation step of any scenario's length
         gamma_step = lc.gamma ** (self.env.config.step_length / lc.decision_interval)
         self.intervals = Intervals(gamma_step, s.reward_scale or 1.0 - gamma_step,

@@ -140,6 +140,10 @@ class LearnerConfig:
     with a signal or give-way line in view, the residual row drives."""
     set_speed_span: float = 2.5
     """Reach of the set speed above the leader's mean at u = 0 [m/s]."""
+    teacher: str = "acc-lc"
+    """Residual form: the rule whose parameters u corrects and whose lane plan the safety module
+    and the set speed reuse: acc-lc (the default ACC-LC) | acc-lc-tuned (the scenario family's
+    tuned setting, ``agents.rules.tuned``: u = 0 is then the best-tuned rule)."""
     twin: bool = False
     """Clipped double Q (TD3, Fujimoto et al. 2018) against over-estimation: a second critic,
     trained on the same target, which takes the smaller of the two target critics' Q at the

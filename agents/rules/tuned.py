@@ -21,6 +21,8 @@ from typing import Any
 TUNED_FILE = Path(__file__).resolve().parents[1] / "checkpoints" / "acc_lc_tuned.json"
 TUNED_FIELDS = ("T", "speed_factor", "a")
 """The AccLcConfig fields the grid tunes."""
+TEACHERS = ("acc-lc", "acc-lc-tuned")
+"""The rules a residual policy can correct (``LearnerConfig.teacher``)."""
 
 
 def tuned_params(family: str | None, path: Path = TUNED_FILE) -> dict[str, Any]:
@@ -39,6 +41,19 @@ def cap_factor(family: str | None, path: Path = TUNED_FILE) -> float:
     if not path.is_file():
         return 1.0
     return float(tuned_params(family, path)["speed_factor"])
+
+
+def teacher_rule(name: str, family: str | None, dt: float) -> Any:
+    """The :class:`AccLcPolicy` that a residual policy corrects: the default ACC-LC, or the
+    one tuned for ``family`` (``name`` one of ``TEACHERS``); ``dt`` its step [s]."""
+    from agents.rules.acc_lc import AccLcPolicy
+    from agents.rules.acc_lc_config import AccLcConfig
+
+    if name not in TEACHERS:
+        raise ValueError(f"teacher {name!r}: a residual policy corrects one of {TEACHERS}")
+    tuned = {} if name == "acc-lc" else tuned_params(family)
+    tuned.pop("tuned_for", None)
+    return AccLcPolicy(AccLcConfig(dt=dt, **tuned))
 
 
 @cache

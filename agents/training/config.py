@@ -12,6 +12,7 @@ from typing import Any, NoReturn
 
 from agents.nets.lca import LCAConfig
 from agents.rules.obs_batch import extra_width
+from agents.rules.tuned import TEACHERS
 from mixed_traffic.config import WEATHERS, EnvConfig
 from mixed_traffic.env.api import observation_space
 
@@ -64,7 +65,8 @@ class TrainConfig:
     (all ``demo_steps`` arrived, or a worker switched to its own policy), before the learned
     weights are published (0 = none)."""
     demo_policy: str = "acc-lc"
-    """Demonstrator policy name for agents.policies.make_policy."""
+    """Demonstrator policy name for agents.policies.make_policy; with --residual also the rule
+    that u corrects (``LearnerConfig.teacher``): acc-lc | acc-lc-tuned."""
     expert_labels: bool = True
     """Label every transition the learning policy drives with the demonstrator's action for
     the same observation; behaviour cloning and the DQfD margin then target it (DAgger-style
@@ -316,8 +318,8 @@ class TrainConfig:
         for name in ("steer_delta", "accel_delta"):
             if not 0 < getattr(self, name) <= 2:
                 self._bad(name, "must be in (0, 2] action units")
-        if self.residual and self.demo_policy not in ("acc-lc", "acc-lc-conservative"):
-            self._bad("demo_policy", "the residual form corrects ACC-LC: use acc-lc")
+        if self.residual and self.demo_policy not in TEACHERS:
+            self._bad("demo_policy", f"the residual form corrects ACC-LC: use one of {TEACHERS}")
         if not 0 <= self.impact_weight <= 10:
             self._bad("impact_weight", "must be in [0, 10]")
         if len(self.fleet_weights) != 3 or not all(0 <= w <= 100 for w in self.fleet_weights):

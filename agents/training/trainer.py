@@ -79,6 +79,7 @@ def _learner_config(cfg: TrainConfig) -> LearnerConfig:
                          decision_interval=cfg.decision_interval, multi_pass=cfg.multi_pass,
                          speed_governor=cfg.speed_governor,
                          rss_governor=cfg.rss_governor, twin=cfg.twin, set_speed=cfg.set_speed,
+                         teacher=cfg.demo_policy if cfg.residual else "acc-lc",
                          # u of the residual form is already in bounded units, and ACC-LC's
                          # decisions get a selection bonus instead of the DQfD margin; a set
                          # speed is cloned as lightly as the acceleration (at 1.0 the pull to
