@@ -1,4 +1,4 @@
-"""The pass rules of issue 22's acceptance checks (pure statistics on synthetic episodes)."""
+"""The pass rules of issue 43's acceptance checks (pure statistics on synthetic episodes)."""
 
 from __future__ import annotations
 
@@ -8,9 +8,10 @@ import pytest
 from mixed_traffic.experiments.acceptance import eval_rows, flow_rows
 
 
-def _half(gain: float, sm: float = 2.0, collisions: float = 0.0) -> pd.DataFrame:
+def _half(gain: float, sm: float = 2.0, collisions: float = 0.0, kept: float = 0.2) -> pd.DataFrame:
     """Four paired seeds; AUTO's AvgDT-A is ``gain`` % below the tuned ACC-LC's, with seed
-    noise; the default ACC-LC is 10 % slower than the tuned one."""
+    noise, and auto-mean's ``kept`` of that gain; the default ACC-LC is 10 % slower than the
+    tuned one."""
     rows = []
     for seed, acc in enumerate([80.0, 76.0, 78.0, 82.0]):
         noise = 0.2 * (seed % 2 - 0.5)
@@ -19,6 +20,8 @@ def _half(gain: float, sm: float = 2.0, collisions: float = 0.0) -> pd.DataFrame
                          "sm_share": None, "terminal_collision": 0.0})  # fmt: skip
         rows.append({"policy": "auto", "seed": seed, "avg_dt_a": acc * (1 - (gain + noise) / 100),
                      "avg_at_c": 0.1, "sm_share": sm, "terminal_collision": collisions})  # fmt: skip
+        rows.append({"policy": "auto-mean", "seed": seed, "avg_at_c": 0.1,
+                     "avg_dt_a": acc * (1 - kept * (gain + noise) / 100)})  # fmt: skip
     return pd.DataFrame(rows)
 
 
@@ -36,12 +39,19 @@ def _passed(rows: list[dict]) -> dict[str, bool]:
 
 def test_a_clear_gain_passes_and_a_small_one_does_not() -> None:
     assert _passed(eval_rows("x", _half(4.0), RAW, TUNED)) == {
-        "dt_gain": True, "at_c": True, "terminal": True, "sm_share": True, "raw_terminal": True,
+        "dt_gain": True, "auto_mean": True, "at_c": True, "terminal": True, "sm_share": True,
+        "raw_terminal": True,
     }  # fmt: skip
     assert not _passed(eval_rows("x", _half(1.0), RAW, TUNED))["dt_gain"]  # significant but < 3 %
     # over the default ACC-LC the same AUTO gains about 13 %: shown, not what is checked
     row = eval_rows("x", _half(1.0), RAW, TUNED)[0]
     assert "over acc-lc-tuned" in row["value"] and "over acc-lc +10." in row["value"]
+
+
+def test_a_gain_that_a_constant_keeps_is_not_behaviour() -> None:
+    assert not _passed(eval_rows("x", _half(4.0, kept=0.8), RAW, TUNED))["auto_mean"]
+    assert _passed(eval_rows("x", _half(4.0, kept=0.4), RAW, TUNED))["auto_mean"]
+    assert not _passed(eval_rows("x", _half(-1.0, kept=0.0), RAW, TUNED))["auto_mean"]  # no gain
 
 
 @pytest.mark.parametrize(
@@ -55,13 +65,37 @@ def test_safety_limits(kw: dict, raw_events: float, failing: str) -> None:
     assert [k for k, ok in passed.items() if not ok] == [failing]
 
 
+def _ring(std: float, speed: float, behind: float = 0.1) -> pd.DataFrame:
+    """Two rings x three seeds: the AV's ring at ``std`` and ``speed`` [m/s], all human at 2.5
+    and 2.0, FollowerStopper at 0.4 and 2.4; the AV's wake ``behind`` against 0.3 ahead."""
+    return pd.DataFrame([
+        {"policy": p, "seed": s, "ring": length, "speed_std": v + 0.01 * s, "mean_speed": m,
+         "speed_std_ahead": 0.3, "speed_std_behind": behind}
+        for length in (210.0, 280.0) for s in range(3)
+        for p, v, m in (("auto", std, speed), ("idm", 2.5, 2.0), ("follower-stopper", 0.4, 2.4))
+    ])  # fmt: skip
+
+
+def _wave(std: float, fuel: float, dt_tf: float) -> pd.DataFrame:
+    """AUTO's ratios to all human (std 4, fuel 8, DT-TF 100) on three seeds."""
+    return pd.DataFrame([{"policy": p, "seed": s, "speed_std": 4.0 * r[0], "fuel": 8.0 * r[1],
+                          "dt_tf": 100.0 * r[2]}
+                         for s in range(3)
+                         for p, r in (("auto", (std, fuel, dt_tf)), ("idm", (1, 1, 1)))])  # fmt: skip
+
+
+FULL = pd.DataFrame([{"policy": p, "seed": s, "dt_tf": v + s}
+                     for s in range(3) for p, v in (("auto", 70.0), ("idm", 72.0))])  # fmt: skip
+
+
 def test_flow_rows() -> None:
-    full = pd.DataFrame([{"policy": p, "seed": s, "dt_tf": v + s}
-                         for s in range(3) for p, v in (("auto", 70.0), ("idm", 72.0))])  # fmt: skip
-    ring = pd.DataFrame([{"policy": p, "seed": s, "speed_std": v}
-                         for s in range(3) for p, v in (("auto", 1.3), ("idm", 2.5),
-                                                        ("follower-stopper", 0.4))])  # fmt: skip
-    assert _passed(flow_rows(full, ring)) == {"dt_tf": True, "ring": False}  # 1.3 > 2.5 / 2
-    assert _passed(flow_rows(full, ring.replace(1.3, 1.2)))["ring"]
-    nan = full.assign(dt_tf=float("nan"))
-    assert not _passed(flow_rows(nan, ring))["dt_tf"]  # no measurement never passes
+    good = _passed(flow_rows(FULL, _ring(1.0, 2.6), _wave(0.7, 0.9, 1.01)))
+    assert good == {"dt_tf": True, "ring_std": True, "ring_speed": True, "ring_wake": True,
+                    "wave": True}  # fmt: skip
+    assert not _passed(flow_rows(FULL, _ring(1.3, 2.6), _wave(0.7, 0.9, 1.01)))["ring_std"]
+    slow = _passed(flow_rows(FULL, _ring(1.0, 2.2, behind=0.5), _wave(0.7, 0.9, 1.01)))
+    assert not slow["ring_speed"] and not slow["ring_wake"]  # slower than FollowerStopper
+    for bad in ((0.9, 0.9, 1.01), (0.7, 0.97, 1.01), (0.7, 0.9, 1.05)):  # each bound alone
+        assert not _passed(flow_rows(FULL, _ring(1.0, 2.6), _wave(*bad)))["wave"]
+    nan = FULL.assign(dt_tf=float("nan"))
+    assert not _passed(flow_rows(nan, _ring(1.0, 2.6), _wave(0.7, 0.9, 1.01)))["dt_tf"]

@@ -170,6 +170,8 @@ def test_failed_cell_is_recorded_and_the_sweep_goes_on(tmp_path: Path) -> None:
         (["--address", "auto"], "--address needs --backend ray"),
         (["--weather", "--values", "snow"], "--values"),
         (["--backend", "slurm"], "--backend"),
+        (["--ring-length", "250"], "--ring-length=250.0: straight is not a ring"),
+        (["--scenario", "ring", "--ring-length", "90"], "--ring-length=90.0"),
         (
             ["--checkpoint", "no/such.pt"],
             "--checkpoint=no/such.pt: checkpoint no/such.pt: file not found",
@@ -196,6 +198,16 @@ def test_default_penetration_sweep_cells() -> None:
     assert len(grid) == 48
     assert {c.policy for c in grid} == {"auto", "acc-lc-tuned", "acc-lc", "idm"}
     assert {c.penetration for c in grid if c.policy == "idm"} == {0.0}
+
+
+def test_a_ring_sweep_scales_the_ring_and_keeps_the_count_of_its_density() -> None:
+    from mixed_traffic.experiments.sweep import cell_config
+
+    sweep = parse_args(["--scenario", "ring", "--ring-length", "280", "--at-density",
+                        str(22 / 0.28), "--values", str(1 / 22), "--no-report"])  # fmt: skip
+    configs = [cell_config(c, sweep) for c in cells(sweep)]
+    assert {c.ring_length for c in configs} == {(280.0,)}
+    assert {round(c.density * 0.28) for c in configs} == {22}
 
 
 def test_ray_backend_runs_cells_as_tasks(tmp_path: Path) -> None:

@@ -1,4 +1,5 @@
-"""Check an AUTO checkpoint against the "done when" list of issue 22 (held-out eval variants).
+"""Check an AUTO checkpoint against the "done when" list of issue 43 (held-out eval variants),
+which extends issue 22's.
 
     python -m mixed_traffic.experiments.acceptance --checkpoint runs/auto/auto.pt
 
@@ -9,14 +10,23 @@ code and checkpoint content, resumable) and compares paired seeds with 95 % t-in
 - ``dt_gain``: AUTO's AvgDT-A gain over the ``baseline`` rule (``acc-lc-tuned``) [%] on
   straight-eval and merge-eval at 50 % AVs: at least 3 % and the interval excludes 0 (the
   gain over the default ACC-LC is shown beside it);
+- ``auto_mean``: ``auto-mean`` (AUTO with its continuous parameters replaced by their mean over
+  ``runner.REFERENCE_STATES``) keeps at most half of that gain: the gain is behaviour, not a
+  constant;
 - ``at_c``: AvgAT-C (AUTO − the baseline) not significantly above 0;
 - ``terminal``: no terminal event of AUTO in those cells;
 - ``sm_share``: the safety module changes at most 10 % of AUTO's actions;
 - ``raw_terminal``: ``auto-raw`` at 100 % AVs ends at most 0.2 % of its AV trips in a terminal
   event on both;
 - ``dt_tf``: on straight at 120 veh/km, DT-TF with 100 % AUTO is at most the all-human one;
-- ``ring``: on the ring (85 veh/km, one AV, 300 s), AUTO's speed std is at most half the
-  all-human one (FollowerStopper's is shown beside it).
+- ``ring_std``, ``ring_speed``, ``ring_wake``: one AV (``ring_policy``: ``auto``, or the
+  ring-family ``auto-ring``) among 22 vehicles on the ``ring-v2`` task's eval rings (210 and
+  280 m, lengths no training uses), 300 s from t = 0: the speed std at most half the all-human
+  one, the mean speed at least FollowerStopper's, and ``speed_std_behind`` below
+  ``speed_std_ahead``;
+- ``wave``: on ``wave-highway-eval`` at 5 % AVs (the ``wave-highway-v1`` task's eval: 420 s,
+  warm-up 120 s; a checkpoint trained with V2X reads it), AUTO lowers the speed std by at least
+  20 % and fuel by at least 5 % against all-human traffic, with DT-TF at most 2 % worse.
 """
 
 from __future__ import annotations
@@ -27,6 +37,7 @@ import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -38,6 +49,7 @@ from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
 from mixed_traffic.provenance import FolderBusyError, current_code_key, read_records
 
 EVAL = ("straight-eval", "merge-eval")
+RING_POLICIES = ("auto", "auto-ring")
 
 
 @dataclass(frozen=True)
@@ -58,9 +70,14 @@ class AcceptanceConfig:
     """Records folder; a re-run skips the episodes already recorded with the same code."""
     baseline: str = "acc-lc-tuned"
     """The rule AUTO is compared with: a policy name or spec (acc-lc:T=1.0,...)."""
+    ring_policy: str = "auto"
+    """The ring checks' policy: auto (the checkpoint checked) or auto-ring (the shipped
+    ring-family checkpoint of the same learner)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "baseline", check_policy(self.baseline))
+        if self.ring_policy not in RING_POLICIES:
+            raise ValueError(f"--ring-policy {self.ring_policy}: choose from {RING_POLICIES}")
         if len(self.seeds) < 2:
             raise ValueError(f"--seeds: {list(self.seeds)} gives no interval; give at least 2")
         if self.checkpoint is not None:
@@ -75,16 +92,18 @@ class AcceptanceConfig:
 
     def records(self, name: str, scenario: str, policies: tuple[str, ...],
                 penetration: float, density: float | None = None, length: float | None = None,
-                reference: bool = False) -> pd.DataFrame:  # fmt: skip
+                reference: bool = False, **sweep_kw: Any) -> pd.DataFrame:  # fmt: skip
         """Run (or reuse) one cell per policy and seed (``reference``: plus the all-human
-        ``idm`` cell at 0 %) → one row per episode: policy, seed and the record's metrics."""
+        ``idm`` cell at 0 %) → one row per episode: policy, seed and the record's metrics.
+        ``sweep_kw``: other :class:`SweepConfig` fields (warmup, ring_length, checkpoint)."""
         folder = self.out / f"code-{current_code_key()}" / content_key(self.path) / name
-        sweep = SweepConfig(
-            scenario=scenario, at_density=density, values=(penetration,), reference=reference,
-            policies=policies, seeds=self.seeds, episode_length=length or self.episode_length,
-            warmup=self.warmup, checkpoint=self.path, workers=self.workers, out=folder,
-            report=False, traffic=False,
-        )  # fmt: skip
+        sweep = SweepConfig(**{
+            "scenario": scenario, "at_density": density, "values": (penetration,),
+            "reference": reference, "policies": policies, "seeds": self.seeds,
+            "episode_length": length or self.episode_length, "warmup": self.warmup,
+            "checkpoint": self.path, "workers": self.workers, "out": folder, "report": False,
+            "traffic": False, **sweep_kw,
+        })  # fmt: skip
         rows = [{"policy": r["cell"]["policy"], "seed": r["cell"]["seed"], **r["metrics"]}
                 for r in read_records(run_sweep(sweep, progress=False))
                 if r["status"] == "ok" and r["cell"]["seed"] in self.seeds]  # fmt: skip
@@ -109,21 +128,21 @@ def eval_checks(cfg: AcceptanceConfig) -> list[dict]:
     """:func:`eval_rows` of each eval variant."""
     out = []
     for sc in EVAL:
-        half = cfg.records(
-            f"{sc}-50", sc, tuple(dict.fromkeys(("auto", cfg.baseline, "acc-lc"))), 0.5
-        )
+        policies = tuple(dict.fromkeys(("auto", "auto-mean", cfg.baseline, "acc-lc")))
+        half = cfg.records(f"{sc}-50", sc, policies, 0.5)
         raw = cfg.records(f"{sc}-100-raw", sc, ("auto-raw",), 1.0)
         out += eval_rows(sc, half, raw, cfg.baseline)
     return out
 
 
 def eval_rows(where: str, half: pd.DataFrame, raw: pd.DataFrame, baseline: str) -> list[dict]:
-    """dt_gain, at_c, terminal and sm_share from the 50 % episodes ``half`` (auto, the
-    ``baseline`` rule and the default acc-lc), raw_terminal from the 100 % ``auto-raw``
-    episodes ``raw``."""
-    auto = _by_seed(half, "auto", "avg_dt_a")
-    gain, plain = (paired_difference(100 * (1 - auto / b), 0 * b)
-                   for b in (_by_seed(half, p, "avg_dt_a") for p in (baseline, "acc-lc")))  # fmt: skip
+    """dt_gain, auto_mean, at_c, terminal and sm_share from the 50 % episodes ``half`` (auto,
+    auto-mean, the ``baseline`` rule and the default acc-lc), raw_terminal from the 100 %
+    ``auto-raw`` episodes ``raw``."""
+    base = _by_seed(half, baseline, "avg_dt_a")
+    gain, plain = (paired_difference(100 * (1 - _by_seed(half, "auto", "avg_dt_a") / b), 0 * b)
+                   for b in (base, _by_seed(half, "acc-lc", "avg_dt_a")))  # fmt: skip
+    kept = paired_difference(100 * (1 - _by_seed(half, "auto-mean", "avg_dt_a") / base), 0 * base)
     at = paired_difference(_by_seed(half, "auto", "avg_at_c"), _by_seed(half, baseline, "avg_at_c"))
     term = _terminal(half, "auto")
     share = float(half.loc[half["policy"] == "auto", "sm_share"].mean())  # [%]
@@ -133,6 +152,8 @@ def eval_rows(where: str, half: pd.DataFrame, raw: pd.DataFrame, baseline: str) 
         _row("dt_gain", where, f"{gain.mean:+.2f} ± {gain.half_width:.2f} % over {baseline} "
              f"(n={gain.n}; over acc-lc {plain.mean:+.2f} ± {plain.half_width:.2f} %)",
              gain.mean >= 3 and gain.mean - gain.half_width > 0),
+        _row("auto_mean", where, f"auto-mean gains {kept.mean:+.2f} ± {kept.half_width:.2f} % "
+             f"(AUTO {gain.mean:+.2f} %)", gain.mean > 0 and kept.mean <= 0.5 * gain.mean),
         _row("at_c", where, f"{at.mean:+.3f} ± {at.half_width:.3f} s", at.mean - at.half_width <= 0),
         _row("terminal", where, f"{term:g} events", term == 0),
         _row("sm_share", where, f"{share:.1f} %", share <= 10),
@@ -141,31 +162,59 @@ def eval_rows(where: str, half: pd.DataFrame, raw: pd.DataFrame, baseline: str) 
 
 
 def flow_checks(cfg: AcceptanceConfig) -> list[dict]:
-    """:func:`flow_rows` of straight at 120 veh/km and of the ring."""
+    """:func:`flow_rows` of straight at 120 veh/km, the ring-v2 eval rings and the wave road."""
+    from mixed_traffic.benchmark import get_task
+
     full = cfg.records("straight-120", "straight", ("auto",), 1.0, density=120.0, reference=True)
-    ring = cfg.records("ring", "ring", ("auto", "follower-stopper"), 0.05, density=85.0,
-                       length=300.0, reference=True)  # fmt: skip
-    return flow_rows(full, ring)
+    rings = []
+    for ring in get_task("ring-v2").eval:
+        length = ring.ring_length[0]
+        rings.append(cfg.records(
+            f"ring-{length:g}", "ring", (cfg.ring_policy, "follower-stopper"), ring.penetration,
+            density=ring.ring_vehicles / (length / 1000),  # 22 vehicles whatever the length length=ring.episode_length, reference=True, warmup=0.0,
+            ring_length=length, checkpoint=cfg.path if cfg.ring_policy == "auto" else None,
+        ).assign(ring=length))  # fmt: skip
+    wave = get_task("wave-highway-v1")
+    road = wave.eval[0]
+    waves = cfg.records("wave-highway-eval", road.scenario, ("auto",), road.penetration,
+                        length=road.episode_length, reference=True, warmup=wave.warmup)  # fmt: skip
+    return flow_rows(full, pd.concat(rings, ignore_index=True), waves, cfg.ring_policy)
 
 
-def flow_rows(full: pd.DataFrame, ring: pd.DataFrame) -> list[dict]:
-    """dt_tf from ``full`` (100 % auto and the all-human idm episodes) and the ring's speed
-    std from ``ring`` (auto, follower-stopper, idm)."""
+def flow_rows(
+    full: pd.DataFrame, ring: pd.DataFrame, wave: pd.DataFrame, ring_policy: str = "auto"
+) -> list[dict]:
+    """dt_tf from ``full`` (100 % auto and the all-human idm episodes); ring_std, ring_speed
+    and ring_wake from ``ring`` (``ring_policy``, follower-stopper and idm, a ``ring`` column
+    naming each episode's length); wave from ``wave`` (auto and idm)."""
     d = paired_difference(_by_seed(full, "auto", "dt_tf"), _by_seed(full, "idm", "dt_tf"))
-    std = {p: _by_seed(ring, p, "speed_std").mean() for p in ("auto", "idm", "follower-stopper")}
+    ring = ring.assign(seed=ring["seed"].astype(str) + "@" + ring["ring"].astype(str))
+    idm = _by_seed(ring, "idm", "speed_std")
+    std = paired_difference(_by_seed(ring, ring_policy, "speed_std") / idm, 0 * idm)
+    speed = {p: _by_seed(ring, p, "mean_speed").mean() for p in (ring_policy, "follower-stopper")}
+    wake = {k: _by_seed(ring, ring_policy, f"speed_std_{k}").mean() for k in ("ahead", "behind")}
+    ratio = {k: (_by_seed(wave, "auto", k) / _by_seed(wave, "idm", k)).mean()
+             for k in ("speed_std", "fuel", "dt_tf")}  # fmt: skip
+    where = f"ring-v2 eval rings, 1 {ring_policy}"
     return [
         _row("dt_tf", "straight 120 veh/km", f"{d.mean:+.2f} ± {d.half_width:.2f} s/km "
              "(100 % AUTO − all human)", d.mean - d.half_width <= 0),
-        _row("ring", "ring 85 veh/km, 1 AV", f"speed std {std['auto']:.2f} m/s vs all human "
-             f"{std['idm']:.2f} (FollowerStopper {std['follower-stopper']:.2f})",
-             std["auto"] <= 0.5 * std["idm"]),
+        _row("ring_std", where, f"speed std {std.mean:.2f} ± {std.half_width:.2f} of all "
+             f"human's (n={std.n})", std.mean <= 0.5),
+        _row("ring_speed", where, f"mean speed {speed[ring_policy]:.2f} m/s vs FollowerStopper "
+             f"{speed['follower-stopper']:.2f}", speed[ring_policy] >= speed["follower-stopper"]),
+        _row("ring_wake", where, f"speed std behind {wake['behind']:.2f} vs ahead "
+             f"{wake['ahead']:.2f} m/s", wake["behind"] < wake["ahead"]),
+        _row("wave", "wave-highway-eval, 5 % AUTO", f"vs all human: speed std x"
+             f"{ratio['speed_std']:.2f}, fuel x{ratio['fuel']:.2f}, DT-TF x{ratio['dt_tf']:.3f}",
+             ratio["speed_std"] <= 0.8 and ratio["fuel"] <= 0.95 and ratio["dt_tf"] <= 1.02),
     ]  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="python -m mixed_traffic.experiments.acceptance",
-        description="Check an AUTO checkpoint against issue 22's done list on the held-out "
+        description="Check an AUTO checkpoint against issue 43's done list on the held-out "
         "eval variants (paired seeds, 95 % t-intervals).",
     )
     add_config_args(p, AcceptanceConfig)

@@ -70,6 +70,9 @@ class SweepConfig:
     veh/km unless its spec gives one)."""
     at_penetration: float = 0.2
     """AV penetration for the density and weather sweeps [0-1]."""
+    ring_length: float = 0.0
+    """Circumference a ring scenario is scaled to [m], 150-400; its vehicle count is density x
+    length (0 = the ring as bundled)."""
     values: tuple[float | str, ...] = ()
     """Values of the swept axis (default: penetration 0.2 .. 1.0, density 60 120 180 veh/km,
     every weather, or detection range 0.6 .. 1.2 of nominal)."""
@@ -148,8 +151,14 @@ class SweepConfig:
             scenario = load_scenario(self.scenario)
         except ValueError as e:
             bad("scenario", str(e))
-        base = EnvConfig(scenario=self.scenario, density=self.at_density,
-                         penetration=self.at_penetration, episode_length=self.episode_length)  # fmt: skip
+        if self.ring_length and not scenario.ring:
+            bad("ring_length", f"{self.scenario} is not a ring")
+        try:
+            base = EnvConfig(scenario=self.scenario, density=self.at_density,
+                             penetration=self.at_penetration, episode_length=self.episode_length,
+                             ring_length=_ring(self.ring_length))  # fmt: skip
+        except ValueError as e:
+            bad("ring_length", str(e))
         scenario.configure(base)
         try:
             for v in self.axis_values():  # each value must make a valid config
@@ -258,8 +267,14 @@ def cell_config(cell: Cell, sweep: SweepConfig) -> EnvConfig:
         weather=cell.weather,
         seed=cell.seed,
         episode_length=sweep.episode_length,
+        ring_length=_ring(sweep.ring_length),
     )
     return with_axis(base, "detection_range", cell.detection_range)
+
+
+def _ring(length: float) -> tuple[float, ...]:
+    """``EnvConfig.ring_length`` of a sweep's ``ring_length`` (0 = the ring as bundled)."""
+    return (length,) if length else ()
 
 
 def episode_record(cell: Cell, sweep: SweepConfig) -> dict:
