@@ -241,8 +241,8 @@ def test_residual_transitions_span_the_decision_interval(tmp_path: Path) -> None
 
 def test_wave_episodes_take_their_share_with_the_fleet_reward(tmp_path: Path) -> None:
     """With ``wave_share`` a worker starts a wave episode (a drawn ring with one AV, or the
-    wave road at 5 % AVs, 300 s) once its wave agent-steps fall below the share; the training
-    reward carries the fleet terms."""
+    wave road at 5 % AVs, 300 s after a random warm-up that records nothing) once its wave
+    agent-steps fall below the share; the training reward carries the fleet terms."""
     tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1, demo_steps=0, wave_share=0.5,
                       fleet_weights=(1.0, 0.5, 0.0)))  # fmt: skip
     worker = RolloutWorker(tr.worker_specs()[0])
@@ -252,10 +252,13 @@ def test_wave_episodes_take_their_share_with_the_fleet_reward(tmp_path: Path) ->
         assert not worker.wave and worker.env_cfg.scenario == "straight-3lane"
         while not worker.wave:
             worker.collect(20)
-        cfg = worker.env_cfg
-        assert cfg.episode_length == 300.0 and cfg.scenario in ("ring", "wave-highway")
+        cfg, warmup = worker.env_cfg, worker.warmup
+        assert 0 < warmup <= 120.0 and cfg.episode_length == pytest.approx(300.0 + warmup)
+        assert cfg.scenario in ("ring", "wave-highway")
         assert cfg.penetration == (1 / 22 if cfg.scenario == "ring" else 0.05)
         assert cfg.reward.w_local_speed == 1.0 and cfg.reward.w_follower_comfort == 0.5
+        # collect() returns once it has its transitions: none came from the warm-up
+        assert worker.env.sim_time >= warmup > 10.0  # (this seed's draw: 29 s)
         worker.collect(50)
         assert worker._steps["wave"] > 0 and worker._steps["other"] > 0
     finally:

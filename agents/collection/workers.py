@@ -114,19 +114,26 @@ class WorkerSpec:
 WAVE_RING = (220.0, 270.0)
 """Lengths a wave episode's 22-car ring is drawn from [m] (the ring task's training range)."""
 WAVE_SECONDS = 300.0
-"""Shortest wave episode [s]: waves form after 60-90 s and take minutes to clear."""
+"""Shortest recorded part of a wave episode [s]: waves form after 60-90 s and take minutes to
+clear."""
+WAVE_WARMUP = 120.0
+"""Longest random warm-up of a wave episode [s], before its recorded part: the teacher drives
+the AVs and nothing is recorded, so that transitions also start among formed waves."""
 
 
-def wave_episode(base: EnvConfig, rng: np.random.Generator, kinds: tuple[str, ...]) -> EnvConfig:
+def wave_episode(
+    base: EnvConfig, rng: np.random.Generator, kinds: tuple[str, ...]
+) -> tuple[EnvConfig, float]:
     """A wave episode of ``base``'s settings, of a kind drawn from ``kinds``: one AV on a 22-car
-    ring of a drawn length, or ``wave-highway`` at 5 % AVs (its default density), at least
-    ``WAVE_SECONDS`` long."""
-    length = max(base.episode_length, WAVE_SECONDS)
-    if str(rng.choice(kinds)) == "ring":
+    ring of a drawn length, or ``wave-highway`` at 5 % AVs (its default density); and its
+    warm-up [s], drawn up to ``WAVE_WARMUP``, after which at least ``WAVE_SECONDS`` remain."""
+    kind, warmup = str(rng.choice(kinds)), float(rng.uniform(0.0, WAVE_WARMUP))
+    length = max(base.episode_length, WAVE_SECONDS) + warmup
+    if kind == "ring":
         return replace(base, scenario="ring", density=None, ring_length=WAVE_RING,
-                       ring_vehicles=22, penetration=1 / 22, episode_length=length)  # fmt: skip
+                       ring_vehicles=22, penetration=1 / 22, episode_length=length), warmup  # fmt: skip
     return replace(base, scenario="wave-highway", density=None, penetration=0.05,
-                   episode_length=length)  # fmt: skip
+                   episode_length=length), warmup  # fmt: skip
 
 
 def exploration_ladder(n_workers: int, base_eps: float, base_noise: float, spread: float) -> list:
@@ -258,8 +265,9 @@ class RolloutWorker:
         self.rng = np.random.default_rng([s.seed, s.worker_id, s.run, s.incarnation, self.episode])
         self.episode += 1
         self.wave = self._steps["wave"] < s.wave_share * sum(self._steps.values())
+        self.warmup = 0.0  # [s] of teacher driving that is not recorded
         if self.wave:
-            cfg = wave_episode(s.env_base, self.rng, s.wave_kinds)
+            cfg, self.warmup = wave_episode(s.env_base, self.rng, s.wave_kinds)
         else:
             scenario = str(self.rng.choice(s.scenarios))
             densities = self._densities[scenario]
@@ -298,6 +306,8 @@ class RolloutWorker:
         agents, before = list(env.agents), env.sim_time
         if not agents:  # AVs queued upstream: let the simulation run on
             self.obs, *_ = env.step({})
+        elif env.sim_time < self.warmup - 1e-6:
+            self._warm_up(env, agents)
         else:
             self._step_agents(env, agents)
         # a step runs on until an AV enters when the last one leaves mid-episode
@@ -327,6 +337,11 @@ class RolloutWorker:
         if mode == "teacher" or self.spec.expert_labels:
             return np.ones(n, np.float32), cmd.teacher_decision, cmd.teacher_params
         return teacher, cmd.decision, cmd.u
+
+    def _warm_up(self, env: Any, agents: list[str]) -> None:
+        """One step of a wave episode's warm-up: the teacher drives, nothing is recorded."""
+        cmd = self.driver.act(stack_obs(self.obs, agents), agents, "teacher", self.rng)
+        self.obs, *_ = env.step(to_actions(agents, cmd.decision, cmd.params))
 
     def _step_agents(self, env: Any, agents: list[str]) -> None:
         """Act for ``agents``, step the env, and buffer the transitions that closed."""
