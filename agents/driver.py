@@ -147,7 +147,8 @@ class Driver:
         self.fixed_u: np.ndarray | None = None
         """(3, 2) u that replaces the network's at every decision (``auto-mean``; None: the
         network's own)."""
-        self._u_sum, self._u_count = np.zeros((3, 2)), 0  # the network's u at its decisions
+        # the network's u at its decisions: sum, sum of squares, count
+        self._u_sum, self._u_sq, self._u_count = np.zeros((3, 2)), np.zeros((3, 2)), 0
         # per agent: the hold's reference speed [m/s] and the leader's variance about it
         self._ref: dict[str, tuple[float, float]] = {}
         self._alpha = min(1.0, step_length / cfg.hold_tau)
@@ -157,6 +158,15 @@ class Driver:
     def u_mean(self) -> np.ndarray | None:
         """(3, 2) mean of the network's u over its decisions so far (None before any)."""
         return self._u_sum / self._u_count if self._u_count else None
+
+    @property
+    def u_std(self) -> np.ndarray | None:
+        """(3, 2) spread of the network's u over its decisions so far (None before any): 0
+        for a policy whose parameters do not depend on the state."""
+        if not self._u_count:
+            return None
+        mean = self._u_sum / self._u_count
+        return np.sqrt(np.maximum(self._u_sq / self._u_count - mean**2, 0.0))
 
     @property
     def u_decisions(self) -> int:
@@ -278,6 +288,7 @@ class Driver:
             )
             dec, u, hold = self.policy.choose(sub, mode == "explore", rng, bonus, noise)
             self._u_sum += u.sum(axis=0)
+            self._u_sq += np.square(u, dtype=np.float64).sum(axis=0)
             self._u_count += len(u)
             if self.fixed_u is not None:
                 u = np.broadcast_to(self.fixed_u, u.shape).astype(np.float32)

@@ -134,8 +134,9 @@ def run_episode(
         diagnostics.update(agent.safety.shares)
     if getattr(agent, "driver", None) is not None:
         diagnostics["hold_share"] = agent.driver.hold_share
-        u_mean = agent.driver.u_mean
-        diagnostics["u_mean"] = None if u_mean is None else u_mean.ravel().tolist()
+        for name in ("u_mean", "u_std"):
+            u = getattr(agent.driver, name)
+            diagnostics[name] = None if u is None else u.ravel().tolist()
         diagnostics["u_decisions"] = agent.driver.u_decisions
     record = {
         "cell": cell_of(config, policy),
