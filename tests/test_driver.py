@@ -334,11 +334,15 @@ def test_auto_mean_holds_the_mean_of_autos_parameters(tmp_path, monkeypatch) -> 
 
     monkeypatch.setenv("MIXED_TRAFFIC_CACHE", str(tmp_path))
     short = (EnvConfig(scenario="straight", density=120.0, penetration=0.5, episode_length=3.0,
-                       seed=1),)  # fmt: skip
+                       seed=1),
+             EnvConfig(scenario="merge", penetration=0.5, episode_length=3.0))  # its own density
     monkeypatch.setattr(runner, "REFERENCE_STATES", short)
     u = runner.reference_u(None)
-    own = runner.run_episode(short[0], "auto", 0.0)["diagnostics"]
-    np.testing.assert_allclose(u.ravel(), own["u_mean"], atol=1e-6)
+    runs = [runner.run_episode(c, "auto", 0.0)["diagnostics"] for c in short]
+    n = np.array([r["u_decisions"] for r in runs], float)
+    np.testing.assert_allclose(u.ravel(), n @ np.array([r["u_mean"] for r in runs]) / n.sum(),
+                               atol=1e-6)  # fmt: skip
+    own = runs[0]
     assert own["u_decisions"] > 0 and max(own["u_std"]) > 0  # the shipped u varies by state and len(list((tmp_path / "auto_mean").glob("*.json"))) == 1
     record = runner.run_episode(replace(short[0], seed=2), "auto-mean", 0.0)
     assert record["status"] == "ok" and record["cell"]["policy"] == "auto-mean"

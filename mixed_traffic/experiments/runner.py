@@ -242,8 +242,10 @@ def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tu
 
 
 def describe(config: EnvConfig) -> str:
-    """'straight, 120 veh/km, 20 % AVs, normal, seed 0' for titles."""
-    return (f"{config.scenario}, {config.density:g} veh/km, {100 * config.penetration:g} % AVs, "
+    """'straight, 120 veh/km, 20 % AVs, normal, seed 0' for titles ('its density' where the
+    config leaves the density to the scenario)."""
+    density = "its density" if config.density is None else f"{config.density:g} veh/km"
+    return (f"{config.scenario}, {density}, {100 * config.penetration:g} % AVs, "
             f"{config.weather}, seed {config.seed}")  # fmt: skip
 
 
