@@ -234,7 +234,10 @@ def load_policy(
 
 
 def load_driver(
-    path: str | os.PathLike, dt: float, z: int | None = None, m: int | None = None,
+    path: str | os.PathLike,
+    dt: float,
+    z: int | None = None,
+    m: int | None = None,
     family: str | None = None,
 ) -> Driver:
     """Checkpoint → its :class:`agents.driver.Driver` (one thread, the checkpoint's form and

@@ -333,9 +333,10 @@ def test_auto_mean_holds_the_mean_of_autos_parameters(tmp_path, monkeypatch) -> 
     from mixed_traffic.experiments import runner
 
     monkeypatch.setenv("MIXED_TRAFFIC_CACHE", str(tmp_path))
-    short = (EnvConfig(scenario="straight", density=120.0, penetration=0.5, episode_length=3.0,
-                       seed=1),
-             EnvConfig(scenario="merge", penetration=0.5, episode_length=3.0))  # its own density
+    short = (
+        EnvConfig(scenario="straight", density=120.0, penetration=0.5, episode_length=3.0, seed=1),
+        EnvConfig(scenario="merge", penetration=0.5, episode_length=3.0),
+    )  # its own density
     monkeypatch.setattr(runner, "REFERENCE_STATES", short)
     u = runner.reference_u(None)
     runs = [runner.run_episode(c, "auto", 0.0)["diagnostics"] for c in short]
@@ -343,7 +344,9 @@ def test_auto_mean_holds_the_mean_of_autos_parameters(tmp_path, monkeypatch) -> 
     np.testing.assert_allclose(u.ravel(), n @ np.array([r["u_mean"] for r in runs]) / n.sum(),
                                atol=1e-6)  # fmt: skip
     own = runs[0]
-    assert own["u_decisions"] > 0 and max(own["u_std"]) > 0  # the shipped u varies by state and len(list((tmp_path / "auto_mean").glob("*.json"))) == 1
+    assert (
+        own["u_decisions"] > 0 and max(own["u_std"]) > 0
+    )  # the shipped u varies by state and len(list((tmp_path / "auto_mean").glob("*.json"))) == 1
     record = runner.run_episode(replace(short[0], seed=2), "auto-mean", 0.0)
     assert record["status"] == "ok" and record["cell"]["policy"] == "auto-mean"
     # the driver executes the fixed u at every decision, whatever its network says
@@ -383,8 +386,9 @@ def test_a_zero_residual_on_the_tuned_rule_drives_as_acc_lc_tuned(tmp_path, fami
     from agents.checkpoint import save_checkpoint
 
     sensors = EnvConfig().sensors
-    cfg = LearnerConfig(residual=True, decision_interval=0.5, teacher_bonus=0.02,
-                        teacher="acc-lc-tuned")
+    cfg = LearnerConfig(
+        residual=True, decision_interval=0.5, teacher_bonus=0.02, teacher="acc-lc-tuned"
+    )
     path = save_checkpoint(tmp_path / "tuned.pt", RBPDQN(LCAConfig(z=sensors.history,
                                                                   m=sensors.waypoints), cfg))  # fmt: skip
     auto = make_policy("auto-raw", checkpoint=path, family=family)
