@@ -5,7 +5,13 @@ from __future__ import annotations
 import pandas as pd
 import pytest
 
-from mixed_traffic.experiments.acceptance import eval_rows, flow_rows
+from mixed_traffic.experiments.acceptance import (
+    AcceptanceConfig,
+    dt_tf_rows,
+    eval_rows,
+    ring_rows,
+    wave_rows,
+)
 
 
 def _half(gain: float, sm: float = 2.0, collisions: float = 0.0, kept: float = 0.2) -> pd.DataFrame:
@@ -84,18 +90,29 @@ def _wave(std: float, fuel: float, dt_tf: float) -> pd.DataFrame:
                          for p, r in (("auto", (std, fuel, dt_tf)), ("idm", (1, 1, 1)))])  # fmt: skip
 
 
-FULL = pd.DataFrame([{"policy": p, "seed": s, "dt_tf": v + s}
-                     for s in range(3) for p, v in (("auto", 70.0), ("idm", 72.0))])  # fmt: skip
-
-
-def test_flow_rows() -> None:
-    good = _passed(flow_rows(FULL, _ring(1.0, 2.6), _wave(0.7, 0.9, 1.01)))
-    assert good == {"dt_tf": True, "ring_std": True, "ring_speed": True, "ring_wake": True,
-                    "wave": True}  # fmt: skip
-    assert not _passed(flow_rows(FULL, _ring(1.3, 2.6), _wave(0.7, 0.9, 1.01)))["ring_std"]
-    slow = _passed(flow_rows(FULL, _ring(1.0, 2.2, behind=0.5), _wave(0.7, 0.9, 1.01)))
+def test_ring_and_wave_rows() -> None:
+    assert _passed(ring_rows(_ring(1.0, 2.6)) + wave_rows(_wave(0.7, 0.9, 1.01))) == {
+        "ring_std": True, "ring_speed": True, "ring_wake": True, "wave": True,
+    }  # fmt: skip
+    assert not _passed(ring_rows(_ring(1.3, 2.6)))["ring_std"]  # 1.3 > 2.5 / 2
+    slow = _passed(ring_rows(_ring(1.0, 2.2, behind=0.5)))
     assert not slow["ring_speed"] and not slow["ring_wake"]  # slower than FollowerStopper
     for bad in ((0.9, 0.9, 1.01), (0.7, 0.97, 1.01), (0.7, 0.9, 1.05)):  # each bound alone
-        assert not _passed(flow_rows(FULL, _ring(1.0, 2.6), _wave(*bad)))["wave"]
-    nan = FULL.assign(dt_tf=float("nan"))
-    assert not _passed(flow_rows(nan, _ring(1.0, 2.6), _wave(0.7, 0.9, 1.01)))["dt_tf"]
+        assert not _passed(wave_rows(_wave(*bad)))["wave"]
+    nan = _ring(1.0, 2.6).assign(speed_std=float("nan"))
+    assert not _passed(ring_rows(nan))["ring_std"]  # no measurement never passes
+
+
+def test_checks_are_named_groups() -> None:
+    assert AcceptanceConfig(checks=("ring",)).checks == ("ring",)
+    with pytest.raises(ValueError, match="--checks ring sail: choose from"):
+        AcceptanceConfig(checks=("ring", "sail"))
+
+
+def test_dt_tf_rows() -> None:
+    full = pd.DataFrame([{"policy": p, "seed": s, "dt_tf": v + s}
+                         for s in range(3) for p, v in (("auto", 70.0), ("idm", 72.0))])  # fmt: skip
+    assert _passed(dt_tf_rows(full))["dt_tf"]
+    slower = full.assign(dt_tf=full["dt_tf"] + 5.0 * (full["policy"] == "auto"))
+    assert not _passed(dt_tf_rows(slower))["dt_tf"]  # 3 s/km slower than all human
+    assert not _passed(dt_tf_rows(full.assign(dt_tf=float("nan"))))["dt_tf"]

@@ -70,12 +70,18 @@ class AcceptanceConfig:
     """Records folder; a re-run skips the episodes already recorded with the same code."""
     baseline: str = "acc-lc-tuned"
     """The rule AUTO is compared with: a policy name or spec (acc-lc:T=1.0,...)."""
+    checks: tuple[str, ...] = ("eval", "dt_tf", "ring", "wave")
+    """Check groups to run: eval (dt_gain, auto_mean, at_c, terminal, sm_share, raw_terminal),
+    dt_tf, ring (ring_std, ring_speed, ring_wake), wave."""
     ring_policy: str = "auto"
     """The ring checks' policy: auto (the checkpoint checked) or auto-ring (the shipped
     ring-family checkpoint of the same learner)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "baseline", check_policy(self.baseline))
+        unknown = sorted(set(self.checks) - {"eval", "dt_tf", "ring", "wave"})
+        if unknown or not self.checks:
+            raise ValueError(f"--checks {' '.join(self.checks)}: choose from eval dt_tf ring wave")
         if self.ring_policy not in RING_POLICIES:
             raise ValueError(f"--ring-policy {self.ring_policy}: choose from {RING_POLICIES}")
         if len(self.seeds) < 2:
@@ -161,54 +167,80 @@ def eval_rows(where: str, half: pd.DataFrame, raw: pd.DataFrame, baseline: str) 
     ]  # fmt: skip
 
 
-def flow_checks(cfg: AcceptanceConfig) -> list[dict]:
-    """:func:`flow_rows` of straight at 120 veh/km, the ring-v2 eval rings and the wave road."""
+def dt_tf_checks(cfg: AcceptanceConfig) -> list[dict]:
+    """dt_tf on straight at 120 veh/km: 100 % auto against all-human traffic."""
+    return dt_tf_rows(
+        cfg.records("straight-120", "straight", ("auto",), 1.0, density=120.0, reference=True)
+    )
+
+
+def dt_tf_rows(full: pd.DataFrame) -> list[dict]:
+    """dt_tf from ``full`` (100 % auto and all-human idm episodes)."""
+    d = paired_difference(_by_seed(full, "auto", "dt_tf"), _by_seed(full, "idm", "dt_tf"))
+    return [_row("dt_tf", "straight 120 veh/km", f"{d.mean:+.2f} ± {d.half_width:.2f} s/km "
+                 "(100 % AUTO − all human)", d.mean - d.half_width <= 0)]  # fmt: skip
+
+
+def ring_checks(cfg: AcceptanceConfig) -> list[dict]:
+    """:func:`ring_rows` of one ``ring_policy`` AV on each ring-v2 eval ring (22 vehicles,
+    300 s from t = 0)."""
     from mixed_traffic.benchmark import get_task
 
-    full = cfg.records("straight-120", "straight", ("auto",), 1.0, density=120.0, reference=True)
     rings = []
     for ring in get_task("ring-v2").eval:
         length = ring.ring_length[0]
         rings.append(cfg.records(
             f"ring-{length:g}", "ring", (cfg.ring_policy, "follower-stopper"), ring.penetration,
-            density=ring.ring_vehicles / (length / 1000),  # 22 vehicles whatever the length length=ring.episode_length, reference=True, warmup=0.0,
-            ring_length=length, checkpoint=cfg.path if cfg.ring_policy == "auto" else None,
+            density=ring.ring_vehicles / (length / 1000), length=ring.episode_length,
+            reference=True, warmup=0.0, ring_length=length,
+            checkpoint=cfg.path if cfg.ring_policy == "auto" else None,
         ).assign(ring=length))  # fmt: skip
-    wave = get_task("wave-highway-v1")
-    road = wave.eval[0]
-    waves = cfg.records("wave-highway-eval", road.scenario, ("auto",), road.penetration,
-                        length=road.episode_length, reference=True, warmup=wave.warmup)  # fmt: skip
-    return flow_rows(full, pd.concat(rings, ignore_index=True), waves, cfg.ring_policy)
+    return ring_rows(pd.concat(rings, ignore_index=True), cfg.ring_policy)
 
 
-def flow_rows(
-    full: pd.DataFrame, ring: pd.DataFrame, wave: pd.DataFrame, ring_policy: str = "auto"
-) -> list[dict]:
-    """dt_tf from ``full`` (100 % auto and the all-human idm episodes); ring_std, ring_speed
-    and ring_wake from ``ring`` (``ring_policy``, follower-stopper and idm, a ``ring`` column
-    naming each episode's length); wave from ``wave`` (auto and idm)."""
-    d = paired_difference(_by_seed(full, "auto", "dt_tf"), _by_seed(full, "idm", "dt_tf"))
+def ring_rows(ring: pd.DataFrame, policy: str = "auto") -> list[dict]:
+    """ring_std, ring_speed and ring_wake from ``ring`` (``policy``, follower-stopper and idm
+    episodes, a ``ring`` column naming each one's length)."""
     ring = ring.assign(seed=ring["seed"].astype(str) + "@" + ring["ring"].astype(str))
     idm = _by_seed(ring, "idm", "speed_std")
-    std = paired_difference(_by_seed(ring, ring_policy, "speed_std") / idm, 0 * idm)
-    speed = {p: _by_seed(ring, p, "mean_speed").mean() for p in (ring_policy, "follower-stopper")}
-    wake = {k: _by_seed(ring, ring_policy, f"speed_std_{k}").mean() for k in ("ahead", "behind")}
-    ratio = {k: (_by_seed(wave, "auto", k) / _by_seed(wave, "idm", k)).mean()
-             for k in ("speed_std", "fuel", "dt_tf")}  # fmt: skip
-    where = f"ring-v2 eval rings, 1 {ring_policy}"
+    std = paired_difference(_by_seed(ring, policy, "speed_std") / idm, 0 * idm)
+    speed = {p: _by_seed(ring, p, "mean_speed").mean() for p in (policy, "follower-stopper")}
+    wake = {k: _by_seed(ring, policy, f"speed_std_{k}").mean() for k in ("ahead", "behind")}
+    where = f"ring-v2 eval rings, 1 {policy}"
     return [
-        _row("dt_tf", "straight 120 veh/km", f"{d.mean:+.2f} ± {d.half_width:.2f} s/km "
-             "(100 % AUTO − all human)", d.mean - d.half_width <= 0),
         _row("ring_std", where, f"speed std {std.mean:.2f} ± {std.half_width:.2f} of all "
              f"human's (n={std.n})", std.mean <= 0.5),
-        _row("ring_speed", where, f"mean speed {speed[ring_policy]:.2f} m/s vs FollowerStopper "
-             f"{speed['follower-stopper']:.2f}", speed[ring_policy] >= speed["follower-stopper"]),
+        _row("ring_speed", where, f"mean speed {speed[policy]:.2f} m/s vs FollowerStopper "
+             f"{speed['follower-stopper']:.2f}", speed[policy] >= speed["follower-stopper"]),
         _row("ring_wake", where, f"speed std behind {wake['behind']:.2f} vs ahead "
              f"{wake['ahead']:.2f} m/s", wake["behind"] < wake["ahead"]),
+    ]  # fmt: skip
+
+
+def wave_checks(cfg: AcceptanceConfig) -> list[dict]:
+    """:func:`wave_rows` of the wave-highway-v1 task's eval (5 % AVs, 420 s, warm-up 120 s)."""
+    from mixed_traffic.benchmark import get_task
+
+    task = get_task("wave-highway-v1")
+    road = task.eval[0]
+    waves = cfg.records("wave-highway-eval", road.scenario, ("auto",), road.penetration,
+                        length=road.episode_length, reference=True, warmup=task.warmup)  # fmt: skip
+    return wave_rows(waves)
+
+
+def wave_rows(wave: pd.DataFrame) -> list[dict]:
+    """wave from ``wave`` (auto and idm episodes): AUTO's mean ratios to all human."""
+    ratio = {k: (_by_seed(wave, "auto", k) / _by_seed(wave, "idm", k)).mean()
+             for k in ("speed_std", "fuel", "dt_tf")}  # fmt: skip
+    return [
         _row("wave", "wave-highway-eval, 5 % AUTO", f"vs all human: speed std x"
              f"{ratio['speed_std']:.2f}, fuel x{ratio['fuel']:.2f}, DT-TF x{ratio['dt_tf']:.3f}",
              ratio["speed_std"] <= 0.8 and ratio["fuel"] <= 0.95 and ratio["dt_tf"] <= 1.02),
     ]  # fmt: skip
+
+
+CHECKS = {"eval": eval_checks, "dt_tf": dt_tf_checks, "ring": ring_checks, "wave": wave_checks}
+"""The check groups, by the name ``--checks`` takes."""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -225,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     except ValueError as e:
         p.error(str(e))
     try:
-        rows = eval_checks(cfg) + flow_checks(cfg)
+        rows = [row for name in cfg.checks for row in CHECKS[name](cfg)]
     except FolderBusyError as e:
         p.error(str(e))
     print(json.dumps(rows, indent=1) if args.json else check_table(rows))
