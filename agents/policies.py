@@ -23,9 +23,9 @@ from mixed_traffic.schema import AUTO_POLICIES, STUDY_POLICIES
 
 SHIPPED_CHECKPOINT = Path(__file__).resolve().parent / "checkpoints" / "auto.pt"
 PPO_RING = SHIPPED_CHECKPOINT.parent / "ppo_ring.zip"
+"""The shipped PPO policy of the benchmark's ring task (``--policy ppo-ring``)."""
 AUTO_RING = SHIPPED_CHECKPOINT.parent / "auto_ring.pt"
 """RBP-DQN trained on the ring family alone (issue 43: ``auto-ring``)."""
-"""The shipped PPO policy of the benchmark's ring task (``--policy ppo-ring``)."""
 STUDY_CHECKPOINTS = SHIPPED_CHECKPOINT.parent / "study"
 """Checkpoints of the study policies (``mixed_traffic.schema.STUDY_POLICIES``), <name>.pt."""
 
