@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from agents.policies import with_inputs
+from agents.policies import checkpoint_path, make_policy, to_actions, with_inputs
 from agents.rules.spec import parse_policy
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.checks import check_warmup
@@ -174,8 +174,6 @@ def reference_u(checkpoint: str | Path | None,
     """(3, 2) mean of AUTO's continuous parameters u (``checkpoint``'s; None: the shipped one)
     over its decisions in ``configs`` (default ``REFERENCE_STATES``), cached per checkpoint
     content and reference set."""
-    from agents.policies import checkpoint_path
-
     configs = configs or REFERENCE_STATES
     path = checkpoint_path("auto", checkpoint)
     key = file_digest(path)[:16] + "-" + hashlib.sha256(repr(configs).encode()).hexdigest()[:8]
@@ -202,8 +200,6 @@ def batch_policy(name: str, config: EnvConfig, checkpoint: str | Path | None, fa
     """The batched policy for an episode of ``config``, or None when SUMO drives the AVs."""
     if sumo_drives(name):
         return None
-    from agents.policies import make_policy  # torch only for learned policies
-
     return make_policy(name, seed=config.seed, checkpoint=checkpoint, z=config.sensors.history,
                        m=config.sensors.waypoints, dt=config.step_length, family=family)  # fmt: skip
 
@@ -211,8 +207,6 @@ def batch_policy(name: str, config: EnvConfig, checkpoint: str | Path | None, fa
 def decide(env: MixedTrafficEnv, agent: Any) -> tuple[dict[str, Any], float]:
     """``agent``'s actions for ``env``'s live agents (one batched call), and its inference
     time [s]; none when no agent is live."""
-    from agents.policies import to_actions
-
     agents = list(env.agents)
     if not agents:
         return {}, 0.0
