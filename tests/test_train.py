@@ -265,6 +265,26 @@ def test_wave_episodes_take_their_share_with_the_fleet_reward(tmp_path: Path) ->
         worker.close()
 
 
+def test_a_worker_corrects_the_tuned_rule_of_each_episodes_family(tmp_path: Path) -> None:
+    """With ``--demo-policy acc-lc-tuned`` the worker's driver corrects the rule that
+    evaluation builds for the episode's family, and caps at its speed factor."""
+    from agents.policies import make_policy
+    from agents.rules.tuned import cap_factor
+
+    tr = Trainer(_cfg(tmp_path, workers=1, env_steps=1, demo_steps=0,
+                      demo_policy="acc-lc-tuned", scenarios=("merge-ramp",)))  # fmt: skip
+    worker = RolloutWorker(tr.worker_specs()[0])
+    worker.set_weights(tr.weights())
+    try:
+        worker.collect(20)
+        family = worker.env.scenario.family
+        assert worker.driver.teacher.c == make_policy("acc-lc-tuned", family=family).c
+        assert worker.driver.teacher.c != make_policy("acc-lc").c
+        assert worker.driver.cap_factor == cap_factor(family)
+    finally:
+        worker.close()
+
+
 def test_each_scenario_samples_the_densities_it_can_hold() -> None:
     ring = load_scenario("ring-220m")
     assert ring.feasible_densities((60.0, 180.0, 0.0)) == (60.0, None)

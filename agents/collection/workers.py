@@ -39,7 +39,7 @@ from agents.learners.rbpdqn import LearnerConfig, Policy, build_nets
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
 from agents.policies import make_policy, stack_obs, to_actions
-from agents.rules.tuned import cap_factor
+from agents.rules.tuned import cap_factor, teacher_rule
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
 from mixed_traffic.world.registry import load_scenario
@@ -228,7 +228,7 @@ class RolloutWorker:
         self.policy = Policy(self.actor, self.critic, spec.noise_std, spec.epsilon, threads=1,
                              **({"steer_noise_factor": 1.0} if spec.learner.residual else {}))  # fmt: skip
         self.has_weights = False
-        self._demos: dict[str | None, Any] = {}
+        self._demos: dict[tuple[str | None, float], Any] = {}
         self.demo_done = 0
         self.episode = 0
         self._steps = {"wave": 0, "other": 0}  # agent-steps driven per kind of episode
@@ -252,12 +252,16 @@ class RolloutWorker:
 
     # ------------------------------------------------------------------ episodes
     def _demonstrator(self, family: str | None) -> Any:
-        """The demonstrator policy for scenario ``family`` (``acc-lc-tuned`` is tuned per
-        family), built on first use."""
-        if family not in self._demos:
-            self._demos[family] = make_policy(self.spec.demo_policy, seed=self.spec.seed,
-                                              family=family)  # fmt: skip
-        return self._demos[family]
+        """The demonstrator policy for scenario ``family``, built on first use: in the residual
+        form the rule u corrects, built as evaluation builds it (``teacher_rule``)."""
+        s, dt = self.spec, self.env.config.step_length
+        if (family, dt) not in self._demos:
+            self._demos[family, dt] = (
+                teacher_rule(s.learner.teacher, family, dt)
+                if s.learner.residual
+                else make_policy(s.demo_policy, seed=s.seed, family=family)
+            )
+        return self._demos[family, dt]
 
     def _start_episode(self) -> None:
         """Sample the next episode's env config and seed, and reset a fresh env."""
