@@ -50,6 +50,8 @@ from mixed_traffic.provenance import FolderBusyError, current_code_key, read_rec
 
 EVAL = ("straight-eval", "merge-eval")
 RING_POLICIES = ("auto", "auto-ring")
+CHECK_GROUPS = ("eval", "dt_tf", "ring", "wave")
+"""The check groups ``--checks`` takes (``CHECKS`` runs each)."""
 
 
 @dataclass(frozen=True)
@@ -70,7 +72,7 @@ class AcceptanceConfig:
     """Records folder; a re-run skips the episodes already recorded with the same code."""
     baseline: str = "acc-lc-tuned"
     """The rule AUTO is compared with: a policy name or spec (acc-lc:T=1.0,...)."""
-    checks: tuple[str, ...] = ("eval", "dt_tf", "ring", "wave")
+    checks: tuple[str, ...] = CHECK_GROUPS
     """Check groups to run: eval (dt_gain, auto_mean, at_c, terminal, sm_share, raw_terminal),
     dt_tf, ring (ring_std, ring_speed, ring_wake), wave."""
     ring_policy: str = "auto"
@@ -79,9 +81,9 @@ class AcceptanceConfig:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "baseline", check_policy(self.baseline))
-        unknown = sorted(set(self.checks) - {"eval", "dt_tf", "ring", "wave"})
-        if unknown or not self.checks:
-            raise ValueError(f"--checks {' '.join(self.checks)}: choose from eval dt_tf ring wave")
+        if not self.checks or not set(self.checks) <= set(CHECK_GROUPS):
+            raise ValueError(f"--checks {' '.join(self.checks)}: choose from "
+                             f"{' '.join(CHECK_GROUPS)}")  # fmt: skip
         if self.ring_policy not in RING_POLICIES:
             raise ValueError(f"--ring-policy {self.ring_policy}: choose from {RING_POLICIES}")
         if len(self.seeds) < 2:
@@ -239,8 +241,8 @@ def wave_rows(wave: pd.DataFrame) -> list[dict]:
     ]  # fmt: skip
 
 
-CHECKS = {"eval": eval_checks, "dt_tf": dt_tf_checks, "ring": ring_checks, "wave": wave_checks}
-"""The check groups, by the name ``--checks`` takes."""
+CHECKS = dict(zip(CHECK_GROUPS, (eval_checks, dt_tf_checks, ring_checks, wave_checks)))
+"""The function of each check group."""
 
 
 def main(argv: list[str] | None = None) -> int:
