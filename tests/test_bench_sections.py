@@ -34,3 +34,16 @@ def test_the_scale_section_prints_its_row(capsys) -> None:
     assert abs(row["ladder"][0]["avs"] - 20) <= 4  # placement rounds per lane
     assert all(r["realtime_factor"] > 0 for r in row["ladder"])
     assert row["max_avs_realtime"] in [0] + [r["avs"] for r in row["ladder"]]
+
+
+def test_the_long_road_is_split_into_short_edges() -> None:
+    """SUMO's sublane model slows with the vehicles on one lane, so the ladder's road is cut
+    into edges of at most ``SEGMENT`` by netconvert, end to end."""
+    import sumolib
+
+    from mixed_traffic.experiments.bench_scale import SEGMENT, long_road
+
+    edges = sumolib.net.readNet(str(long_road(1.2, 2))).getEdges()
+    lengths = [e.getLength() for e in edges]
+    assert len(edges) >= 3 and max(lengths) <= SEGMENT + 1e-6
+    assert abs(sum(lengths) - 1200.0) < 1.0 and {e.getLaneNumber() for e in edges} == {2}

@@ -23,14 +23,28 @@ from torch import Tensor
 from agents.nets.lca import LCA, N_LANES, N_NODE_TYPES, HistoryGRU
 from agents.nets.networks import ACTION_DIM, N_DECISIONS, N_PARAMS, Actor, Critic, gate_input
 
-_MAX_CACHED_SIZES = 4
-"""Buffer sets kept per distinct batch size (agent counts vary per step); oldest evicted."""
+_GROWTH = 1.25
+"""Buffers grow to this factor times the largest row count seen, so a fleet whose size drifts
+step by step reuses one allocation (a fresh buffer per size cost 3 ms a step at 2,000 AVs)."""
 
 
-def _evict(cache: dict) -> None:
-    """Drop the oldest entries so at most ``_MAX_CACHED_SIZES - 1`` remain before an insert."""
-    while len(cache) >= _MAX_CACHED_SIZES:
-        cache.pop(next(iter(cache)))
+class _Arena:
+    """Named buffers with a leading group axis and a row capacity; :meth:`take` returns views
+    of the first n rows, allocating again only when n exceeds the capacity."""
+
+    def __init__(self, shapes: dict[str, tuple[int, ...]], fill=None) -> None:
+        self.shapes, self.fill, self.cap = shapes, fill, 0
+        self._full: dict[str, Tensor] = {}
+
+    def take(self, n: int) -> dict[str, Tensor]:
+        if n > self.cap:
+            self.cap = max(n, int(self.cap * _GROWTH))
+            self._full = {
+                k: torch.empty(g, self.cap, *rest) for k, (g, *rest) in self.shapes.items()
+            }
+            if self.fill is not None:
+                self.fill(self._full)
+        return {k: v[:, :n] for k, v in self._full.items()}
 
 
 def _derive_gru(gru: HistoryGRU) -> dict[str, Tensor]:
@@ -69,25 +83,20 @@ class _GroupGRU:
         self.wh = torch.stack([w["wh"] for w in self.w])  # (G, D, 3D)
         self.k0 = torch.stack([w["k0"] for w in self.w])[:, None, :]  # (G, 1, 3D)
         self.half = torch.full((1, 1, 1), 0.5)
-        self._buf: dict[tuple[int, int], dict[str, Tensor]] = {}
+        self._arenas: dict[int, _Arena] = {}  # per history length z
+
+    def _fill_constant(self, bufs: dict[str, Tensor]) -> None:
+        """The recurrent n block's constant, written once per allocation."""
+        for i, w in enumerate(self.w):
+            bufs["p"][i, :, :, 2 * self.d :] = w["c"]
 
     def _buffers(self, n: int, z: int) -> dict[str, Tensor]:
-        key = (n, z)
-        if key not in self._buf:
-            _evict(self._buf)
+        if z not in self._arenas:
             g, d = len(self.w), self.d
-            p = torch.empty(g, n, z, 3 * d)
-            for i, w in enumerate(self.w):
-                p[i, :, :, 2 * d :] = w["c"]  # constant block, written once per buffer
-            self._buf[key] = {
-                "p": p,
-                "pn": torch.empty(g, n, z, d),
-                "out": torch.empty(g, n, 3 * d),
-                "rz": torch.empty(g, n, 2 * d),
-                "a": torch.empty(g, n, d),
-                "h": torch.empty(g, n, d),
-            }
-        return self._buf[key]
+            shapes = {"p": (g, z, 3 * d), "pn": (g, z, d), "out": (g, 3 * d),
+                      "rz": (g, 2 * d), "a": (g, d), "h": (g, d)}  # fmt: skip
+            self._arenas[z] = _Arena(shapes, self._fill_constant)
+        return self._arenas[z].take(n)
 
     def __call__(self, xs: list[Tensor]) -> Tensor:
         """xs: G inputs (N, z, F_g) → final hidden h (G, N, D) (a buffer, valid until next call)."""
@@ -138,7 +147,8 @@ class FusedActorCritic:
         """Re-derive all fused weights from the current actor and critic parameters."""
         la, lc = self.actor.lca, self.critic.lca
         self.d = la.cfg.d
-        self._abuf: dict[int, dict[str, Tensor]] = {}
+        self._abuf = _Arena({"q": (2, self.d), "es": (2, self.d)})
+        self._pbuf = _Arena({"prod": (2 * N_NODE_TYPES, N_LANES, self.d)})
         self.nodes_gru = _GroupGRU(
             [la.lane_rnn, la.veh_rnn, la.light_rnn, lc.lane_rnn, lc.veh_rnn, lc.light_rnn]
         )
@@ -169,17 +179,6 @@ class FusedActorCritic:
         self.critic_w10 = [t.detach().clone() for t in self.critic.act_embed.parameters()]
         self.critic_head = [t.detach().clone() for t in self.critic.head.parameters()]
 
-    def _attn_buffers(self, b: int) -> dict[str, Tensor]:
-        if b not in self._abuf:
-            _evict(self._abuf)
-            d = self.d
-            self._abuf[b] = {
-                "q": torch.empty(2, b, d),
-                "prod": torch.empty(2, N_NODE_TYPES, b, N_LANES, d),
-                "es": torch.empty(2, b, d),
-            }
-        return self._abuf[b]
-
     @torch.inference_mode()
     def __call__(
         self, obs: dict[str, Tensor], noise: Tensor | None = None
@@ -199,15 +198,16 @@ class FusedActorCritic:
         h_ego = self.ego_gru([ego, ego])  # (2, B, D)
         # Rows of h_nodes per net are ordered (type, b, lane); attention runs in that layout
         # (elementwise products + sums) so nothing is permuted or copied.
-        buf = self._attn_buffers(b)
+        buf = self._abuf.take(b)
         q = torch.bmm(h_ego, self.m_qk, out=buf["q"])  # (2, B, D)
         nodes = h_nodes.view(2, N_NODE_TYPES, b, N_LANES, d)
-        prod = torch.mul(nodes, q.view(2, 1, b, 1, d), out=buf["prod"])
+        prod_buf = self._pbuf.take(b)["prod"].view(2, N_NODE_TYPES, b, N_LANES, d)
+        prod = torch.mul(nodes, q.view(2, 1, b, 1, d), out=prod_buf)
         logits = prod.sum(-1)  # (2, T, B, L)
         mask = (obs["node_mask"] > 0.5).permute(2, 0, 1)  # (T, B, L)
         logits = logits.masked_fill_(~mask, -1e9)
         att = torch.softmax(logits, dim=1).mul_(mask.any(0))  # all-masked lane → 0
-        wsum = torch.mul(nodes, att.unsqueeze(-1), out=buf["prod"]).sum(1)  # (2, B, L, D)
+        wsum = torch.mul(nodes, att.unsqueeze(-1), out=prod_buf).sum(1)  # (2, B, L, D)
         e = wsum.view(2, b, N_LANES * d)
         e_s = torch.baddbmm(self.bf, e, self.wf_t, out=buf["es"])  # (2, B, D)
         if self.we_t.shape[1]:
