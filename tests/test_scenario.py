@@ -147,6 +147,35 @@ def test_user_net_gets_generated_trips(tmp_path: Path) -> None:
     assert vehicles > 50
 
 
+def test_a_user_net_with_a_long_edge_warns_with_the_fix(tmp_path: Path) -> None:
+    """SUMO's sublane model slows with the square of the vehicles on one edge: loading names
+    the edge and netconvert's split; the split network loads quietly."""
+    import warnings
+
+    for name, args in (
+        ("long", ""),
+        ("split", "--geometry.max-segment-length 500 --geometry.split"),
+    ):
+        folder = tmp_path / name
+        folder.mkdir()
+        (folder / "r.nod.xml").write_text(
+            '<nodes><node id="a" x="0" y="0"/><node id="b" x="4000" y="0"/></nodes>'
+        )
+        (folder / "r.edg.xml").write_text(
+            '<edges><edge id="main" from="a" to="b" numLanes="2" speed="30"/></edges>'
+        )
+        (folder / "netconvert.args").write_text(args)
+        net = tmp_path / f"{name}.net.xml"
+        shutil.copy(build_network(folder), net)
+        if name == "long":
+            with pytest.warns(UserWarning, match=r"edge 'main' is 4\.0 km long.*--geometry\.split"):
+                load_scenario(str(net))
+        else:
+            with warnings.catch_warnings():
+                warnings.simplefilter("error")
+                assert len(load_scenario(str(net)).hdmap.edge_ids) == 8
+
+
 def test_user_sumocfg_uses_its_own_vehicles(tmp_path: Path) -> None:
     shutil.copy(load_scenario("straight").net_file, tmp_path / "road.net.xml")
     (tmp_path / "routes.rou.xml").write_text(

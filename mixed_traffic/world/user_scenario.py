@@ -8,6 +8,7 @@ over the whole network. A configuration keeps its own vehicles (``<vehicle>``, `
 from __future__ import annotations
 
 import gzip
+import warnings
 import xml.etree.ElementTree as ET
 from collections import Counter, deque
 from collections.abc import Iterable, Mapping
@@ -25,6 +26,10 @@ MAX_OD_PAIRS = 12
 #: End [s] of flows without an ``end`` when the configuration has none either (SUMO's default:
 #: 24 h); only the departures within an episode become vehicles (``Scenario.own_in_episode``).
 DEFAULT_FLOW_END = 86400.0
+#: Edge length [m] above which loading warns. SUMO's sublane model, which the env runs, scans
+#: the vehicles of a lane, so a step costs about n^2 in the vehicles on one edge: 2,000
+#: vehicles on one 20 km edge took 154 ms per step, on 500 m edges 15 ms (docs/results.md).
+LONG_EDGE = 3000.0
 
 
 def load_user_scenario(path: Path) -> Scenario:
@@ -80,6 +85,7 @@ class _Net:
                 f"network file {path} has no lane that {what} may use (vClass {vclass!r}; its "
                 "lanes allow only e.g. pedestrians, bicycles or rail)"
             )
+        _warn_long_edges(path, edges)
         self.path = path
         self.edges = {e.getID() for e in normal}
         # lanes cars may use, per edge (sidewalks and bike lanes do not count for density)
@@ -126,6 +132,19 @@ class _Net:
 
     def common_lanes(self) -> int:
         return Counter(self.lanes.values()).most_common(1)[0][0]
+
+
+def _warn_long_edges(path: Path, edges: list) -> None:
+    """Warn, naming the longest edge and SUMO's fix, when an edge exceeds ``LONG_EDGE``."""
+    longest = max(edges, key=lambda e: e.getLength())
+    if longest.getLength() > LONG_EDGE:
+        warnings.warn(
+            f"network file {path}: edge {longest.getID()!r} is {longest.getLength() / 1000:.1f} "
+            "km long, and SUMO's sublane model slows with the square of the vehicles on one "
+            f"edge; split it: netconvert -s {path.name} --geometry.max-segment-length 500 "
+            "--geometry.split -o split.net.xml",
+            stacklevel=4,
+        )
 
 
 def _car_successors(edge, car_edges: dict[str, int], vclass: str) -> set[str]:
