@@ -8,7 +8,8 @@ large allocations (page faults on every step) and a slow CPU ``tanh``. This path
 - re-parameterises each GRU so a step is ``baddbmm → sigmoid → addcmul → sigmoid → lerp``:
   tanh(a) = 2σ(2a) − 1 and h = 2h̃ − 1 are folded into derived weights (see
   :func:`_derive_gru`), so the hidden update is a single ``lerp`` on h̃;
-- writes every intermediate into buffers preallocated per batch size (``out=``).
+- writes every intermediate into preallocated buffers (``out=``) that grow with the largest
+  batch seen, so a fleet whose size changes every step does not allocate every step.
 
 Only the default LCA (history, lane-wise, star) is fused; :class:`FusedActorCritic` refuses
 other configs and callers fall back to the reference modules. Derived weights are snapshots:
@@ -16,6 +17,8 @@ call :meth:`FusedActorCritic.refresh` after the source networks change.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import torch
 from torch import Tensor
@@ -32,7 +35,8 @@ class _Arena:
     """Named buffers with a leading group axis and a row capacity; :meth:`take` returns views
     of the first n rows, allocating again only when n exceeds the capacity."""
 
-    def __init__(self, shapes: dict[str, tuple[int, ...]], fill=None) -> None:
+    def __init__(self, shapes: dict[str, tuple[int, ...]],
+                 fill: Callable[[dict[str, Tensor]], None] | None = None) -> None:  # fmt: skip
         self.shapes, self.fill, self.cap = shapes, fill, 0
         self._full: dict[str, Tensor] = {}
 
