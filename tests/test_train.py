@@ -100,6 +100,26 @@ def test_a_run_with_memory_and_v2x_reads_the_opt_in_keys(tmp_path: Path) -> None
             env.close()
 
 
+def test_a_policy_trained_without_opt_in_keys_ignores_them() -> None:
+    """The shipped AUTO reads no opt-in key; where the env gives them (a benchmark task with
+    the V2X feed) it drives as it does without them."""
+    from agents.policies import make_policy
+
+    env = parallel_env(config=EnvConfig(scenario="straight-3lane", density=60.0, penetration=0.2,
+                                        episode_length=2.0, v2x=True,
+                                        sensors=SensorConfig(memory=True)))  # fmt: skip
+    try:
+        obs, _ = env.reset(seed=0)
+        batch = stack_obs(obs, env.agents)
+        assert batch["extra"].shape[1] == 18
+        plain = {k: v for k, v in batch.items() if k not in ("memory", "downstream", "extra")}
+        outs = [make_policy("auto").act(b, env.agents) for b in (batch, plain)]
+    finally:
+        env.close()
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
+    np.testing.assert_array_equal(outs[0][1], outs[1][1])
+
+
 def test_resume_continues_counters(tmp_path: Path) -> None:
     first = Trainer(_cfg(tmp_path, workers=1, env_steps=1500, checkpoint_every=1e-9)).run()
     snaps = sorted((tmp_path / "snapshots").glob("*.pt"))  # one per periodic checkpoint

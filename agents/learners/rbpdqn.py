@@ -473,6 +473,8 @@ class Policy:
         decision replaces the argmax. The gate is never explored.
         """
         obs = with_extra(obs)
+        if not self.extra:  # trained without opt-in keys: it ignores those the env gives
+            obs.pop(EXTRA, None)
         self.check_extra(obs)
         t = obs_to_torch(obs)
         mask = t["action_mask"] > 0.5
@@ -491,7 +493,8 @@ class Policy:
         return Choice(dec, params.numpy().copy(), hold)
 
     def check_extra(self, obs: dict[str, np.ndarray]) -> None:
-        """ValueError unless ``obs`` holds the ``EXTRA`` vector the networks were trained on."""
+        """ValueError unless ``obs`` holds the ``EXTRA`` vector the networks were trained on
+        (a policy trained without opt-in keys gets none: :meth:`choose` drops them)."""
         got = np.shape(obs[EXTRA])[-1] if EXTRA in obs else 0
         if got != self.extra:
             raise ValueError(f"the policy reads {self.extra} opt-in observation features "
