@@ -38,12 +38,12 @@ def test_the_scale_section_prints_its_row(capsys) -> None:
 
 def test_the_long_road_is_split_into_short_edges() -> None:
     """SUMO's sublane model slows with the vehicles on one lane, so the ladder's road is cut
-    into edges of at most ``SEGMENT`` by netconvert, end to end."""
+    into edges of at most 500 m by netconvert (``SPLIT_ARGS``), end to end."""
     import sumolib
 
-    from mixed_traffic.experiments.bench_scale import SEGMENT, long_road
+    from mixed_traffic.experiments.bench_scale import long_road
 
     edges = sumolib.net.readNet(str(long_road(1.2, 2))).getEdges()
     lengths = [e.getLength() for e in edges]
-    assert len(edges) >= 3 and max(lengths) <= SEGMENT + 1e-6
+    assert len(edges) >= 3 and max(lengths) <= 500.0 + 1e-6
     assert abs(sum(lengths) - 1200.0) < 1.0 and {e.getLaneNumber() for e in edges} == {2}

@@ -25,15 +25,10 @@ from pathlib import Path
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.paths import cache_dir
 from mixed_traffic.world.backend import binary
-from mixed_traffic.world.network import build_network
+from mixed_traffic.world.network import SPLIT_ARGS, build_network
 
 AV_LADDER = (250, 500, 1000, 1500, 2000, 2500, 3000, 4000)
 """Rungs of the ladder [AVs the road holds]; a rung reports the AVs actually in the network."""
-SEGMENT = 500.0
-"""Longest edge of the long road [m]. SUMO's sublane model scans the vehicles of a lane, so one
-edge of n vehicles costs about n^2: at 25 veh/km per lane, 2,000 vehicles on one 20 km edge took
-154 ms per SUMO step, on 500 m edges 15 ms (docs/results.md). Real roads are split at every
-junction and ramp."""
 CITY_BLOCK = 150.0
 """Block length of the city grid [m]."""
 CITY_LANES = 2
@@ -63,13 +58,11 @@ class ScaleResult:
 
 
 def long_road(length_km: float, lanes: int) -> Path:
-    """A straight ``lanes``-lane 100 km/h road of ``length_km`` split into edges of at most
-    ``SEGMENT`` (netconvert, cached)."""
+    """A straight ``lanes``-lane 100 km/h road of ``length_km``, cut into short edges by
+    netconvert (``SPLIT_ARGS``; cached)."""
     folder = cache_dir("bench-scale") / f"road-{length_km:.3f}km-{lanes}l"
     folder.mkdir(parents=True, exist_ok=True)
-    (folder / "netconvert.args").write_text(
-        f"--geometry.max-segment-length {SEGMENT:g} --geometry.split\n"
-    )
+    (folder / "netconvert.args").write_text(" ".join(SPLIT_ARGS) + "\n")
     (folder / "road.nod.xml").write_text(
         f'<nodes>\n  <node id="a" x="0" y="0"/>\n  <node id="b" x="{length_km * 1000:.1f}" y="0"/>\n</nodes>\n'
     )

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from mixed_traffic.world.hdmap import CAR, NetFileError, read_net
+from mixed_traffic.world.network import SPLIT_ARGS
 from mixed_traffic.world.od_pairs import reach_sets, spread_pairs
 from mixed_traffic.world.routing import predecessors
 from mixed_traffic.world.scenario import OwnVehicle, Route, Scenario
@@ -26,9 +27,7 @@ MAX_OD_PAIRS = 12
 #: End [s] of flows without an ``end`` when the configuration has none either (SUMO's default:
 #: 24 h); only the departures within an episode become vehicles (``Scenario.own_in_episode``).
 DEFAULT_FLOW_END = 86400.0
-#: Edge length [m] above which loading warns. SUMO's sublane model, which the env runs, scans
-#: the vehicles of a lane, so a step costs about n^2 in the vehicles on one edge: 2,000
-#: vehicles on one 20 km edge took 154 ms per step, on 500 m edges 15 ms (docs/results.md).
+#: Edge length [m] above which loading warns and names netconvert's split (``SPLIT_ARGS``).
 LONG_EDGE = 3000.0
 
 
@@ -141,8 +140,7 @@ def _warn_long_edges(path: Path, edges: list) -> None:
         warnings.warn(
             f"network file {path}: edge {longest.getID()!r} is {longest.getLength() / 1000:.1f} "
             "km long, and SUMO's sublane model slows with the square of the vehicles on one "
-            f"edge; split it: netconvert -s {path.name} --geometry.max-segment-length 500 "
-            "--geometry.split -o split.net.xml",
+            f"edge; split it: netconvert -s {path.name} {' '.join(SPLIT_ARGS)} -o split.net.xml",
             stacklevel=4,
         )
 
