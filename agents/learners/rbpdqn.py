@@ -472,9 +472,8 @@ class Policy:
         executed and stored); then with probability ``epsilon`` a uniformly random unmasked
         decision replaces the argmax. The gate is never explored.
         """
-        obs = with_extra(obs)
-        if not self.extra:  # trained without opt-in keys: it ignores those the env gives
-            obs.pop(EXTRA, None)
+        # trained without opt-in keys: it ignores those the env gives
+        obs = with_extra(obs) if self.extra else {k: v for k, v in obs.items() if k != EXTRA}
         self.check_extra(obs)
         t = obs_to_torch(obs)
         mask = t["action_mask"] > 0.5
