@@ -20,6 +20,7 @@ from agents.learners.rbpdqn import RBPDQN, LearnerConfig, Policy, build_nets
 from agents.learners.variants import make_learner
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import Actor, Critic
+from agents.rules.obs_batch import EXTRA_KEYS
 from agents.rules.tuned import teacher_rule
 from mixed_traffic.provenance import atomic_write
 
@@ -120,7 +121,13 @@ def load_nets(
 ) -> tuple[Actor, Critic, LearnerConfig]:
     """The (actor, critic) of ``path`` in eval mode and its learner config, for inference only:
     no target networks and no optimisers (building Adam costs seconds of torch imports)."""
-    data = read_checkpoint(path)
+    return _nets(path, read_checkpoint(path), z, m)
+
+
+def _nets(
+    path: str | os.PathLike, data: dict[str, Any], z: int | None, m: int | None
+) -> tuple[Actor, Critic, LearnerConfig]:
+    """:func:`load_nets` from the checkpoint's content ``data``."""
     lca, lcfg = _configs(path, data["meta"])
     _check_fits(path, lca, _requested(lca, z, m))
     actor, critic = build_nets(lca, lcfg)
@@ -229,8 +236,8 @@ def load_policy(
     path: str | os.PathLike, z: int | None = None, m: int | None = None, **policy_kw: Any
 ) -> Policy:
     """Checkpoint → batched inference :class:`Policy` (eval mode); kwargs go to ``Policy``."""
-    actor, critic, _ = load_nets(path, z=z, m=m)
-    return Policy(actor, critic, **policy_kw)
+    actor, critic, _, keys = _load_inference(path, z, m)
+    return Policy(actor, critic, extra_keys=keys, **policy_kw)
 
 
 def load_driver(
@@ -243,6 +250,26 @@ def load_driver(
     """Checkpoint → its :class:`agents.driver.Driver` (one thread, the checkpoint's form and
     decision interval, correcting its teacher rule as tuned for scenario ``family``) for an env
     stepping ``dt`` [s]."""
-    actor, critic, cfg = load_nets(path, z=z, m=m)
+    actor, critic, cfg, keys = _load_inference(path, z, m)
     teacher = teacher_rule(cfg.teacher, family, dt)
-    return Driver(Policy(actor, critic, threads=1), cfg, dt, teacher)
+    return Driver(Policy(actor, critic, threads=1, extra_keys=keys), cfg, dt, teacher)
+
+
+def _load_inference(
+    path: str | os.PathLike, z: int | None, m: int | None
+) -> tuple[Actor, Critic, LearnerConfig, tuple[str, ...]]:
+    """:func:`load_nets` plus the opt-in observation keys the checkpoint was trained on."""
+    data = read_checkpoint(path)
+    return (*_nets(path, data, z, m), trained_extra_keys(data["meta"]))
+
+
+def trained_extra_keys(meta: dict[str, Any]) -> tuple[str, ...]:
+    """The opt-in observation keys (``EXTRA_KEYS``) of the env a checkpoint was trained in,
+    from its ``env_base`` (``sensors.memory``, ``v2x``); all of them when it has none (older
+    checkpoints: the policy then reads every opt-in key the env gives)."""
+    base = meta.get("env_base")
+    if not isinstance(base, dict):
+        return EXTRA_KEYS
+    on = {"memory": bool((base.get("sensors") or {}).get("memory")),
+          "downstream": bool(base.get("v2x"))}  # fmt: skip
+    return tuple(k for k in EXTRA_KEYS if on[k])

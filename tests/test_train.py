@@ -17,7 +17,7 @@ import torch
 from agents.checkpoint import load_checkpoint
 from agents.collection.workers import RolloutWorker
 from agents.rules.acc_lc import AccLcPolicy
-from agents.rules.obs_batch import stack_obs
+from agents.rules.obs_batch import stack_obs, with_extra
 from agents.training.config import TrainConfig
 from agents.training.trainer import Trainer
 from mixed_traffic.config import EnvConfig, SensorConfig
@@ -100,9 +100,12 @@ def test_a_run_with_memory_and_v2x_reads_the_opt_in_keys(tmp_path: Path) -> None
             env.close()
 
 
-def test_a_policy_trained_without_opt_in_keys_ignores_them() -> None:
-    """The shipped AUTO reads no opt-in key; where the env gives them (a benchmark task with
-    the V2X feed) it drives as it does without them."""
+@pytest.mark.parametrize(("name", "unread"), [("auto", ("memory", "downstream")),
+                                              ("auto-ring", ("downstream",))])  # fmt: skip
+def test_a_policy_ignores_opt_in_keys_it_was_not_trained_on(name: str, unread: tuple) -> None:
+    """The shipped AUTO reads no opt-in key and ``auto-ring`` reads ``memory`` only; where the
+    env gives more (a benchmark task with memory and the V2X feed) each drives as it does
+    without the keys it never saw."""
     from agents.policies import make_policy
 
     env = parallel_env(config=EnvConfig(scenario="straight-3lane", density=60.0, penetration=0.2,
@@ -112,8 +115,8 @@ def test_a_policy_trained_without_opt_in_keys_ignores_them() -> None:
         obs, _ = env.reset(seed=0)
         batch = stack_obs(obs, env.agents)
         assert batch["extra"].shape[1] == 18
-        plain = {k: v for k, v in batch.items() if k not in ("memory", "downstream", "extra")}
-        outs = [make_policy("auto").act(b, env.agents) for b in (batch, plain)]
+        plain = with_extra({k: v for k, v in batch.items() if k not in (*unread, "extra")})
+        outs = [make_policy(name).act(b, env.agents) for b in (batch, plain)]  # fresh state
     finally:
         env.close()
     np.testing.assert_array_equal(outs[0][0], outs[1][0])

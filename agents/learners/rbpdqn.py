@@ -40,7 +40,7 @@ from torch import Tensor, nn
 from agents.nets.fused import FusedActorCritic
 from agents.nets.lca import LCAConfig
 from agents.nets.networks import FOLLOW, LEAD_SPREAD, Actor, Critic, masked_q, select
-from agents.rules.obs_batch import EXTRA, with_extra
+from agents.rules.obs_batch import EXTRA, EXTRA_KEYS, for_policy
 
 
 @dataclass(frozen=True)
@@ -404,9 +404,11 @@ class Policy:
         threads: int | None = None,
         fused: bool = True,
         steer_noise_factor: float = STEER_NOISE_FACTOR,
+        extra_keys: tuple[str, ...] = EXTRA_KEYS,
     ) -> None:
         """``steer_noise_factor``: the steering column's share of ``noise_std`` [-] (1 in the
-        residual form, whose steering bound already scales it)."""
+        residual form, whose steering bound already scales it). ``extra_keys``: the opt-in
+        observation keys the networks were trained on; others the env gives are ignored."""
         if threads is not None:
             torch.set_num_threads(threads)  # rollout workers: one core each, no oversubscription
         self.actor, self.critic = actor, critic
@@ -420,6 +422,7 @@ class Policy:
         )
         self.extra = getattr(c, "extra", 0)
         """X: width of the ``EXTRA`` vector the networks read (0: none)."""
+        self.extra_keys = extra_keys if self.extra else ()
 
     def sync(self) -> None:
         """Re-snapshot weights after the networks were updated or loaded."""
@@ -472,8 +475,8 @@ class Policy:
         executed and stored); then with probability ``epsilon`` a uniformly random unmasked
         decision replaces the argmax. The gate is never explored.
         """
-        # trained without opt-in keys: it ignores those the env gives
-        obs = with_extra(obs) if self.extra else {k: v for k, v in obs.items() if k != EXTRA}
+        # opt-in keys the networks were not trained on are ignored
+        obs = for_policy(obs, self.extra_keys)
         self.check_extra(obs)
         t = obs_to_torch(obs)
         mask = t["action_mask"] > 0.5

@@ -7,7 +7,7 @@ uses it too), so no policy module needs :mod:`agents.policies`, which builds pol
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -42,14 +42,27 @@ def stack_obs(
     return with_extra({k: np.stack([obs[a][k] for a in agents]) for k in keys})
 
 
-def with_extra(batch: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """``batch`` {key: (A, ...)} with its ``EXTRA`` vector: the opt-in keys it holds,
+def with_extra(
+    batch: Mapping[str, np.ndarray], keys: Sequence[str] = EXTRA_KEYS
+) -> dict[str, np.ndarray]:
+    """``batch`` {key: (A, ...)} with its ``EXTRA`` vector: the opt-in ``keys`` it holds,
     flattened and concatenated in ``EXTRA_KEYS`` order (none without them)."""
     out = dict(batch)
-    parts = [np.reshape(out[k], (len(out[k]), -1)) for k in EXTRA_KEYS if k in out]
+    parts = [np.reshape(out[k], (len(out[k]), -1)) for k in EXTRA_KEYS if k in out and k in keys]
     if parts and EXTRA not in out:
         out[EXTRA] = np.concatenate(parts, axis=1).astype(np.float32)
     return out
+
+
+def for_policy(batch: Mapping[str, np.ndarray], keys: Sequence[str]) -> dict[str, np.ndarray]:
+    """``batch`` with the ``EXTRA`` vector a policy trained on the opt-in ``keys`` reads: built
+    from those keys alone (the env may give more), none for ``keys=()``; a batch that holds
+    ``EXTRA`` but no opt-in key (e.g. replay samples) keeps it."""
+    if not keys:
+        return {k: v for k, v in batch.items() if k != EXTRA}
+    if not any(k in batch for k in EXTRA_KEYS):
+        return dict(batch)
+    return with_extra({k: v for k, v in batch.items() if k != EXTRA}, keys)
 
 
 def extra_width(space_shapes: Mapping[str, tuple[int, ...]]) -> int:
