@@ -80,6 +80,8 @@ from agents.rules.acc_lc_longitudinal import (
 )
 from agents.rules.obs_batch import stack_obs, to_actions
 from agents.rules.rss import RssConfig, rss_caps
+from mixed_traffic.config import EnvConfig
+from mixed_traffic.env.api import observation_space
 
 __all__ = [
     "FOLLOW",
@@ -175,6 +177,14 @@ class AccLcPolicy:
         if not agents:
             return {}
         return to_actions(agents, *self.act(stack_obs(obs, agents)))
+
+
+def warm() -> None:
+    """Load the compiled kernels of :meth:`AccLcPolicy.plan` (from the disk cache, else compile
+    them) for the dtypes and layouts a real plan passes, on a zero observation: a process that
+    forks workers calls this once, and they inherit the kernels."""
+    space = observation_space(EnvConfig())
+    AccLcPolicy().plan({k: np.zeros((1, *s.shape), s.dtype) for k, s in space.spaces.items()})
 
 
 # ---------------------------------------------------------------------- steps of plan()

@@ -14,10 +14,12 @@ from typing import NamedTuple
 
 import numpy as np
 
+from agents.rules import acc_lc_kernel
 from agents.rules.acc_lc_config import LANE_C as _C
 from agents.rules.acc_lc_config import LANE_L as _L
 from agents.rules.acc_lc_config import LANE_R as _R
 from agents.rules.acc_lc_config import AccLcConfig
+from mixed_traffic import compiled
 
 Features = Mapping[str, np.ndarray]
 
@@ -80,8 +82,55 @@ def lane_accels(
     """(A,) acceleration per call, with the ego at lateral ``offset`` relative to the current
     lane (for the overlap test of neighbours): IDM towards the lane's desired speed, kinematic
     braking for lower limits ahead, the leaders (front vehicle of this lane and overlapping
-    front vehicles of the others, every history frame) and the light. Every IDM term of
-    every call is one array: numpy's per-call overhead, not the arithmetic, dominated."""
+    front vehicles of the others, every history frame) and the light. Compiled
+    (:mod:`agents.rules.acc_lc_kernel`) unless ``compiled.enabled()`` is off."""
+    run = _lane_accels_compiled if compiled.enabled() and len(f["v"]) else _lane_accels_reference
+    return run(f, c, calls, offset)
+
+
+def _lane_accels_compiled(
+    f: Features, c: AccLcConfig, calls: Sequence[LaneCall], offset: np.ndarray
+) -> list[np.ndarray]:
+    """:func:`_lane_accels_reference` in two kernels around the numpy IDM."""
+    v, A = f["v"], len(f["v"])
+    lanes = np.array(sorted({q.lane for q in calls}), np.int64)
+    K = f["h_dist"].shape[2]
+    frames = np.array([K if q.memory else 1 for q in calls], np.int64)
+    ends = np.array([np.zeros(A) if q.end_gap is None else q.end_gap for q in calls], np.float64)
+    has_end = np.array([q.end_gap is not None for q in calls])
+    lane = np.array([q.lane for q in calls], np.int64)
+    # (A,) views of the ego row are strided: contiguous, one kernel specialisation for any A
+    offset, wid = np.ascontiguousarray(offset), np.ascontiguousarray(f["wid"])
+    cols, relevant, lim_now, a_lim, stop_room = acc_lc_kernel.idm_inputs(
+        v, offset, f["exists"], f["wp_speed"], f["wp_orient"], f["pv_speed"], f["pv_dist"],
+        f["light_dist"], wid, f["h_dist"], f["h_len"], f["h_lat"], f["h_rel"], f["h_wid"],
+        lanes, lane, frames, ends, has_end, c.speed_factor, c.limit_deadband, c.curve_accel,
+        c.stop_margin, c.s0, c.lane_width_min, c.signal_min, c.yield_decel, c.hv_s0,
+    )  # fmt: skip
+    # the IDM (elementwise) of the columns combine() reads: each lane's, and the leaders
+    used = relevant.copy()
+    used[:, : 2 * len(lanes)] = True
+    acc = np.empty(used.shape)
+    acc[used] = _idm(
+        np.broadcast_to(v[:, None], used.shape)[used],
+        *(x[used] for x in cols[[3, 0, 1]]),
+        c,
+        cols[2][used],
+    )
+    out = acc_lc_kernel.combine(
+        acc, relevant, lim_now, a_lim, stop_room, v, f["v_mean"], f["light"], f["light_dist"],
+        f["give_way"], f["signal_dist"], lanes, lane, frames, c.max_decel * 1.1,
+        c.yellow_stop_decel, c.junction_speed, c.junction_speed**2, c.stop_margin,
+        c.signal_sight_decel,
+    )  # fmt: skip
+    return list(out)
+
+
+def _lane_accels_reference(
+    f: Features, c: AccLcConfig, calls: Sequence[LaneCall], offset: np.ndarray
+) -> list[np.ndarray]:
+    """The numpy reference of :func:`lane_accels`. Every IDM term of every call is one array:
+    numpy's per-call overhead, not the arithmetic, dominated."""
     v = f["v"]
     lanes = sorted({q.lane for q in calls})
     limits = {ln: _speed_limits(f, c, np.where(f["exists"][:, ln], ln, _C), offset) for ln in lanes}

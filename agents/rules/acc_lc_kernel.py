@@ -1,0 +1,203 @@
+"""ACC-LC's candidate-lane accelerations (:func:`agents.rules.acc_lc_longitudinal.lane_accels`)
+as two compiled kernels around the numpy IDM.
+
+``idm_inputs`` builds, per agent, what the numpy stages build with whole arrays: each lane's
+speed limits (curves, limits and the preview ahead) and every call's leaders (overlap,
+cooperation, the virtual end-of-lane vehicle), as the IDM's input columns. The IDM itself stays
+numpy: its non-integer powers (IIDM) use numpy's vectorised ``power``, which differs from libm's
+(the only one a kernel can call) in the last bit. ``combine`` then bounds each lane by its limits
+and light and takes every call's minimum over its leaders. Both kernels do the numpy stages'
+floating-point operations in the same order, so the results are equal bit for bit
+(tests/test_fast_paths.py checks it on SUMO states); the numpy stages stay the reference.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mixed_traffic.compiled import inline, njit
+
+_L, _C, _R = 0, 1, 2
+_TWO_PI = 2 * np.pi
+
+
+@inline
+def _mn(a: float, b: float) -> float:
+    """``np.minimum`` of two floats (NaN wins)."""
+    if a != a or b != b:
+        return a + b
+    return a if a <= b else b
+
+
+@inline
+def _mx(a: float, b: float) -> float:
+    """``np.maximum`` of two floats (NaN wins)."""
+    if a != a or b != b:
+        return a + b
+    return a if a >= b else b
+
+
+@inline
+def _limits(a, ln, v, offset, wp_speed, wp_orient, pv_speed, pv_dist, sf, deadband, curve_accel,
+            spd, target):  # fmt: skip
+    """(lim_now, v0, a_lim) of agent ``a`` in lane column ``ln`` (``_speed_limits``);
+    ``spd`` and ``target`` (m,) are scratch."""
+    m, k = wp_speed.shape[2], pv_speed.shape[2]
+    lowest = np.inf
+    for j in range(m):
+        s = wp_speed[a, ln, j]
+        spd[j] = s if s > 0.5 else np.inf
+        lowest = _mn(lowest, spd[j])
+    lim = spd[0] if np.isfinite(spd[0]) else lowest
+    lim = lim if np.isfinite(lim) else 13.9
+    w = min(5, m - 1) if m > 1 else 1
+    hi = max(m - 1 - w, 0)
+    ins = abs(offset[a]) + 0.3
+    for j in range(m):
+        j0 = min(max(j - w // 2, 0), hi)
+        j1 = min(j0 + w, m - 1)
+        o = wp_orient[a, ln, j1] - wp_orient[a, ln, j0] + np.pi
+        kap = abs(o % _TWO_PI - np.pi) / w
+        v_curve = np.sqrt(curve_accel / _mx(kap, 1e-4))
+        inside = _mx(1.0 - kap * ins, 0.3)
+        target[j] = _mn(sf * spd[j], v_curve) * inside
+    v0 = _mn(sf * lim, target[0])
+    va = v[a]
+    a_lim = np.inf
+    for j in range(m):
+        lower = (target[j] < target[0] - deadband) and (target[j] < va)
+        need = (target[j] * target[j] - va * va) / (2 * (j + 1.0)) if lower else np.inf
+        a_lim = _mn(a_lim, need)
+    for j in range(k):
+        pv_t, pv_d = sf * pv_speed[a, ln, j], pv_dist[a, ln, j]
+        far = (pv_t < va) and (pv_d > float(m))
+        need = (pv_t * pv_t - va * va) / (2 * pv_d) if far else np.inf
+        a_lim = _mn(a_lim, need)
+    return lim, v0, 1.3 * a_lim if a_lim < 0 else np.inf
+
+
+@njit
+def idm_inputs(
+    v, offset, exists, wp_speed, wp_orient, pv_speed, pv_dist, light_dist, wid, h_dist, h_len,
+    h_lat, h_rel, h_wid, lanes, call_lane, call_frames, call_end, has_end, sf, deadband,
+    curve_accel, stop_margin, s0, lane_width, signal_min, yield_decel, hv_s0,
+):  # fmt: skip
+    """The IDM's input columns of ``lane_accels`` for A agents.
+
+    Args: the features (``v``, ``offset``, ``wid``, ``light_dist`` ... as in
+    :mod:`agents.rules.acc_lc_features`; history arrays (A, 3, K)); ``lanes`` (L,) the sorted
+    lane columns called; per call (Q,) its lane column, frames (K or 1) and whether it has an
+    end gap, ``call_end`` (Q, A) [m]; the config's scalars.
+    Returns ``cols`` (4, A, 2L + 3 Σ frames): gap [m], closing speed [m/s], standstill gap [m]
+    and desired speed [m/s] (per lane its free road and light stop, then each call's leaders);
+    ``relevant`` (A, W) which columns are leaders; ``lim_now`` and ``a_lim`` (L, A) [m/s,
+    m/s²]; ``stop_room`` (A,) [m].
+    """
+    A, K = h_dist.shape[0], h_dist.shape[2]
+    L, Q = len(lanes), len(call_lane)
+    W = 2 * L + 3 * int(call_frames.sum())
+    cols = np.empty((4, A, W))
+    relevant = np.zeros((A, W), np.bool_)
+    lim_now, a_lim, v0 = np.empty((L, A)), np.empty((L, A)), np.empty((L, A))
+    stop_room = np.empty(A)
+    spd, target = np.empty(wp_speed.shape[2]), np.empty(wp_speed.shape[2])
+    for a in range(A):
+        stop_room[a] = _mx(light_dist[a, _C] - stop_margin, 0.05)
+        for i in range(L):
+            ln = lanes[i] if exists[a, lanes[i]] else _C
+            lim_now[i, a], v0[i, a], a_lim[i, a] = _limits(
+                a, ln, v, offset, wp_speed, wp_orient, pv_speed, pv_dist, sf, deadband,
+                curve_accel, spd, target)  # fmt: skip
+            # the free road, and the stop before the light
+            cols[0, a, 2 * i], cols[0, a, 2 * i + 1] = np.inf, stop_room[a]
+            cols[1, a, 2 * i], cols[1, a, 2 * i + 1] = 0.0, v[a]
+            cols[2, a, 2 * i], cols[2, a, 2 * i + 1] = s0, s0
+            cols[3, a, 2 * i], cols[3, a, 2 * i + 1] = v0[i, a], v0[i, a]
+        col = 2 * L
+        for q in range(Q):
+            lane, first = call_lane[q], K - call_frames[q]
+            vq = v0[np.searchsorted(lanes, lane), a]
+            for j in range(3):
+                shift = float(j - _C) * -lane_width
+                present = exists[a, j] or j == _C
+                for kk in range(first, K):
+                    dist = h_dist[a, j, kk]
+                    gap = dist - h_len[a, j, kk]
+                    lat = abs(h_lat[a, j, kk] + shift - offset[a])
+                    half = 0.5 * (wid[a] + h_wid[a, j, kk]) + 0.4
+                    if j == _C:
+                        half = half + (0.6 if lane != _C else 0.0)
+                    rel = np.isfinite(dist) and (lat < half or j == lane) and present
+                    if lane == _C and j != _C and not rel:
+                        rel = _yields(dist, gap, h_lat[a, j, kk], h_rel[a, j, kk], j,
+                                      signal_min, yield_decel, hv_s0)  # fmt: skip
+                    end = has_end[q] and j == _C and h_len[a, j, kk] < 0.1
+                    relevant[a, col] = rel
+                    cols[0, a, col] = gap if rel else np.inf
+                    cols[1, a, col] = -h_rel[a, j, kk]
+                    cols[2, a, col] = call_end[q, a] if end else s0
+                    cols[3, a, col] = vq
+                    col += 1
+    return cols, relevant, lim_now, a_lim, stop_room
+
+
+@inline
+def _yields(dist, gap, lat, rel, j, signal_min, yield_decel, hv_s0):  # fmt: skip
+    """``_yield_to`` of one neighbour in side column ``j``."""
+    towards = lat * float(j - _C) > signal_min
+    close = _mx(-rel, 0.0)
+    can = close * close / (2 * _mx(gap - 1.0, 0.1)) <= yield_decel
+    return np.isfinite(dist) and towards and (gap > hv_s0) and can
+
+
+@njit
+def combine(
+    acc, relevant, lim_now, a_lim, stop_room, v, v_mean, light, light_dist, give_way, signal_dist,
+    lanes, call_lane, call_frames, max_decel_stop, yellow_stop_decel, vj, vj2, stop_margin,
+    signal_sight_decel,
+):  # fmt: skip
+    """(Q, A) each call's acceleration [m/s²] from the IDM's ``acc`` (A, W) of
+    :func:`idm_inputs`' columns: the lane's free road bounded by its limits ahead and its
+    light (``_light_bound``), and the call's relevant leaders."""
+    A, L, Q = acc.shape[0], len(lanes), len(call_lane)
+    out = np.empty((Q, A))
+    base = np.empty(L)
+    for a in range(A):
+        unseen = _unseen(a, v_mean, light, signal_dist, stop_margin, signal_sight_decel)
+        for i in range(L):
+            bound = _light(a, lim_now[i, a], acc[a, 2 * i + 1], stop_room[a], v, light,
+                           light_dist, give_way, max_decel_stop, yellow_stop_decel, vj, vj2)  # fmt: skip
+            base[i] = _mn(_mn(acc[a, 2 * i], a_lim[i, a]), _mn(bound, unseen))
+        col = 2 * L
+        for q in range(Q):
+            lead = np.inf
+            for _ in range(3 * call_frames[q]):
+                lead = _mn(lead, acc[a, col] if relevant[a, col] else np.inf)
+                col += 1
+            out[q, a] = _mn(base[np.searchsorted(lanes, call_lane[q])], lead)
+    return out
+
+
+@inline
+def _light(a, lim_now, a_stop, room, v, light, light_dist, give_way, max_decel_stop,
+           yellow_stop_decel, vj, vj2):  # fmt: skip
+    """``_light_bound`` of agent ``a`` without the unseen signal's bound."""
+    va, st, ld = v[a], light[a, _C], light_dist[a, _C]
+    need_stop = va * va / (2 * room)
+    stop = (st == 0 and need_stop < max_decel_stop) or (st == 1 and need_stop < yellow_stop_decel)
+    a_stop = _mn(a_stop, -need_stop * 1.1 if need_stop > 1.0 else a_stop)
+    bound = a_stop if stop else np.inf
+    a_j = (vj2 - va * va) / (2 * _mx(ld - 1.0, 0.5)) if va > vj else np.inf
+    if st >= 0 and np.isfinite(ld) and give_way[a] and lim_now < 20.0:
+        bound = _mn(bound, a_j)
+    return bound
+
+
+@inline
+def _unseen(a, v_mean, light, signal_dist, stop_margin, signal_sight_decel):  # fmt: skip
+    """``_unseen_signal_bound`` of agent ``a``."""
+    sig = signal_dist[a]
+    need = v_mean[a] * v_mean[a] / (2 * _mx(sig - stop_margin, 0.05))
+    if light[a, _C] < 0 and np.isfinite(sig) and need >= signal_sight_decel:
+        return -need
+    return np.inf
