@@ -4,11 +4,13 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from mixed_traffic import compiled
-from mixed_traffic.env import parallel_env
+from mixed_traffic.env import parallel_env, reward, traffic_terms
 from mixed_traffic.experiments.bench_env import bench_actions
 from mixed_traffic.sensing import neighbours, perception
 
@@ -54,17 +56,67 @@ def test_neighbour_kernel_equals_numpy(monkeypatch, scenario: str, penetration: 
 
 
 @needs_numba
+@pytest.mark.parametrize(
+    ("scenario", "penetration", "steps"),
+    [("ring", 1 / 22, 80), ("ring", 0.5, 80), ("straight", 0.5, 80), ("merge", 0.3, 80),
+     ("urban", 0.3, 100)],
+)  # fmt: skip
+def test_traffic_terms_kernel_equals_numpy(monkeypatch, scenario: str, penetration: float,
+                                           steps: int) -> None:  # fmt: skip
+    """Every agent's r5, r6 and r8 (the ring's loop, route windows across junctions, followers
+    on the agent's lane index), with random actions, bit for bit; also with one follower and
+    the other kind of r8 reference (a desired speed, or the lane limits), and with positions
+    rounded to 5 m (followers at equal distances, vehicles at the windows' very ends)."""
+    calls = []
+
+    def run_both(cfg, hd, snap, rows, routes, route_len, ring, desired):
+        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        ref = traffic_terms.traffic_terms(cfg, hd, snap, rows, routes, route_len, ring, desired)
+        monkeypatch.setenv(compiled.SWITCH, "numba")
+        out = traffic_terms.traffic_terms(cfg, hd, snap, rows, routes, route_len, ring, desired)
+        assert list(out) == list(ref) == list(traffic_terms.TRAFFIC_TERMS)
+        for name in ref:
+            x, y = out[name], ref[name]
+            # the bits: np.array_equal alone takes -0.0 for 0.0
+            assert x.dtype == y.dtype and np.array_equal(x.view(np.int64), y.view(np.int64)), name
+        return out
+
+    def both(cfg, hd, snap, rows, routes, route_len, ring, desired=0.0):
+        other = (replace(cfg, followers=1), hd, snap, rows, routes, route_len, ring)
+        run_both(*other, 0.0 if desired > 0 else 20.0)
+        ties = replace(snap, lane_pos=np.round(snap.lane_pos / 5.0) * 5.0)
+        run_both(replace(cfg, followers=2), hd, ties, rows, routes, route_len, ring, desired)
+        out = run_both(cfg, hd, snap, rows, routes, route_len, ring, desired)
+        calls.append(len(out["r5_local_speed"]))
+        return out
+
+    monkeypatch.setattr(reward, "traffic_terms", both)
+    env = parallel_env(scenario=scenario, penetration=penetration, seed=3, episode_length=60.0)
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=3)
+    for _ in range(steps):
+        if not env.agents:
+            break
+        obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng))
+    env.close()
+    assert sum(calls) >= steps, "the terms were computed for the agents at every step"
+
+
+@needs_numba
 def test_warm_loads_the_kernel_the_env_calls() -> None:
     """``warm()`` (the sweep's fork server calls it) loads the specialisation a real step uses,
     so forked cells add none."""
+    from mixed_traffic.env import traffic_terms_kernel
     from mixed_traffic.sensing import neighbours_kernel
 
     neighbours_kernel.warm()
+    traffic_terms_kernel.warm()
     env = parallel_env(scenario="ring", penetration=1 / 22, seed=0, episode_length=2.0)
     obs, _ = env.reset(seed=0)
     env.step(bench_actions(env, obs, env.action_space(None), np.random.default_rng(0), "keep"))
     env.close()
     assert len(neighbours_kernel.search.signatures) == 1
+    assert len(traffic_terms_kernel.terms.signatures) == 1
 
 
 @needs_numba

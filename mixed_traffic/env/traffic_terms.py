@@ -25,8 +25,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from mixed_traffic import compiled
 from mixed_traffic.config import RewardConfig
-from mixed_traffic.sensing.route_traffic import ring_pairs, route_frame, route_pairs
+from mixed_traffic.env import traffic_terms_kernel
+from mixed_traffic.sensing.route_traffic import map_tables, ring_pairs, route_frame, route_pairs
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -39,10 +41,36 @@ def traffic_terms(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.
     """r5, r6 and r8 (each (A,) float64) of the agents at snapshot ``rows`` (A,), whose routes
     are ``routes`` (A, W) edge rows of ``route_len`` (A,) edges; ``ring``: the network is a
     ring (r5 then counts every vehicle); ``desired``: r8's reference speed [m/s] (0 = each
-    vehicle's lane limit)."""
-    A = len(rows)
-    if A == 0:
+    vehicle's lane limit). One compiled kernel (:mod:`.traffic_terms_kernel`) when kernels
+    are enabled (``mixed_traffic.compiled``), else the numpy stages: equal bit for bit."""
+    if len(rows) == 0:
         return {name: np.zeros(0) for name in TRAFFIC_TERMS}
+    terms = _compiled if compiled.enabled() else _reference
+    return terms(cfg, hd, snap, rows, routes, route_len, ring, desired)
+
+
+def _compiled(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray,
+              routes: np.ndarray, route_len: np.ndarray, ring: bool,
+              desired: float) -> dict[str, np.ndarray]:  # fmt: skip
+    """:func:`_reference` as one compiled kernel (:mod:`.traffic_terms_kernel`)."""
+    t = map_tables(hd)
+    i64 = np.int64  # one specialisation, whatever integer arrays the caller has
+    out = traffic_terms_kernel.terms(
+        np.asarray(rows, i64), np.asarray(routes, i64), np.asarray(route_len, i64), snap.lane,
+        snap.lane_pos, snap.speed, snap.accel, snap.lane_index, snap.route_index,
+        hd.edge_length, hd.lane_speed, t.anchor_edge, t.anchor_offset, t.junction_keys,
+        t.junction_len, int(t.n_edges), float(t.key_stride), float(t.key_shift), bool(ring),
+        float(cfg.local_upstream), float(cfg.local_downstream), int(cfg.followers),
+        float(cfg.acc_threshold), float(desired),
+    )  # fmt: skip
+    return dict(zip(TRAFFIC_TERMS, out))
+
+
+def _reference(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray,
+               routes: np.ndarray, route_len: np.ndarray, ring: bool,
+               desired: float) -> dict[str, np.ndarray]:  # fmt: skip
+    """The numpy stages (the kernel's reference): :func:`traffic_terms` of A >= 1 agents."""
+    A = len(rows)
     frame = route_frame(hd, snap, rows, routes, route_len)
     if ring:  # every vehicle is near; one d ahead is lap - d behind
         pairs = ring_pairs(hd, snap, frame)

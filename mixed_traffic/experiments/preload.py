@@ -1,9 +1,13 @@
 """Imported by the sweep's fork server before it forks cells: the runner, and the compiled
 kernels loaded once (``mixed_traffic.compiled``), so that no cell pays their first call."""
 
+from agents.rules import acc_lc
 from mixed_traffic import compiled
+from mixed_traffic.env import traffic_terms_kernel
 from mixed_traffic.experiments import runner  # noqa: F401  (the import is the preload)
 from mixed_traffic.sensing import neighbours_kernel
 
 if compiled.enabled():
     neighbours_kernel.warm()
+    traffic_terms_kernel.warm()
+    acc_lc.warm()
