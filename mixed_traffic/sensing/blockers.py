@@ -8,6 +8,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from mixed_traffic import compiled
+from mixed_traffic.sensing import blockers_kernel
 from mixed_traffic.sensing.lane_graph import LaneGraph, lane_graph
 from mixed_traffic.world.hdmap import SPACING, HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
@@ -81,6 +83,8 @@ def path_blockers(
         (A, 4) its ``PATH_GEOMETRY`` (0 where none).
     """
     rows = np.asarray(rows, dtype=np.int64)
+    if compiled.enabled():
+        return _compiled(snap, hdmap, rows, max_range, next_edge, limit, via)
     A = len(rows)
     none = (np.full(A, -1, dtype=np.int64), np.full(A, np.inf), np.zeros((A, 4)))
     cand = _candidates(snap, lane_graph(hdmap))
@@ -96,6 +100,30 @@ def path_blockers(
     if hit is None:
         return none
     return _nearest(snap, hdmap, rows, sub, pairs, *hit, none)
+
+
+def kernel_array(x: np.ndarray | None, n: int, dtype: type, missing: float) -> np.ndarray:
+    """(n,) contiguous writeable copy of ``x`` as ``dtype`` for a kernel (``missing`` everywhere
+    when None): one specialisation whatever the caller passes (numba types read-only and
+    non-contiguous arrays apart)."""
+    if x is None:
+        return np.full(n, missing, dtype=dtype)
+    return np.array(np.broadcast_to(np.asarray(x, dtype=dtype), (n,)))
+
+
+def _compiled(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, max_range: float,
+              next_edge: np.ndarray | None, limit: np.ndarray | None,
+              via: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # fmt: skip
+    """:func:`path_blockers` as one compiled kernel (:func:`.blockers_kernel.blockers`)."""
+    g, A = lane_graph(hdmap), len(rows)
+    return blockers_kernel.blockers(
+        np.ascontiguousarray(rows), snap.lane, snap.lane_pos, snap.length, snap.width,
+        snap.heading, snap.x, snap.y, snap.speed, g.junction, g.entry_junction, hdmap.lane_next,
+        hdmap.lane_length, g.chain, g.chain_start, g.conn_keys, g.conn_vals, g.n_edges,
+        hdmap.wp_count, hdmap.wp_offset, hdmap.wp_xyz, hdmap.wp_heading,
+        kernel_array(next_edge, A, np.int64, -1), kernel_array(via, A, np.int64, -1),
+        kernel_array(limit, A, np.float64, np.inf), float(max_range), SPACING, SWEEP_MARGIN,
+    )  # fmt: skip
 
 
 def _candidates(snap: TrafficSnapshot, g: LaneGraph) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

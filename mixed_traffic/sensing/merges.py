@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from mixed_traffic.sensing.blockers import path_lanes
+from mixed_traffic import compiled
+from mixed_traffic.sensing import blockers_kernel
+from mixed_traffic.sensing.blockers import kernel_array, path_lanes
 from mixed_traffic.sensing.lane_graph import lane_graph
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
@@ -66,8 +68,17 @@ def merge_leaders(
     """
     rows = np.asarray(rows, dtype=np.int64)
     A = len(rows)
-    none = (np.full(A, -1, dtype=np.int64), np.full(A, np.inf), np.zeros((A, 4)))
     exit_lane, to_exit = exit_table(hdmap)
+    if compiled.enabled():
+        g = lane_graph(hdmap)
+        return blockers_kernel.merges(
+            np.ascontiguousarray(rows), snap.lane, snap.lane_pos, snap.length, snap.width,
+            snap.speed, exit_lane, to_exit, hdmap.lane_next, hdmap.lane_length, g.chain,
+            g.chain_start, g.conn_keys, g.conn_vals, g.n_edges,
+            kernel_array(next_edge, A, np.int64, -1), kernel_array(via, A, np.int64, -1),
+            kernel_array(lead_gap, A, np.float64, np.inf), float(max_range),
+        )  # fmt: skip
+    none = (np.full(A, -1, dtype=np.int64), np.full(A, np.inf), np.zeros((A, 4)))
     vlane = snap.lane.astype(np.int64)
     cand = np.flatnonzero((vlane >= 0) & (exit_lane[np.maximum(vlane, 0)] >= 0))
     if A == 0 or len(cand) == 0:

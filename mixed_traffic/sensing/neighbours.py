@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from mixed_traffic import compiled
-from mixed_traffic.sensing import neighbours_kernel
+from mixed_traffic.sensing import blockers_kernel, neighbours_kernel
 from mixed_traffic.sensing.blockers import PATH_GEOMETRY, path_blockers
 from mixed_traffic.sensing.lane_graph import CURRENT, LEFT, RIGHT, SEARCH_DEPTH, lane_graph
 from mixed_traffic.sensing.merges import merge_leaders
@@ -268,12 +268,16 @@ def _in_the_way(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, vehicle: 
     A = len(rows)
     lead = vehicle[:, CURRENT, 0]
     lead_gap = distance[:, CURRENT, 0] - np.where(lead >= 0, snap.length[np.maximum(lead, 0)], 0.0)
-    on_path, geom = np.zeros(A, bool), np.zeros((A, len(PATH_GEOMETRY)))
-    for other, gap, other_geom in (
+    found = (
         path_blockers(snap, hdmap, rows, max_range, next_edge, lead_gap, via),
         merge_leaders(snap, hdmap, rows, max_range, next_edge, via, lead_gap),
         straddle,
-    ):
+    )
+    if compiled.enabled():
+        return blockers_kernel.take_nearer(vehicle, distance, lead_gap, *found[0], *found[1],
+                                           *found[2])  # fmt: skip
+    on_path, geom = np.zeros(A, bool), np.zeros((A, len(PATH_GEOMETRY)))
+    for other, gap, other_geom in found:
         take = (other >= 0) & (gap < lead_gap)
         vehicle[:, CURRENT, 0] = np.where(take, other, vehicle[:, CURRENT, 0])
         distance[:, CURRENT, 0] = np.where(take, gap + other_geom[:, 1], distance[:, CURRENT, 0])
