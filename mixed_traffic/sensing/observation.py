@@ -79,15 +79,17 @@ from itertools import repeat
 import gymnasium as gym
 import numpy as np
 
+from mixed_traffic import compiled
 from mixed_traffic.config import EnvConfig
+from mixed_traffic.sensing import observation_kernel
 from mixed_traffic.sensing.camera import NO_LIGHT, lane_signals
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import wrap_angle
 from mixed_traffic.sensing.lane_graph import CURRENT, lane_graph, next_route_edge
 from mixed_traffic.sensing.memory import memory_space
 from mixed_traffic.sensing.merges import exit_table
-from mixed_traffic.sensing.preview import limit_preview
-from mixed_traffic.world.hdmap import HDMap
+from mixed_traffic.sensing.preview import drop_table, limit_preview
+from mixed_traffic.world.hdmap import SPACING, HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
 #: Speed scale for velocities, relative velocities and speed limits [m/s].
@@ -178,6 +180,7 @@ class ObservationBuilder:
         self._veh_scale = np.concatenate([[s.lidar_range], VEHICLE_SCALE_TAIL])
         self._reach = reach_of(config)
         self._wp_scale = np.tile(WAYPOINT_SCALE, self.m)
+        self._map_args: tuple | None = None  # the kernel's map arrays, built at first use
         self.reset()
 
     # ------------------------------------------------------------------ history slots
@@ -258,34 +261,15 @@ class ObservationBuilder:
         if A == 0:
             return {}
         nxt = next_route_edge(routes, snap.route_index[rows])
-        lanes = sensed.neighbours.lane  # (A, 3)
-        exists = lanes >= 0
         after = next_route_edge(routes, snap.route_index[rows] + 1)
-        act, mandatory, end_dist = self.action_mask(snap, rows, lanes, nxt, after)
-
-        ego = np.clip(sensed.ego / EGO_SCALE, -1.0, 1.0)  # (A, 5)
-        pos, via = self._route_hops(snap, rows, lanes, nxt)
-        wp = self._waypoints(snap, rows, lanes, pos, via)  # (A, 3, 4m)
-        limits = self._limits(lanes, pos, via)  # (A, 3, k, 2)
-        signals = self._signals(lanes, pos, nxt, via, after)  # (A, 3)
-        veh, present = self._vehicles(sensed, lanes, mandatory, end_dist, snap.speed[rows])
-        light_on = sensed.light_state != NO_LIGHT
-        lights = np.zeros((A, 3, 4))
-        lights[..., :3] = (sensed.light_state[..., None] == np.arange(3)) & light_on[..., None]
-        lights[..., 3] = np.where(
-            light_on, sensed.light_dist / self.config.sensors.camera_range, 0.0
-        )
-        lights = clip_far(lights, (3,), self._reach)
-        node = np.stack([exists, present, light_on & exists], axis=-1).astype(np.int8)
-        gw = np.zeros((A, 3), np.int8)
-        gw[:, CURRENT] = sensed.give_way & light_on[:, CURRENT]
+        frame = self._frame_compiled if compiled.enabled() else self._frame
+        ego, wp, veh, lights, limits, signals, gw, node, act = frame(snap, rows, sensed, nxt, after)
 
         slots = self._slots(agent_ids)
         h_ego = _push(self._ego, slots, ego, axis=1)
         h_lanes = _push(self._lanes, slots, wp, axis=2)
         h_veh = _push(self._veh, slots, veh, axis=2)
         h_lights = _push(self._lights, slots, lights, axis=2)
-        act = act.astype(np.int8)
         self.last_batch = {"ego": h_ego, "lanes": h_lanes, "vehicles": h_veh, "lights": h_lights,
                            "limits": limits, "signals": signals, "give_way": gw,
                            "node_mask": node, "action_mask": act}  # fmt: skip
@@ -304,6 +288,57 @@ class ObservationBuilder:
         return out
 
     # ------------------------------------------------------------------ features
+    def _frame(
+        self, snap: TrafficSnapshot, rows: np.ndarray, sensed: PerceptionFrame, nxt: np.ndarray,
+        after: np.ndarray,
+    ) -> tuple[np.ndarray, ...]:  # fmt: skip
+        """The current frame of the agents at ``rows`` (A,), whose next two route edges are
+        ``nxt`` and ``after`` (A,): ego (A, 5), waypoints (A, 3, 4m), vehicles (A, 3, 12) and
+        lights (A, 3, 4) float64, before the history; limits (A, 3, k, 2) and signals (A, 3)
+        float32; give_way (A, 3), node_mask (A, 3, 3) and action_mask (A, 3) int8. The numpy
+        reference of ``observation_kernel.features``."""
+        A = len(rows)
+        lanes = sensed.neighbours.lane  # (A, 3)
+        exists = lanes >= 0
+        act, mandatory, end_dist = self.action_mask(snap, rows, lanes, nxt, after)
+        ego = np.clip(sensed.ego / EGO_SCALE, -1.0, 1.0)  # (A, 5)
+        pos, via = self._route_hops(snap, rows, lanes, nxt)
+        wp = self._waypoints(snap, rows, lanes, pos, via)  # (A, 3, 4m)
+        limits = self._limits(lanes, pos, via)  # (A, 3, k, 2)
+        signals = self._signals(lanes, pos, nxt, via, after)  # (A, 3)
+        veh, present = self._vehicles(sensed, lanes, mandatory, end_dist, snap.speed[rows])
+        light_on = sensed.light_state != NO_LIGHT
+        lights = np.zeros((A, 3, 4))
+        lights[..., :3] = (sensed.light_state[..., None] == np.arange(3)) & light_on[..., None]
+        lights[..., 3] = np.where(
+            light_on, sensed.light_dist / self.config.sensors.camera_range, 0.0
+        )
+        lights = clip_far(lights, (3,), self._reach)
+        node = np.stack([exists, present, light_on & exists], axis=-1).astype(np.int8)
+        gw = np.zeros((A, 3), np.int8)
+        gw[:, CURRENT] = sensed.give_way & light_on[:, CURRENT]
+        return ego, wp, veh, lights, limits, signals, gw, node, act.astype(np.int8)
+
+    def _frame_compiled(
+        self, snap: TrafficSnapshot, rows: np.ndarray, sensed: PerceptionFrame, nxt: np.ndarray,
+        after: np.ndarray,
+    ) -> tuple[np.ndarray, ...]:  # fmt: skip
+        """:meth:`_frame` in one compiled kernel (equal bit for bit)."""
+        if self._map_args is None:
+            hd, s = self.hdmap, self.config.sensors
+            self._map_args = observation_kernel.map_arrays(
+                hd, self.graph, hd.ahead_table(self.m), exit_table(hd),
+                drop_table(hd, s.preview_points, s.preview_range),
+            )  # fmt: skip
+        nb, s = sensed.neighbours, self.config.sensors
+        return observation_kernel.features(
+            rows, nb.lane, nxt, after, snap.lane_pos, snap.z, snap.heading, snap.speed,
+            sensed.ego, sensed.vehicles, nb.vehicle >= 0, sensed.light_state, sensed.light_dist,
+            sensed.give_way, *self._map_args, EGO_SCALE, self._wp_scale, self._veh_scale,
+            self._reach, s.camera_range, s.preview_range, SPEED_SCALE, SPACING, SHORT_EDGE,
+            MANDATORY_DISTANCE,
+        )  # fmt: skip
+
     def _route_hops(
         self, snap: TrafficSnapshot, rows: np.ndarray, lanes: np.ndarray, next_edge: np.ndarray
     ) -> tuple[np.ndarray, np.ndarray]:
