@@ -30,6 +30,8 @@ from itertools import repeat
 
 import numpy as np
 
+from mixed_traffic import compiled
+from mixed_traffic.env import metrics_kernel
 from mixed_traffic.sensing.lane_graph import lane_graph
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
@@ -122,6 +124,18 @@ class AheadBehind:
         avs = np.flatnonzero(counted & snap.is_av & (snap.lane >= 0))
         if len(avs) == 0:
             return
+        slots = self._slots([snap.ids[i] for i in avs.tolist()])
+        if compiled.enabled():
+            metrics_kernel.ahead_behind_step(
+                snap.lane, snap.lane_pos, snap.speed, avs, slots, self._band, self._reach,
+                self._d_ahead, self._lane, self._offset, self.window, self._length, self._sums,
+            )  # fmt: skip
+        else:
+            self._update_reference(snap, avs, slots)
+
+    def _update_reference(self, snap: TrafficSnapshot, avs: np.ndarray, slots: np.ndarray) -> None:
+        """Adds the window sums of the AVs at rows ``avs`` (A,) into their accumulator
+        ``slots`` (A,): the numpy reference of ``metrics_kernel.ahead_behind_step``."""
         on = np.flatnonzero(snap.lane >= 0)
         key = snap.lane[on] * self._band + snap.lane_pos[on]
         order = np.argsort(key, kind="stable")
@@ -135,7 +149,6 @@ class AheadBehind:
         lo, hi = self._ranges(lane, snap.lane_pos[avs], key, cols)
         side = np.stack([self._is_ahead[cols], ~self._is_ahead[cols]], axis=1).astype(np.float64)
         got = (cum[:, hi] - cum[:, lo]) @ side  # (3, A, 2): ahead, behind
-        slots = self._slots([snap.ids[i] for i in avs.tolist()])
         np.add.at(self._sums, slots, got.transpose(1, 2, 0))
 
     def _ranges(self, lane: np.ndarray, pos: np.ndarray, key: np.ndarray,

@@ -11,6 +11,8 @@ from itertools import repeat
 
 import numpy as np
 
+from mixed_traffic import compiled
+from mixed_traffic.env import metrics_kernel
 from mixed_traffic.schema import TERMINAL_REASONS
 
 # --------------------------------------------------------------------------- per-AV metrics
@@ -174,6 +176,10 @@ class _LiveTrips:
         idx = np.fromiter(map(self._slot.get, ids, repeat(-1)), np.int64, len(ids))
         for j in np.flatnonzero(idx < 0).tolist():
             idx[j] = self._open(ids[j])
+        if compiled.enabled():
+            metrics_kernel.trips_add(idx, dt, speed, ttc, affected, self._time, self._distance,
+                                     self._min_ttc, self._affected)  # fmt: skip
+            return
         self._time[idx] += dt
         self._distance[idx] += speed * dt
         self._min_ttc[idx] = np.fmin(self._min_ttc[idx], ttc)  # the ttc unless it is nan

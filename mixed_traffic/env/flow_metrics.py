@@ -50,15 +50,17 @@ from collections.abc import Iterable, Sequence
 
 import numpy as np
 
+from mixed_traffic import compiled
+from mixed_traffic.env import metrics_kernel
 from mixed_traffic.env.ahead_behind import AheadBehind
+
+# per-vehicle crossing states (int8) and the speed below which entry/exit interpolation uses
+# the observation time itself [m/s]: the kernels' (one definition for both paths)
+from mixed_traffic.env.metrics_kernel import CROSSED, INSIDE, INSIDE_UNKNOWN, LEFT, UNSEEN, UPSTREAM
+from mixed_traffic.env.metrics_kernel import V_MIN as _V_MIN
 from mixed_traffic.env.space_time import SpaceTimeField
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
-
-#: Per-vehicle crossing state (int8).
-UNSEEN, UPSTREAM, INSIDE, INSIDE_UNKNOWN, CROSSED, LEFT = 0, 1, 2, 3, 4, 5
-#: Speed below which entry/exit interpolation uses the observation time itself [m/s].
-_V_MIN = 0.1
 
 
 # --------------------------------------------------------------------------- pure functions
@@ -205,7 +207,7 @@ class FlowRecorder:
     # ------------------------------------------------------------------ update
     def update(self, snap: TrafficSnapshot) -> None:
         """Account for one step's snapshot (call once per step, after ``backend.step()``)."""
-        t, dt = snap.time, self.dt
+        t = snap.time
         self.steps += 1
         self.collisions += len(snap.collisions)
         self.teleports += len(snap.teleports)
@@ -215,6 +217,30 @@ class FlowRecorder:
                 self._density_steps += 1
             return
         slot = self._slots(snap.ids)
+        step = self._step_compiled if compiled.enabled() else self._step_reference
+        s, inside = step(snap, slot)
+        v = snap.speed
+        self.field.add(t, s, v)
+        if t >= self.warmup:
+            n_in = int(inside.sum())
+            self._density_sum += density_per_km(n_in, self.length)
+            self._density_steps += 1
+            v_sum = float(v[inside].sum())  # numpy's pairwise sum, in both paths
+            self._speed_sum += v_sum
+            self._speed_samples += n_in
+            if snap.fuel is not None:
+                self._fuel_sum += float(snap.fuel[inside].sum())
+                self._fuel_speed_sum += v_sum
+            if self.around is not None:
+                self.around.update(snap, inside)
+
+    def _step_reference(
+        self, snap: TrafficSnapshot, slot: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The per-vehicle state of one step (crossings, time and free-flow sums) for the
+        vehicles at ``slot`` (N,); returns (N,) the position along the segment [m] (NaN
+        outside) and (N,) bool inside it. The numpy reference of ``_step_compiled``."""
+        t, dt = snap.time, self.dt
         s = self._offset[snap.edge] + snap.lane_pos  # NaN outside the segment
         inside = ~np.isnan(s)
         outside = ~inside & (snap.edge >= 0)
@@ -262,41 +288,48 @@ class FlowRecorder:
         self._t_last[slot] = t
         self._state[slot] = st
 
-        self.field.add(t, s, v)
-        if t >= self.warmup:
-            n_in = int(inside.sum())
-            self._density_sum += density_per_km(n_in, self.length)
-            self._density_steps += 1
-            self._speed_sum += float(v[inside].sum())
-            self._speed_samples += n_in
-            if snap.fuel is not None:
-                self._fuel_sum += float(snap.fuel[inside].sum())
-                self._fuel_speed_sum += float(v[inside].sum())
-            if self.around is not None:
-                self.around.update(snap, inside)
+        return s, inside
+
+    def _step_compiled(
+        self, snap: TrafficSnapshot, slot: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``_step_reference`` as one compiled kernel (:func:`.metrics_kernel.flow_step`)."""
+        return metrics_kernel.flow_step(
+            slot, snap.edge, snap.lane, snap.lane_pos, snap.speed, snap.time, self.dt,
+            self._offset, self._lane_speed, self._first_edge, self._last_edge, self.length,
+            self._state, self._t_entry, self._t_exit, self._t_last, self._s_last, self._v_last,
+            self._on_last_edge, self._seg_time, self._seg_free, self._seg_dist, self._t_in,
+            self._trip_time, self._trip_free,
+        )  # fmt: skip
 
     def _finish_gone(self, snap: TrafficSnapshot) -> None:
         """Vehicles that left the network in the last step (arrived, or removed by a collision)."""
         if snap.arrived:
             slot = np.array([self._slot[v] for v in snap.arrived if v in self._slot], np.int64)
-            st = self._state[slot]
-            crossed = (st == INSIDE) & self._on_last_edge[slot]
-            c = slot[crossed]
-            self._t_exit[c] = exit_time(
-                self._t_in[c],
-                self._s_last[c],
-                self._v_last[c],
-                self.length,
-                np.full(len(c), snap.time),
-            )
-            self._state[c] = CROSSED
-            rest = slot[~crossed & ((st == INSIDE) | (st == INSIDE_UNKNOWN))]
-            self._state[rest] = LEFT
+            if compiled.enabled():
+                metrics_kernel.flow_gone(slot, snap.time, self.length, self._state, self._t_exit,
+                                         self._t_in, self._s_last, self._v_last,
+                                         self._on_last_edge)  # fmt: skip
+            else:
+                self._gone_reference(slot, snap.time)
         for col in snap.collisions:
             for vid in (col.collider, col.victim):
                 k = self._slot.get(vid)
                 if k is not None and self._state[k] != CROSSED:
                     self._state[k] = LEFT
+
+    def _gone_reference(self, slot: np.ndarray, t: float) -> None:
+        """The vehicles at ``slot`` (G,) arrived at ``t`` [s]: the ones inside on the last edge
+        crossed, the others inside left (numpy reference of ``metrics_kernel.flow_gone``)."""
+        st = self._state[slot]
+        crossed = (st == INSIDE) & self._on_last_edge[slot]
+        c = slot[crossed]
+        self._t_exit[c] = exit_time(
+            self._t_in[c], self._s_last[c], self._v_last[c], self.length, np.full(len(c), t)
+        )
+        self._state[c] = CROSSED
+        rest = slot[~crossed & ((st == INSIDE) | (st == INSIDE_UNKNOWN))]
+        self._state[rest] = LEFT
 
     # ------------------------------------------------------------------ per-vehicle results
     def _crossed_slots(self) -> np.ndarray:
