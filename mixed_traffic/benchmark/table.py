@@ -57,7 +57,7 @@ class BenchmarkConfig:
     tasks: tuple[str, ...] = ()
     """Task ids (default: every task of ``TASKS``)."""
     policies: tuple[str, ...] = ("acc-lc-tuned", "follower-stopper", "pi-saturation", "auto",
-                                 "ppo-ring")  # fmt: skip
+                                 "ppo-ring", "auto-ring")  # fmt: skip
     """Controllers scored (``idm``, all human, always runs as the score's 0)."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Root seeds, one episode per eval config each."""
