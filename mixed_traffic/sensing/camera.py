@@ -6,6 +6,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from mixed_traffic import compiled
+from mixed_traffic.sensing import sensing_kernel
 from mixed_traffic.sensing.lane_graph import CURRENT, LaneGraph
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
@@ -48,6 +50,14 @@ def traffic_lights(
             f"tls_states has {len(tls_states)} strings, expected {len(g.tls_ids)} "
             f"(one per Perception.tls_ids)"
         )
+    if compiled.enabled():
+        chars = np.frombuffer("".join(tls_states).encode("ascii"), dtype=np.uint8)
+        offsets = np.zeros(len(tls_states) + 1, np.int64)
+        np.cumsum([len(s) for s in tls_states], out=offsets[1:])
+        return sensing_kernel.traffic_lights(
+            rows, lanes, next_edge, snap.lane_pos, hd.lane_length, g.tls_keys, g.tls_tl,
+            g.tls_link, g.n_edges, g.next_edge, chars, offsets, _CODE,
+        )  # fmt: skip
     lsafe = np.maximum(lanes, 0)
     tl, link = lane_signals(g, lanes, next_edge)
     chars, ok = _link_chars(tls_states, tl, link)

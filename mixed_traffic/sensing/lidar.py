@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from mixed_traffic import compiled
+from mixed_traffic.sensing import sensing_kernel
 from mixed_traffic.sensing.geometry import wrap_angle
 from mixed_traffic.sensing.lane_graph import CURRENT
 from mixed_traffic.sensing.neighbours import Neighbours
@@ -17,6 +19,14 @@ VEHICLE_FEATURES = ("distance", "rel_velocity", "rel_heading", "length", "width"
 
 def vehicle_features(snap: TrafficSnapshot, rows: np.ndarray, nb: Neighbours) -> np.ndarray:
     """(A, 3, 2, 6) ground-truth ``VEHICLE_FEATURES`` of the neighbours, 0 where missing."""
+    if compiled.enabled():
+        on_path, geom = nb.on_path, nb.path_geometry
+        if on_path is None:
+            on_path, geom = np.zeros(len(rows), bool), np.zeros((len(rows), 4))
+        return sensing_kernel.vehicle_features(
+            rows, nb.vehicle, nb.distance, on_path, geom, snap.speed, snap.heading, snap.length,
+            snap.width, snap.lateral,
+        )  # fmt: skip
     v = nb.vehicle
     ok = v >= 0
     o = np.maximum(v, 0)

@@ -10,7 +10,7 @@ from typing import NamedTuple
 import numpy as np
 
 from mixed_traffic import compiled
-from mixed_traffic.sensing import blockers_kernel, neighbours_kernel
+from mixed_traffic.sensing import blockers_kernel, neighbours_kernel, sensing_kernel
 from mixed_traffic.sensing.blockers import PATH_GEOMETRY, path_blockers
 from mixed_traffic.sensing.lane_graph import CURRENT, LEFT, RIGHT, SEARCH_DEPTH, lane_graph
 from mixed_traffic.sensing.merges import merge_leaders
@@ -116,19 +116,38 @@ def find_neighbours(
     Returns:
         ``Neighbours`` with (A, 3) lanes and (A, 3, 2) vehicles and distances.
     """
-    g = lane_graph(hdmap)
     rows = np.asarray(rows, dtype=np.int64)
-    srt = _sort_by_lane(snap, hdmap.n_lanes, g.lane_offset_key)
-    lanes, pos = _query_lanes(snap, hdmap, rows)
-    has, lsafe = lanes >= 0, np.maximum(lanes, 0)
-    succ = _successors(hdmap, lsafe, next_edge, via)
-    prev = np.where(has, g.pred[lsafe], -1)
+    srt, lanes, pos, succ, prev = _setup(snap, hdmap, rows, next_edge, via)
     search = _compiled if compiled.enabled() else _reference
     i, vehicle, distance, straddle = search(snap, hdmap, rows, lanes, pos, srt, succ, prev,
                                             max_range)  # fmt: skip
     on_path, geom = _in_the_way(snap, hdmap, rows, vehicle, distance, max_range, next_edge, via,
                                 straddle)  # fmt: skip
     return Neighbours(lanes, vehicle.astype(np.int64), distance, on_path, geom)
+
+
+def _setup(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray, next_edge: np.ndarray | None,
+           via: np.ndarray | None) -> tuple:  # fmt: skip
+    """The search's inputs: the lane sort (``_Sorted``), the (A, 3) query ``lanes`` and
+    projected positions ``pos`` [m] (``_query_lanes``), and the (A, 3) first successor
+    (``_successors``) and predecessor lanes (-1 none)."""
+    g = lane_graph(hdmap)
+    if compiled.enabled():  # one kernel; -1 next edges and vias change nothing
+        none = np.full(len(rows), -1, np.int64)
+        nxt = none if next_edge is None else np.asarray(next_edge, np.int64)
+        chosen = none if via is None else np.asarray(via, np.int64)
+        lanes, pos, succ, prev = sensing_kernel.query_lanes(
+            rows, snap.lane, snap.lane_pos, g.lane3, hdmap.lane_length, hdmap.lane_next, g.pred,
+            g.conn_keys, g.conn_vals, g.n_edges, nxt, chosen,
+        )  # fmt: skip
+        srt = _Sorted(*sensing_kernel.lane_sort(snap.lane, snap.lane_pos, hdmap.n_lanes,
+                                                g.lane_offset_key))  # fmt: skip
+        return srt, lanes, pos, succ, prev
+    srt = _sort_by_lane(snap, hdmap.n_lanes, g.lane_offset_key)
+    lanes, pos = _query_lanes(snap, hdmap, rows)
+    has, lsafe = lanes >= 0, np.maximum(lanes, 0)
+    succ = _successors(hdmap, lsafe, next_edge, via)
+    return srt, lanes, pos, succ, np.where(has, g.pred[lsafe], -1)
 
 
 def _query_lanes(snap: TrafficSnapshot, hdmap: HDMap, rows: np.ndarray

@@ -6,7 +6,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from mixed_traffic import compiled
 from mixed_traffic.config import SensorConfig
+from mixed_traffic.sensing import sensing_kernel
 from mixed_traffic.sensing.camera import NO_LIGHT
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.gnss import EGO_FEATURES
@@ -70,7 +72,10 @@ def degrade(
 ) -> PerceptionFrame:
     """The sensed frame: ``truth`` with the weather's ranges, noise and light misdetection."""
     w = weather
-    z_veh, z_ego, u_light, shift, z_ldist = noise_draws(rng, len(truth.neighbours.lane))
+    draws = noise_draws(rng, len(truth.neighbours.lane))
+    if compiled.enabled():
+        return _degrade_compiled(truth, w, sensors, draws)
+    z_veh, z_ego, u_light, shift, z_ldist = draws
     cut = within_range(truth, sensors, w.lidar_range_factor, w.camera_range_factor)
     seen = cut.neighbours.vehicle >= 0
     # veh + rel_noise * (|veh| + floor) * N(0, 1), evaluated in place (the same roundings)
@@ -98,6 +103,13 @@ def within_range(
     """``truth`` without the vehicles and lights beyond the sensors' ranges times
     ``range_factor`` and the given factors (noise off, another detection range)."""
     nb, f = truth.neighbours, sensors.range_factor
+    if compiled.enabled():
+        vehicle, dist, veh, state, ldist = sensing_kernel.within_range(
+            truth.vehicles, nb.vehicle, nb.distance, truth.light_state, truth.light_dist,
+            sensors.lidar_range * lidar_factor * f, sensors.camera_range * camera_factor * f,
+        )  # fmt: skip
+        sensed_nb = replace(nb, vehicle=vehicle, distance=dist)
+        return PerceptionFrame(sensed_nb, veh, truth.ego, state, ldist, truth.give_way)
     seen = (nb.vehicle >= 0) & (np.abs(nb.distance) <= sensors.lidar_range * lidar_factor * f)
     veh = np.where(seen[..., None], truth.vehicles, 0.0)
     dist = np.where(seen, nb.distance, np.where(np.arange(2) == 0, np.inf, -np.inf))
@@ -107,3 +119,17 @@ def within_range(
     return PerceptionFrame(
         sensed_nb, veh, truth.ego, state, np.where(lit, truth.light_dist, np.inf), truth.give_way
     )
+
+
+def _degrade_compiled(truth: PerceptionFrame, w: WeatherPreset, sensors: SensorConfig,
+                      draws: tuple[np.ndarray, ...]) -> PerceptionFrame:  # fmt: skip
+    """:func:`degrade` on ``draws`` (``noise_draws``) as one kernel (:mod:`.sensing_kernel`)."""
+    nb, f = truth.neighbours, sensors.range_factor
+    vehicle, dist, veh, ego, state, ldist = sensing_kernel.degrade(
+        truth.vehicles, nb.vehicle, nb.distance, truth.ego, truth.light_state, truth.light_dist,
+        *draws, sensors.lidar_range * w.lidar_range_factor * f,
+        sensors.camera_range * w.camera_range_factor * f, w.rel_noise, w.light_misdetect,
+        VEHICLE_NOISE_FLOOR, EGO_NOISE_FLOOR, EGO_NOISY,
+    )  # fmt: skip
+    sensed_nb = replace(nb, vehicle=vehicle, distance=dist)
+    return PerceptionFrame(sensed_nb, veh, ego, state, ldist, truth.give_way)
