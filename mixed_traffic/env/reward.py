@@ -36,7 +36,9 @@ from itertools import repeat
 
 import numpy as np
 
+from mixed_traffic import compiled
 from mixed_traffic.config import EnvConfig, RewardConfig
+from mixed_traffic.env import step_kernel
 from mixed_traffic.env.agent_table import AgentTable, Rows, StepMemory
 from mixed_traffic.env.traffic_terms import traffic_terms
 from mixed_traffic.env.truth import FrontView, speeds_of
@@ -57,6 +59,9 @@ TERM_NAMES = (
     "r7_accel",
     "r8_uniform_flow",
 )
+#: The terms of ``step_kernel.reward_terms``, in its order.
+_KERNEL_TERMS = ("r1_ttc", "r1_lane", "r1_terminal", "r2_speed", "r2_lane_change", "r3_comfort",
+                 "r4_impact", "r7_accel")  # fmt: skip
 #: Smallest bumper gap used in the lane-change ratio [m] (avoids dividing by ~0).
 MIN_GAP = 0.5
 
@@ -200,6 +205,18 @@ def reward_terms(
     ``gap_new``/``gap_old`` bumper gaps [m]; ``accel``/``prev_accel`` [m/s²]; rear vehicle C2
     speeds [m/s] and whether it is the same vehicle at t and t+1.
     """
+    if compiled.enabled():
+        *terms, ratio, hits = step_kernel.reward_terms(
+            front_distance, closing_speed, length, front_length, centre_distance, lane_width,
+            terminal, speed, speed_limit, lane_changed, gap_new, gap_old, lidar_range, accel,
+            prev_accel, rear_speed_prev, rear_speed_now, rear_same, cfg.ttc_threshold,
+            cfg.terminal_penalty, cfg.lane_change_gain, cfg.lane_change_cap, cfg.acc_threshold,
+            cfg.rear_speed_drop, dt, MIN_GAP,
+        )  # fmt: skip
+        if hits:  # numpy's log (SIMD), as r1_ttc's
+            k = np.flatnonzero(ratio >= 0)
+            terms[0][k] = np.maximum(-3.0, np.log(ratio[k]))
+        return dict(zip(_KERNEL_TERMS, terms))
     ttc = time_to_collision(front_distance, closing_speed, length, front_length)
     lane_dist = np.nan_to_num(np.asarray(centre_distance, float), nan=0.0)
     return {

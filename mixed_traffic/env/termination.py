@@ -11,6 +11,8 @@ from itertools import repeat
 
 import numpy as np
 
+from mixed_traffic import compiled
+from mixed_traffic.env import step_kernel
 from mixed_traffic.env.agent_table import AgentTable, Rows, StepMemory
 from mixed_traffic.env.control import ControlCommand
 from mixed_traffic.schema import TERMINAL_REASONS
@@ -207,13 +209,53 @@ def agent_events(
     r = now[p]
     # SUMO clamps lateral moves to the road: judge off-road by the commanded position
     lateral = table.aligned(cmd.ids, cmd.intended_lateral, prev.slots[p], snap.lateral[r])
-    reasons = terminal_events(
-        collision=np.zeros(len(r), bool),
-        off_road=off_road_mask(hd, prev.lane[p], lateral),
-        route_deviation=route_deviation_mask(hd, snap.edge[r], snap.lane[r], snap.lane_pos[r],
-                                             table.route_table[prev.slots[p]], snap.route_index[r]),
-        red_light=red_light_mask(hd, prev.lane[p], snap.lane[r], prev.next_edge[p], tls_prev),
-        speed_limit=speed_limit_mask(snap.speed[r], hd.lane_speed[snap.lane[r]], speed_tolerance),
-    )  # fmt: skip
+    reasons = event_reasons(hd, prev.lane[p], lateral, snap.edge[r], snap.lane[r], snap.lane_pos[r],
+                            table.route_table[prev.slots[p]], snap.route_index[r],
+                            prev.next_edge[p], snap.speed[r], tls_prev, speed_tolerance)  # fmt: skip
     events.update(zip(ids, reasons.tolist()))
     return events
+
+
+def event_reasons(
+    hd: HDMap, lane_prev: np.ndarray, lateral: np.ndarray, edge: np.ndarray, lane: np.ndarray,
+    lane_pos: np.ndarray, routes: np.ndarray, route_index: np.ndarray, next_edge: np.ndarray,
+    speed: np.ndarray, tls_prev: Mapping[str, str], speed_tolerance: float,
+) -> np.ndarray:  # fmt: skip
+    """(A,) object reason strings ('' = none, never 'collision') of agents still in the
+    network: ``terminal_events`` of the masks above (lane, lateral [m] and next edge at t;
+    edge, lane, lane position [m], route index and speed [m/s] now; ``routes`` (A, W))."""
+    if not compiled.enabled() or hd.edge_lanes.shape[1] >= 8:  # np.sum is pairwise from 8
+        return terminal_events(
+            collision=np.zeros(len(lane), bool),
+            off_road=off_road_mask(hd, lane_prev, lateral),
+            route_deviation=route_deviation_mask(hd, edge, lane, lane_pos, routes, route_index),
+            red_light=red_light_mask(hd, lane_prev, lane, next_edge, tls_prev),
+            speed_limit=speed_limit_mask(speed, hd.lane_speed[lane], speed_tolerance),
+        )
+    codes, crossed = step_kernel.event_codes(
+        hd.lane_width, hd.lane_edge, hd.lane_index, hd.lane_length, hd.lane_speed,
+        hd.edge_lanes, _conn_keys(hd), lane_prev, lateral, OFF_ROAD_MARGIN, edge, lane,
+        lane_pos, routes, route_index, speed_tolerance, DEAD_END_DISTANCE, speed,
+    )  # fmt: skip
+    for k in np.flatnonzero(crossed).tolist():  # rare: the string states stay Python
+        link = hd.tls_links.get((int(lane_prev[k]), int(next_edge[k])))
+        state = tls_prev.get(link[0], "") if link is not None else ""
+        red = link is not None and 0 <= link[1] < len(state) and state[link[1]] == "r"
+        if red and codes[k] in (0, step_kernel.SPEED_LIMIT):  # red light precedes speed
+            codes[k] = step_kernel.RED_LIGHT
+    return _REASONS[codes]
+
+
+_REASONS = np.array(("", *TERMINAL_REASONS), dtype=object)
+#: ``step_kernel.conn_keys`` of each map, by ``id`` (with the map, so an id is not reused).
+_CONN_KEYS: dict[int, tuple[HDMap, np.ndarray]] = {}
+
+
+def _conn_keys(hd: HDMap) -> np.ndarray:
+    """The map's sorted ``conn_to`` keys for ``step_kernel.event_codes``, built once."""
+    entry = _CONN_KEYS.get(id(hd))
+    if entry is None or entry[0] is not hd:
+        if len(_CONN_KEYS) > 16:  # maps of finished envs: let them go
+            _CONN_KEYS.clear()
+        entry = _CONN_KEYS[id(hd)] = (hd, step_kernel.conn_keys(hd.conn_to, len(hd.edge_lanes)))
+    return entry[1]

@@ -1,0 +1,147 @@
+"""The env's per-step kernels (``mixed_traffic.env.step_kernel``) against their numpy
+references on real SUMO episodes with random actions (which crash, leave the road and run
+red lights), bit for bit: each compiled stage on the inputs of every call, and whole episodes
+with ``MIXED_TRAFFIC_KERNELS=numpy`` against the kernels."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pytest
+
+from mixed_traffic import compiled
+from mixed_traffic.env import parallel_env, reward, step_kernel, termination
+from mixed_traffic.experiments.bench_env import bench_actions
+
+needs_numba = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
+
+CASES = [
+    ({"scenario": "ring", "penetration": 1 / 22}, 150),
+    ({"scenario": "straight", "penetration": 0.5, "density": 120.0}, 120),
+    ({"scenario": "merge", "penetration": 0.3}, 150),
+    ({"scenario": "urban", "penetration": 0.3}, 200),
+]
+IDS = [c[0]["scenario"] for c in CASES]
+
+
+def _same(a, b, where: str = "") -> None:
+    """``a`` and ``b`` equal in structure, types, dtypes and bits (-0.0 is not 0.0)."""
+    assert type(a) is type(b), where
+    if isinstance(a, dict):
+        assert list(a) == list(b), where
+        for k in a:
+            _same(a[k], b[k], f"{where}/{k}")
+    elif isinstance(a, list | tuple):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            _same(x, y, f"{where}[{i}]")
+    elif isinstance(a, np.ndarray):
+        assert a.dtype == b.dtype and a.shape == b.shape, where
+        if a.dtype == object:
+            assert a.tolist() == b.tolist(), where
+        else:
+            assert a.tobytes() == b.tobytes(), where
+    elif isinstance(a, float | np.floating):
+        assert np.array(a).tobytes() == np.array(b).tobytes(), where
+    else:
+        assert a == b, where
+
+
+def _episode(kw: dict, steps: int, seed: int = 3) -> list:
+    """(obs, rewards, terminations, truncations, infos) of every step of a seeded episode with
+    random actions."""
+    env = parallel_env(**kw, seed=seed, episode_length=60.0)
+    try:
+        rng = np.random.default_rng(seed)
+        obs, _ = env.reset(seed=seed)
+        out = []
+        for _ in range(steps):
+            if not env.agents:
+                break
+            step = env.step(bench_actions(env, obs, env.action_space(None), rng))
+            out.append(step)
+            obs = step[0]
+    finally:
+        env.close()
+    return out
+
+
+@needs_numba
+def test_event_reasons_kernel_equals_numpy(monkeypatch) -> None:
+    """``termination.event_reasons`` (off-road, route deviation, red light, speed limit) on
+    every call of every case, kernel against numpy; the cases judge several kinds of terminal
+    events (else the test could not fail)."""
+    stage, events = termination.event_reasons, Counter()
+
+    def both(*args):
+        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        ref = stage(*args)
+        monkeypatch.setenv(compiled.SWITCH, "numba")
+        out = stage(*args)
+        _same(out, ref)
+        events["calls"] += len(out)
+        events.update(r for r in out.tolist() if r)
+        return out
+
+    monkeypatch.setattr(termination, "event_reasons", both)
+    for kw, steps in CASES:
+        before = events["calls"]
+        _episode(kw, steps)
+        assert events["calls"] - before > steps // 2, f"the stage ran for the agents ({kw})"
+    assert {"off_road", "route_deviation"} <= set(events), events
+    assert len(set(events) - {"calls"}) >= 3, events
+
+
+@needs_numba
+def test_reward_terms_kernel_equals_numpy(monkeypatch) -> None:
+    """``reward.reward_terms`` (r1-r4, r7) on every call of every case, kernel against numpy;
+    every term is non-zero somewhere (else the test could not fail)."""
+    stage, hits = reward.reward_terms, Counter()
+
+    def both(cfg, dt, **kw):
+        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        ref = stage(cfg, dt, **kw)
+        monkeypatch.setenv(compiled.SWITCH, "numba")
+        out = stage(cfg, dt, **kw)
+        assert list(out) == list(ref)
+        _same(out, ref)
+        hits.update(k for k, v in out.items() if np.any(v != 0))
+        return out
+
+    monkeypatch.setattr(reward, "reward_terms", both)
+    for kw, steps in CASES:
+        _episode(kw, steps)
+    names = ("r1_ttc", "r1_lane", "r1_terminal", "r2_speed", "r2_lane_change", "r3_comfort",
+             "r4_impact", "r7_accel")  # fmt: skip
+    assert set(names) <= set(hits), hits
+
+
+@needs_numba
+@pytest.mark.parametrize(("kw", "steps"), CASES, ids=IDS)
+def test_episode_kernels_equal_numpy(monkeypatch, kw: dict, steps: int) -> None:
+    """The same seeded episode with the numpy stages and with the kernels: observations,
+    rewards, every named reward term, terminations, truncations and infos at every step; some
+    reward terms are not zero."""
+    monkeypatch.setenv(compiled.SWITCH, "numpy")
+    ref = _episode(kw, steps)
+    monkeypatch.setenv(compiled.SWITCH, "numba")
+    out = _episode(kw, steps)
+    assert len(out) == len(ref) > 10
+    _same(out, ref)
+    terms = [t for s in out for i in s[4].values() for t in i.get("reward_terms", {}).values()]
+    assert any(terms), "some reward terms were not zero"
+
+
+@needs_numba
+def test_warm_loads_one_signature_per_kernel() -> None:
+    """``warm`` loads the specialisation a real env step uses (dtypes, layouts, flags)."""
+    step_kernel.warm()
+    env = parallel_env(scenario="ring", penetration=1 / 22, seed=0)
+    rng = np.random.default_rng(0)
+    obs, _ = env.reset(seed=0)
+    for _ in range(40):
+        obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng, "keep"))
+    env.close()
+    for kernel in (step_kernel.event_codes, step_kernel.reward_terms):
+        assert len(kernel.signatures) == 1, kernel
