@@ -414,15 +414,13 @@ class MixedTrafficEnv(ParallelEnv):
         self._tls_prev = dict(self._tls)
 
     def _observe(self, snap, rows: Rows, sensed: PerceptionFrame) -> dict[str, dict]:
-        ids = rows.ids
-        routes = list(map(self._table.routes.__getitem__, ids))
+        ids, t = rows.ids, self._table
         if not ids:
             return {}
-        t = self._table
         extra = self._extras.keys(
             self.hdmap, snap, rows.r, rows.slots, t.route_table, t.route_len, sensed
         )
-        obs = self._builder.build(snap, ids, rows.r, sensed, routes, extra)
+        obs = self._builder.build(snap, ids, rows.r, sensed, t.route_table[rows.slots], extra)
         self._batches.add(ids, self._builder.last_batch)
         self._last_obs.update(obs)
         return obs

@@ -174,9 +174,14 @@ def next_route_edge(routes: Sequence[Sequence[int]], route_index: np.ndarray) ->
     """(A,) int64 edge row after the current one on each agent's route, -1 on the last edge.
 
     Args:
-        routes: per agent, the edge rows of its route (``HDMap.edge_row`` of each edge id).
+        routes: per agent, the edge rows of its route (``HDMap.edge_row`` of each edge id), or
+            (A, W) such rows padded with -1 (the env's route table; one gather, no loop).
         route_index: (A,) index of the current (or last normal) edge within the route.
     """
+    if isinstance(routes, np.ndarray):
+        k = np.asarray(route_index, np.int64) + 1
+        inside = (k >= 0) & (k < routes.shape[1])
+        return np.where(inside, routes[np.arange(len(k)), np.clip(k, 0, routes.shape[1] - 1)], -1)
     nxt = (
         r[k] if 0 <= k < len(r) else -1
         for r, k in zip(routes, (np.asarray(route_index) + 1).tolist())

@@ -238,7 +238,7 @@ class ObservationBuilder:
         agent_ids: Sequence[str],
         rows: np.ndarray,
         sensed: PerceptionFrame,
-        routes: Sequence[Sequence[int]],
+        routes: Sequence[Sequence[int]] | np.ndarray,
         extra: dict[str, np.ndarray] | None = None,
     ) -> dict[str, dict[str, np.ndarray]]:
         """Observations of all agents; shifts each built agent's history by one frame.
@@ -248,7 +248,7 @@ class ObservationBuilder:
             agent_ids: (A,) agent ids, aligned with ``rows`` and ``sensed``.
             rows: (A,) snapshot rows of the agents.
             sensed: the sensed ``PerceptionFrame`` for the same rows.
-            routes: per agent, the edge rows of its route.
+            routes: per agent, the edge rows of its route (or (A, W) of them padded with -1).
             extra: further keys built elsewhere, ``{key: (A, ...)}`` in the order of
                 ``agent_ids`` (the V2X ``downstream``).
         Returns:
