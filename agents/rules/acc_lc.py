@@ -64,6 +64,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from agents.rules import acc_lc_plan_kernel
 from agents.rules.acc_lc_config import FOLLOW, LEFT, RIGHT, AccLcConfig
 from agents.rules.acc_lc_config import LANE_C as _C
 from agents.rules.acc_lc_config import LANE_L as _L
@@ -80,6 +81,7 @@ from agents.rules.acc_lc_longitudinal import (
 )
 from agents.rules.obs_batch import stack_obs, to_actions
 from agents.rules.rss import RssConfig, rss_caps
+from mixed_traffic import compiled
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.api import observation_space
 
@@ -160,11 +162,8 @@ class AccLcPolicy:
         f = features(obs_batch, c)
         A = len(f["v"])
         mand = ~f["mask"][:, FOLLOW]
-        ck = _change_checks(f, c, mand)
         la = _lane_accels(f, c, mand)
-        decision = _decide(f, c, mand, ck, la)
-        go_l, go_r = _go(f, c, mand, ck)
-        accels = _executed_accels(f, c, mand, ck, go_l, go_r, la)
+        decision, go_l, go_r, *accels = _decision(f, c, mand, la)
         # keep clear laterally of vehicles alongside (simultaneous changes into one lane)
         lo, hi = lateral_bounds(f, c)
         params = _params(f, c, _targets(c, mand, go_l, go_r), accels, lo, hi)
@@ -225,6 +224,35 @@ def _lane_accels(f: Features, c: AccLcConfig, mand: np.ndarray) -> _LaneAccels:
     calls += [LaneCall(_C, True, np.where(mand, c.end_wait, c.s0))]
     calls += [LaneCall(lane, True, creep) for lane in (_L, _R, _C)]
     return _LaneAccels(*lane_accels(f, c, calls, f["d"]))
+
+
+def _decision(f: Features, c: AccLcConfig, mand: np.ndarray, la: _LaneAccels) -> tuple:
+    """(decision (A,) int64, go_l, go_r (A,) bool, accelerations (A,) [m/s²] of the follow,
+    left and right rows); compiled (:mod:`agents.rules.acc_lc_plan_kernel`) unless
+    ``compiled.enabled()`` is off."""
+    run = _decision_compiled if compiled.enabled() and len(f["v"]) else _decision_reference
+    return run(f, c, mand, la)
+
+
+def _decision_reference(f: Features, c: AccLcConfig, mand: np.ndarray, la: _LaneAccels) -> tuple:
+    """The numpy reference of :func:`_decision`."""
+    ck = _change_checks(f, c, mand)
+    go_l, go_r = _go(f, c, mand, ck)
+    return (_decide(f, c, mand, ck, la), go_l, go_r,
+            *_executed_accels(f, c, mand, ck, go_l, go_r, la))  # fmt: skip
+
+
+def _decision_compiled(f: Features, c: AccLcConfig, mand: np.ndarray, la: _LaneAccels) -> tuple:
+    """:func:`_decision_reference` in one kernel (contiguous inputs: one specialisation)."""
+    cc = np.ascontiguousarray
+    return acc_lc_plan_kernel.decision(
+        f["v"], cc(f["d"]), cc(f["len"]), cc(f["vlat_hist"]), cc(f["vdist"]), cc(f["vrel"]),
+        cc(f["vlen"]), cc(f["exists"]), cc(f["mask"]), cc(mand), *(cc(x) for x in la),
+        c.s0, c.rear_headway, 2 * c.rear_decel, 2 * c.b, c.signal_offset, c.lc_start_offset,
+        c.lc_threshold, c.keep_right_bias, c.hv_s0, c.hv_T, c.hv_a,
+        2 * np.sqrt(c.hv_a * c.hv_b), np.sqrt(1.0 + c.force_rear_decel / c.hv_a),
+        c.force_rear_decel, c.force_front_decel, c.a, c.hidden_gap, 2 * c.hidden_decel,
+    )  # fmt: skip
 
 
 def _change_checks(f: Features, c: AccLcConfig, mand: np.ndarray) -> _Checks:
