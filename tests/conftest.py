@@ -59,3 +59,22 @@ def sim(tmp_path: Path) -> Iterator[Sim]:
     s = start_sim(tmp_path)
     yield s
     s.backend.close()
+
+
+def random_episode(steps: int, seed: int = 3, **env_kw) -> None:
+    """Up to ``steps`` env steps of a real SUMO episode (``parallel_env(**env_kw)``, 60 s) with
+    random actions (``bench_actions``), the env seeded with ``seed`` and the actions with 0: the
+    episodes the kernel tests compare the compiled stages on."""
+    from mixed_traffic.env import parallel_env
+    from mixed_traffic.experiments.bench_env import bench_actions
+
+    env = parallel_env(seed=seed, episode_length=60.0, **env_kw)
+    try:
+        rng = np.random.default_rng(0)
+        obs, _ = env.reset(seed=seed)
+        for _ in range(steps):
+            if not env.agents:
+                break
+            obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng))
+    finally:
+        env.close()

@@ -14,6 +14,8 @@ from mixed_traffic.env import parallel_env, reward, traffic_terms
 from mixed_traffic.experiments.bench_env import bench_actions
 from mixed_traffic.sensing import neighbours, perception
 
+from .conftest import random_episode
+
 needs_numba = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
 
 
@@ -44,14 +46,7 @@ def test_neighbour_kernel_equals_numpy(monkeypatch, scenario: str, penetration: 
         return out
 
     monkeypatch.setattr(perception, "find_neighbours", both)
-    env = parallel_env(scenario=scenario, penetration=penetration, seed=3, episode_length=60.0)
-    rng = np.random.default_rng(0)
-    obs, _ = env.reset(seed=3)
-    for _ in range(steps):
-        if not env.agents:
-            break
-        obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng))
-    env.close()
+    random_episode(steps, scenario=scenario, penetration=penetration)
     assert sum(calls) > steps, "the search ran for the agents"
 
 
@@ -91,14 +86,7 @@ def test_traffic_terms_kernel_equals_numpy(monkeypatch, scenario: str, penetrati
         return out
 
     monkeypatch.setattr(reward, "traffic_terms", both)
-    env = parallel_env(scenario=scenario, penetration=penetration, seed=3, episode_length=60.0)
-    rng = np.random.default_rng(0)
-    obs, _ = env.reset(seed=3)
-    for _ in range(steps):
-        if not env.agents:
-            break
-        obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng))
-    env.close()
+    random_episode(steps, scenario=scenario, penetration=penetration)
     assert sum(calls) >= steps, "the terms were computed for the agents at every step"
 
 

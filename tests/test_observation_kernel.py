@@ -13,6 +13,8 @@ from mixed_traffic.experiments.bench_env import bench_actions
 from mixed_traffic.sensing import observation, observation_kernel
 from mixed_traffic.sensing.observation import ObservationBuilder
 
+from .conftest import random_episode
+
 needs_numba = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
 
 #: The frame's parts in the order ``ObservationBuilder._frame`` returns them.
@@ -63,14 +65,7 @@ def test_observation_kernel_equals_numpy(monkeypatch, scenario: str, kw: dict,
 
     monkeypatch.setenv(compiled.SWITCH, "numba")
     monkeypatch.setattr(ObservationBuilder, "_frame_compiled", both)
-    env = parallel_env(scenario=scenario, seed=3, episode_length=60.0, **kw)
-    rng = np.random.default_rng(0)
-    obs, _ = env.reset(seed=3)
-    for _ in range(steps):
-        if not env.agents:
-            break
-        obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng))
-    env.close()
+    random_episode(steps, scenario=scenario, **kw)
     assert sum(calls) > steps, "the kernel ran for the agents"
 
 

@@ -11,6 +11,8 @@ from mixed_traffic.env import parallel_env
 from mixed_traffic.experiments.bench_env import bench_actions
 from mixed_traffic.sensing import blockers, merges, neighbours
 
+from .conftest import random_episode
+
 needs_numba = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
 
 CASES = [("ring", 1 / 22, 80), ("straight", 0.5, 80), ("merge", 0.3, 100), ("urban", 0.3, 120)]
@@ -24,17 +26,6 @@ def _same_bits(out: tuple, ref: tuple) -> None:
         if x.dtype == np.float64:
             x, y = x.view(np.int64), y.view(np.int64)
         assert np.array_equal(x, y), k
-
-
-def _run(scenario: str, penetration: float, steps: int) -> None:
-    env = parallel_env(scenario=scenario, penetration=penetration, seed=3, episode_length=60.0)
-    rng = np.random.default_rng(0)
-    obs, _ = env.reset(seed=3)
-    for _ in range(steps):
-        if not env.agents:
-            break
-        obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng))
-    env.close()
 
 
 def _both(monkeypatch, fn, found: list):
@@ -73,7 +64,7 @@ def test_blockers_and_merges_kernels_equal_numpy(monkeypatch, scenario: str, pen
 
     monkeypatch.setattr(neighbours, "path_blockers", blockers_twice)
     monkeypatch.setattr(neighbours, "merge_leaders", merges_twice)
-    _run(scenario, penetration, steps)
+    random_episode(steps, scenario=scenario, penetration=penetration)
     assert len(found_b) >= 2 * steps // 2 and len(found_m) == len(found_b), "the stages ran"
     if scenario == "urban":
         assert sum(found_b) > 0, "some blocker across a junction was found"
@@ -117,7 +108,7 @@ def test_in_the_way_kernel_equals_numpy(monkeypatch, scenario: str, penetration:
         return out
 
     monkeypatch.setattr(neighbours, "_in_the_way", both)
-    _run(scenario, penetration, steps)
+    random_episode(steps, scenario=scenario, penetration=penetration)
     assert len(taken) >= steps // 2, "the stage ran"
     if scenario in ("merge", "urban"):
         assert sum(taken) > 0, "some vehicle in the way replaced a lane leader"

@@ -14,6 +14,8 @@ from mixed_traffic.sensing import camera, gnss, lidar, neighbours, noise, percep
 from mixed_traffic.sensing.camera import NO_LIGHT
 from mixed_traffic.sensing.frame import PerceptionFrame
 
+from .conftest import random_episode
+
 needs_numba = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
 
 CASES = [
@@ -41,18 +43,6 @@ def _arrays(f: PerceptionFrame) -> tuple:
     nb = f.neighbours
     return (nb.lane, nb.vehicle, nb.distance, nb.on_path, nb.path_geometry, f.vehicles, f.ego,
             f.light_state, f.light_dist, f.give_way)  # fmt: skip
-
-
-def _run(scenario: str, penetration: float, weather: str, steps: int) -> None:
-    env = parallel_env(scenario=scenario, penetration=penetration, seed=3, episode_length=60.0,
-                       weather=weather)  # fmt: skip
-    rng = np.random.default_rng(0)
-    obs, _ = env.reset(seed=3)
-    for _ in range(steps):
-        if not env.agents:
-            break
-        obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng))
-    env.close()
 
 
 def _both(monkeypatch, fn):
@@ -89,7 +79,7 @@ def test_neighbour_setup_kernel_equals_numpy(monkeypatch, scenario: str, penetra
         return out
 
     monkeypatch.setattr(neighbours, "_setup", both)
-    _run(scenario, penetration, weather, steps)
+    random_episode(steps, scenario=scenario, penetration=penetration, weather=weather)
     assert seen["calls"] >= steps // 2 and seen["missing"] > 0, "the stage ran"
     if scenario == "urban":
         assert seen["routed"] > 0, (
@@ -120,7 +110,7 @@ def test_traffic_lights_kernel_equals_numpy(monkeypatch, scenario: str, penetrat
         return out
 
     monkeypatch.setattr(perception, "traffic_lights", both)
-    _run(scenario, penetration, weather, steps)
+    random_episode(steps, scenario=scenario, penetration=penetration, weather=weather)
     assert seen["calls"] >= steps // 2, "the stage ran"
     if scenario == "urban":
         assert seen["lights"] > 0 and len(seen["states"]) >= 3, "lights in several states"
@@ -149,7 +139,7 @@ def test_features_kernels_equal_numpy(monkeypatch, scenario: str, penetration: f
 
     monkeypatch.setattr(perception, "vehicle_features", vehicle_features)
     monkeypatch.setattr(perception, "ego_features", ego_features)
-    _run(scenario, penetration, weather, steps)
+    random_episode(steps, scenario=scenario, penetration=penetration, weather=weather)
     assert seen["calls"] >= steps // 2 and seen["vehicles"] > 0, "the stages ran"
     if scenario in ("urban", "merge"):
         assert seen["on_path"] > 0, "some leader was measured in the path's frame"
@@ -187,7 +177,7 @@ def test_noise_kernels_equal_numpy(monkeypatch, scenario: str, penetration: floa
         return out
 
     monkeypatch.setattr(perception, "degrade", degrade)
-    _run(scenario, penetration, weather, steps)
+    random_episode(steps, scenario=scenario, penetration=penetration, weather=weather)
     assert seen["calls"] >= steps // 2, "the noise stage ran"
     if weather != "normal":
         assert seen["cut"] > 0, "some vehicle was beyond the sensed range"
