@@ -39,7 +39,9 @@ from typing import Any
 import numpy as np
 from gymnasium import spaces
 
+from mixed_traffic import compiled
 from mixed_traffic.config import VehicleConfig
+from mixed_traffic.env import control_kernel
 
 LEFT, FOLLOW, RIGHT = 0, 1, 2
 DECISIONS = ("left_change", "follow", "right_change")
@@ -188,6 +190,11 @@ def allowed_decisions(decision: np.ndarray, mask: np.ndarray) -> tuple[np.ndarra
     """The executed decisions (A,) under the action masks (A, 3): a forbidden decision is
     replaced by follow if that is allowed, else by the first allowed one; and which (A,) bool
     were replaced."""
+    if compiled.enabled():
+        m = mask if isinstance(mask, np.ndarray) and mask.dtype == np.int8 else None
+        m = np.asarray(mask, bool).view(np.int8) if m is None else m
+        dec = np.ascontiguousarray(decision, np.int64)
+        return control_kernel.allowed(dec, np.ascontiguousarray(m))
     mask = np.asarray(mask, bool)
     forbidden = ~mask[np.arange(len(decision)), decision]
     fallback = np.where(mask[:, 1], 1, np.argmax(mask, axis=1))
@@ -242,6 +249,12 @@ def to_physical(
         ``steer`` (A,) front-wheel angle [rad], positive = left, ``±1 -> ±max_steer_deg``;
         ``accel`` (A,) [m/s²], ``accel_brake·max_accel`` if > 0 else ``accel_brake·max_decel``.
     """
+    if compiled.enabled():
+        return control_kernel.physical(
+            np.ascontiguousarray(decision, np.int64), np.ascontiguousarray(params, np.float64),
+            float(np.deg2rad(vehicle.max_steer_deg)), float(vehicle.max_accel),
+            float(vehicle.max_decel),
+        )  # fmt: skip
     row = chosen_params(np.asarray(decision, dtype=np.int64), np.asarray(params, np.float64))
     steer = row[:, 0] * np.deg2rad(vehicle.max_steer_deg)
     ab = row[:, 1]

@@ -43,7 +43,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from mixed_traffic import compiled
 from mixed_traffic.config import VehicleConfig
+from mixed_traffic.env import control_kernel
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.hdmap import SPACING, HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
@@ -239,6 +241,8 @@ class BicycleController:
         """
         r = self.rows(ids)
         kappa = self.curvature(lane, lane_pos)
+        if compiled.enabled():
+            return self._compute_kernel(ids, r, steer, accel, kappa, lateral)
         v_new, ds, dd, psi_new, course = bicycle_frenet_step(
             self.v[r], self.psi[r], lateral, steer, accel, kappa, self.vehicle.wheelbase, self.dt
         )
@@ -252,6 +256,31 @@ class BicycleController:
             course=course,
             predicted_sumo_heading=np.arctan2(body, self.length[r]),
         )
+
+    def _compute_kernel(
+        self,
+        ids: Sequence[str],
+        r: np.ndarray,
+        steer: np.ndarray,
+        accel: np.ndarray,
+        kappa: np.ndarray,
+        lateral: np.ndarray,
+    ) -> ControlCommand:
+        """``compute``'s arithmetic in ``control_kernel.frenet_compute``; β and the heading's
+        arctan2 stay numpy's (its SIMD tan/arctan/arctan2 differ from libm's in the last bit)."""
+        wheelbase = self.vehicle.wheelbase
+        lr = 0.5 * wheelbase
+        beta = np.arctan(lr / wheelbase * np.tan(steer))  # as in bicycle_frenet_step
+        f64 = np.float64
+        speed, move, intended, course, body = control_kernel.frenet_compute(
+            self.v, self.psi, self.body_offset, self.length, r, np.ascontiguousarray(lateral, f64),
+            np.ascontiguousarray(accel, f64), np.ascontiguousarray(kappa, f64),
+            np.ascontiguousarray(beta, f64), float(lr), self.dt, float(MAX_COURSE),
+        )  # fmt: skip
+        return ControlCommand(
+            ids=list(ids), speed=speed, lateral_move=move, intended_lateral=intended,
+            course=course, predicted_sumo_heading=np.arctan2(body, self.length[r]),
+        )  # fmt: skip
 
     def step(
         self,

@@ -17,6 +17,9 @@ import math
 
 import numpy as np
 
+from mixed_traffic import compiled
+from mixed_traffic.env import control_kernel
+
 DX = 10.0
 """Grid cell length along the segment [m]."""
 BIN_S = 1.0
@@ -66,13 +69,18 @@ class SpaceTimeField:
         if self._t0 is None:
             self._t0 = t - self.dt
         self._steps += 1
-        inside = ~np.isnan(s)
-        s, v = s[inside], v[inside]
         row = int((t - self._t0 - 1e-9) // BIN_S)
         self._grow(row + 1)
-        col = np.clip((s // DX).astype(np.int64), 0, self.n_x - 1)
-        np.add.at(self._dist[row], col, v * self.dt)
-        np.add.at(self._time[row], col, self.dt)
+        if compiled.enabled() and _kernel_layout(s, v):
+            control_kernel.edie_add(self._dist, self._time, row, s, v, float(self.dt), DX)
+            inside = ~np.isnan(s)
+            s, v = s[inside], v[inside]
+        else:
+            inside = ~np.isnan(s)
+            s, v = s[inside], v[inside]
+            col = np.clip((s // DX).astype(np.int64), 0, self.n_x - 1)
+            np.add.at(self._dist[row], col, v * self.dt)
+            np.add.at(self._time[row], col, self.dt)
         self._moments += (len(v), v.sum(), (v * v).sum())
         if self.trace_every and self._steps % self.trace_every == 1 % self.trace_every:
             self._traces.append(np.stack([np.full(len(s), t), s, v], axis=1).astype(np.float32))
@@ -112,6 +120,13 @@ class SpaceTimeField:
     def wave_speed(self) -> float:
         """Speed of the speed disturbances along the segment [km/h]; NaN without waves."""
         return wave_speed(self.distance, self.time, DX, BIN_S)
+
+
+def _kernel_layout(s: np.ndarray, v: np.ndarray) -> bool:
+    """``s`` and ``v`` are C-contiguous float64 arrays, the one specialisation of
+    ``control_kernel.edie_add`` (the env's)."""
+    f = np.float64
+    return all(isinstance(x, np.ndarray) and x.dtype == f and x.flags.c_contiguous for x in (s, v))
 
 
 def smoothed_speed(dist: np.ndarray, time: np.ndarray, window: tuple[int, int]) -> np.ndarray:

@@ -9,6 +9,8 @@ from itertools import repeat
 
 import numpy as np
 
+from mixed_traffic import compiled
+from mixed_traffic.env import control_kernel
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import bumper_gap
 from mixed_traffic.sensing.lane_graph import CURRENT
@@ -23,6 +25,12 @@ class FrontView:
         self, snap: TrafficSnapshot, truth: PerceptionFrame, k: np.ndarray, r: np.ndarray
     ) -> None:
         nb = truth.neighbours
+        if compiled.enabled() and _kernel_dtypes(snap, truth, k, r):
+            self.exists, self.distance, self.length, self.closing, self.gap = (
+                control_kernel.front_view(nb.vehicle, nb.distance, truth.vehicles, snap.speed,
+                                          snap.length, k, r, CURRENT)
+            )  # fmt: skip
+            return
         row = nb.front[k, CURRENT]
         self.exists = row >= 0
         self.distance = nb.front_dist[k, CURRENT]
@@ -31,6 +39,16 @@ class FrontView:
         self.length = np.where(self.exists, feats[:, 3], 0.0)
         self.closing = np.where(self.exists, -feats[:, 1], snap.speed[r])
         self.gap = bumper_gap(self.distance, snap.length[r], self.length)
+
+
+def _kernel_dtypes(snap: TrafficSnapshot, truth: PerceptionFrame, k: np.ndarray,
+                   r: np.ndarray) -> bool:  # fmt: skip
+    """The arrays have the dtypes and layouts ``control_kernel.front_view`` is warmed for
+    (the env's: C-contiguous int64 rows and float64 values), so it keeps one specialisation."""
+    f, i, nb = np.float64, np.int64, truth.neighbours
+    pairs = ((nb.vehicle, i), (nb.distance, f), (truth.vehicles, f), (snap.speed, f),
+             (snap.length, f), (k, i), (r, i))  # fmt: skip
+    return all(x.dtype == t and x.flags.c_contiguous for x, t in pairs)
 
 
 def gather(a: PerceptionFrame, b: PerceptionFrame, idx: np.ndarray) -> PerceptionFrame:

@@ -3,7 +3,7 @@ kernels loaded once (``mixed_traffic.compiled``), so that no cell pays their fir
 
 from agents.rules import acc_lc
 from mixed_traffic import compiled
-from mixed_traffic.env import metrics_kernel, step_kernel, traffic_terms_kernel
+from mixed_traffic.env import control_kernel, metrics_kernel, step_kernel, traffic_terms_kernel
 from mixed_traffic.experiments import runner  # noqa: F401  (the import is the preload)
 from mixed_traffic.sensing import (
     blockers_kernel,
@@ -18,6 +18,7 @@ if compiled.enabled():
     traffic_terms_kernel.warm()
     metrics_kernel.warm()
     step_kernel.warm()
+    control_kernel.warm()
     acc_lc.warm()
     observation_kernel.warm()
     sensing_kernel.warm()
