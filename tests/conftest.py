@@ -61,20 +61,52 @@ def sim(tmp_path: Path) -> Iterator[Sim]:
     s.backend.close()
 
 
-def random_episode(steps: int, seed: int = 3, **env_kw) -> None:
+def random_episode(
+    steps: int, seed: int = 3, action_seed: int = 0, end_metrics: bool = False, **env_kw
+) -> list:
     """Up to ``steps`` env steps of a real SUMO episode (``parallel_env(**env_kw)``, 60 s) with
-    random actions (``bench_actions``), the env seeded with ``seed`` and the actions with 0: the
-    episodes the kernel tests compare the compiled stages on."""
+    random actions (``bench_actions`` seeded with ``action_seed``), the env seeded with
+    ``seed``: the episodes the kernel tests compare the compiled stages on. Returns every
+    step's (obs, rewards, terminations, truncations, infos), then ``episode_metrics()`` with
+    ``end_metrics``."""
     from mixed_traffic.env import parallel_env
     from mixed_traffic.experiments.bench_env import bench_actions
 
     env = parallel_env(seed=seed, episode_length=60.0, **env_kw)
     try:
-        rng = np.random.default_rng(0)
+        rng = np.random.default_rng(action_seed)
         obs, _ = env.reset(seed=seed)
+        out = []
         for _ in range(steps):
             if not env.agents:
                 break
-            obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng))
+            out.append(env.step(bench_actions(env, obs, env.action_space(None), rng)))
+            obs = out[-1][0]
+        if end_metrics:
+            out.append(env.episode_metrics())
     finally:
         env.close()
+    return out
+
+
+def same_bits(a, b, where: str = "") -> None:
+    """``a`` and ``b`` equal in structure, types, dtypes and bits (-0.0 is not 0.0)."""
+    assert type(a) is type(b), where
+    if isinstance(a, dict):
+        assert list(a) == list(b), where
+        for k in a:
+            same_bits(a[k], b[k], f"{where}/{k}")
+    elif isinstance(a, list | tuple):
+        assert len(a) == len(b), where
+        for i, (x, y) in enumerate(zip(a, b)):
+            same_bits(x, y, f"{where}[{i}]")
+    elif isinstance(a, np.ndarray):
+        assert a.dtype == b.dtype and a.shape == b.shape, where
+        if a.dtype == object:
+            assert a.tolist() == b.tolist(), where
+        else:
+            assert a.tobytes() == b.tobytes(), where
+    elif isinstance(a, float | np.floating):
+        assert np.array(a).tobytes() == np.array(b).tobytes(), where
+    else:
+        assert a == b, where

@@ -14,6 +14,8 @@ from mixed_traffic import compiled
 from mixed_traffic.env import parallel_env, reward, step_kernel, termination
 from mixed_traffic.experiments.bench_env import bench_actions
 
+from .conftest import random_episode, same_bits
+
 needs_numba = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
 
 CASES = [
@@ -23,48 +25,6 @@ CASES = [
     ({"scenario": "urban", "penetration": 0.3}, 200),
 ]
 IDS = [c[0]["scenario"] for c in CASES]
-
-
-def _same(a, b, where: str = "") -> None:
-    """``a`` and ``b`` equal in structure, types, dtypes and bits (-0.0 is not 0.0)."""
-    assert type(a) is type(b), where
-    if isinstance(a, dict):
-        assert list(a) == list(b), where
-        for k in a:
-            _same(a[k], b[k], f"{where}/{k}")
-    elif isinstance(a, list | tuple):
-        assert len(a) == len(b), where
-        for i, (x, y) in enumerate(zip(a, b)):
-            _same(x, y, f"{where}[{i}]")
-    elif isinstance(a, np.ndarray):
-        assert a.dtype == b.dtype and a.shape == b.shape, where
-        if a.dtype == object:
-            assert a.tolist() == b.tolist(), where
-        else:
-            assert a.tobytes() == b.tobytes(), where
-    elif isinstance(a, float | np.floating):
-        assert np.array(a).tobytes() == np.array(b).tobytes(), where
-    else:
-        assert a == b, where
-
-
-def _episode(kw: dict, steps: int, seed: int = 3) -> list:
-    """(obs, rewards, terminations, truncations, infos) of every step of a seeded episode with
-    random actions."""
-    env = parallel_env(**kw, seed=seed, episode_length=60.0)
-    try:
-        rng = np.random.default_rng(seed)
-        obs, _ = env.reset(seed=seed)
-        out = []
-        for _ in range(steps):
-            if not env.agents:
-                break
-            step = env.step(bench_actions(env, obs, env.action_space(None), rng))
-            out.append(step)
-            obs = step[0]
-    finally:
-        env.close()
-    return out
 
 
 @needs_numba
@@ -79,7 +39,7 @@ def test_event_reasons_kernel_equals_numpy(monkeypatch) -> None:
         ref = stage(*args)
         monkeypatch.setenv(compiled.SWITCH, "numba")
         out = stage(*args)
-        _same(out, ref)
+        same_bits(out, ref)
         events["calls"] += len(out)
         events.update(r for r in out.tolist() if r)
         return out
@@ -87,7 +47,7 @@ def test_event_reasons_kernel_equals_numpy(monkeypatch) -> None:
     monkeypatch.setattr(termination, "event_reasons", both)
     for kw, steps in CASES:
         before = events["calls"]
-        _episode(kw, steps)
+        random_episode(steps, action_seed=3, **kw)
         assert events["calls"] - before > steps // 2, f"the stage ran for the agents ({kw})"
     assert {"off_road", "route_deviation"} <= set(events), events
     assert len(set(events) - {"calls"}) >= 3, events
@@ -105,13 +65,13 @@ def test_reward_terms_kernel_equals_numpy(monkeypatch) -> None:
         monkeypatch.setenv(compiled.SWITCH, "numba")
         out = stage(cfg, dt, **kw)
         assert list(out) == list(ref)
-        _same(out, ref)
+        same_bits(out, ref)
         hits.update(k for k, v in out.items() if np.any(v != 0))
         return out
 
     monkeypatch.setattr(reward, "reward_terms", both)
     for kw, steps in CASES:
-        _episode(kw, steps)
+        random_episode(steps, action_seed=3, **kw)
     names = ("r1_ttc", "r1_lane", "r1_terminal", "r2_speed", "r2_lane_change", "r3_comfort",
              "r4_impact", "r7_accel")  # fmt: skip
     assert set(names) <= set(hits), hits
@@ -120,16 +80,16 @@ def test_reward_terms_kernel_equals_numpy(monkeypatch) -> None:
 @needs_numba
 @pytest.mark.parametrize(("kw", "steps"), CASES, ids=IDS)
 def test_episode_kernels_equal_numpy(monkeypatch, kw: dict, steps: int) -> None:
-    """The same seeded episode with the numpy stages and with the kernels: observations,
-    rewards, every named reward term, terminations, truncations and infos at every step; some
-    reward terms are not zero."""
+    """The same seeded episode with every numpy stage and with every kernel: observations,
+    rewards, every named reward term, terminations, truncations and infos at every step, and
+    the episode metrics at the end; some reward terms are not zero."""
     monkeypatch.setenv(compiled.SWITCH, "numpy")
-    ref = _episode(kw, steps)
+    ref = random_episode(steps, action_seed=3, end_metrics=True, **kw)
     monkeypatch.setenv(compiled.SWITCH, "numba")
-    out = _episode(kw, steps)
+    out = random_episode(steps, action_seed=3, end_metrics=True, **kw)
     assert len(out) == len(ref) > 10
-    _same(out, ref)
-    terms = [t for s in out for i in s[4].values() for t in i.get("reward_terms", {}).values()]
+    same_bits(out, ref)
+    terms = [t for s in out[:-1] for i in s[4].values() for t in i.get("reward_terms", {}).values()]
     assert any(terms), "some reward terms were not zero"
 
 
