@@ -62,13 +62,14 @@ def sim(tmp_path: Path) -> Iterator[Sim]:
 
 
 def random_episode(
-    steps: int, seed: int = 3, action_seed: int = 0, end_metrics: bool = False, **env_kw
-) -> list:
+    steps: int, seed: int = 3, action_seed: int = 0, end_metrics: bool = False,
+    policy: str = "random", **env_kw,
+) -> list:  # fmt: skip
     """Up to ``steps`` env steps of a real SUMO episode (``parallel_env(**env_kw)``, 60 s) with
-    random actions (``bench_actions`` seeded with ``action_seed``), the env seeded with
-    ``seed``: the episodes the kernel tests compare the compiled stages on. Returns every
-    step's (obs, rewards, terminations, truncations, infos), then ``episode_metrics()`` with
-    ``end_metrics``."""
+    ``bench_actions``' ``policy`` (random actions seeded with ``action_seed``, or ``keep``),
+    the env seeded with ``seed``: the episodes the kernel tests compare the compiled stages on.
+    Returns every step's (obs, rewards, terminations, truncations, infos), then
+    ``episode_metrics()`` with ``end_metrics``."""
     from mixed_traffic.env import parallel_env
     from mixed_traffic.experiments.bench_env import bench_actions
 
@@ -80,7 +81,7 @@ def random_episode(
         for _ in range(steps):
             if not env.agents:
                 break
-            out.append(env.step(bench_actions(env, obs, env.action_space(None), rng)))
+            out.append(env.step(bench_actions(env, obs, env.action_space(None), rng, policy)))
             obs = out[-1][0]
         if end_metrics:
             out.append(env.episode_metrics())

@@ -12,9 +12,8 @@ import numpy as np
 import pytest
 
 from mixed_traffic import compiled
-from mixed_traffic.env import action, control, control_kernel, parallel_env, space_time, truth
+from mixed_traffic.env import action, control, control_kernel, space_time, truth
 from mixed_traffic.env import parallel as env_parallel
-from mixed_traffic.experiments.bench_env import bench_actions
 
 from .conftest import random_episode, same_bits
 
@@ -179,12 +178,7 @@ def test_edie_add_kernel_equals_numpy(monkeypatch) -> None:
 def test_warm_loads_one_signature_per_kernel() -> None:
     """``warm`` loads the specialisation a real env step uses (dtypes, layouts, flags)."""
     control_kernel.warm()
-    env = parallel_env(scenario="ring", penetration=1 / 22, seed=0)
-    rng = np.random.default_rng(0)
-    obs, _ = env.reset(seed=0)
-    for _ in range(40):
-        obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng, "keep"))
-    env.close()
+    random_episode(40, seed=0, policy="keep", scenario="ring", penetration=1 / 22)
     kernels = (control_kernel.frenet_compute, control_kernel.allowed, control_kernel.physical,
                control_kernel.front_view, control_kernel.edie_add)  # fmt: skip
     for kernel in kernels:

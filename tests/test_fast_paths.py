@@ -99,10 +99,7 @@ def test_warm_loads_the_kernel_the_env_calls() -> None:
 
     neighbours_kernel.warm()
     traffic_terms_kernel.warm()
-    env = parallel_env(scenario="ring", penetration=1 / 22, seed=0, episode_length=2.0)
-    obs, _ = env.reset(seed=0)
-    env.step(bench_actions(env, obs, env.action_space(None), np.random.default_rng(0), "keep"))
-    env.close()
+    random_episode(1, seed=0, policy="keep", scenario="ring", penetration=1 / 22)
     assert len(neighbours_kernel.search.signatures) == 1
     assert len(traffic_terms_kernel.terms.signatures) == 1
 

@@ -8,8 +8,6 @@ import pytest
 
 from mixed_traffic import compiled
 from mixed_traffic.config import SensorConfig
-from mixed_traffic.env import parallel_env
-from mixed_traffic.experiments.bench_env import bench_actions
 from mixed_traffic.sensing import observation, observation_kernel
 from mixed_traffic.sensing.observation import ObservationBuilder
 
@@ -78,10 +76,7 @@ def test_observation_kernel_switch_off(monkeypatch) -> None:
         raise AssertionError("the kernel ran")
 
     monkeypatch.setattr(ObservationBuilder, "_frame_compiled", fail)
-    env = parallel_env(scenario="ring", penetration=1 / 22, seed=0, episode_length=2.0)
-    obs, _ = env.reset(seed=0)
-    env.step(bench_actions(env, obs, env.action_space(None), np.random.default_rng(0), "keep"))
-    env.close()
+    random_episode(1, seed=0, policy="keep", scenario="ring", penetration=1 / 22)
 
 
 @needs_numba
@@ -90,8 +85,5 @@ def test_observation_warm_loads_the_kernel_the_env_calls(monkeypatch) -> None:
     so forked cells add none."""
     monkeypatch.setenv(compiled.SWITCH, "numba")
     observation_kernel.warm()
-    env = parallel_env(scenario="ring", penetration=1 / 22, seed=0, episode_length=2.0)
-    obs, _ = env.reset(seed=0)
-    env.step(bench_actions(env, obs, env.action_space(None), np.random.default_rng(0), "keep"))
-    env.close()
+    random_episode(1, seed=0, policy="keep", scenario="ring", penetration=1 / 22)
     assert len(observation_kernel.features.signatures) == 1

@@ -7,8 +7,6 @@ import numpy as np
 import pytest
 
 from mixed_traffic import compiled
-from mixed_traffic.env import parallel_env
-from mixed_traffic.experiments.bench_env import bench_actions
 from mixed_traffic.sensing import blockers, merges, neighbours
 
 from .conftest import random_episode
@@ -79,10 +77,7 @@ def test_blockers_kernel_warm_loads_the_specialisation_the_env_calls() -> None:
     from mixed_traffic.sensing import blockers_kernel
 
     blockers_kernel.warm()
-    env = parallel_env(scenario="urban", penetration=0.3, seed=0, episode_length=2.0)
-    obs, _ = env.reset(seed=0)
-    env.step(bench_actions(env, obs, env.action_space(None), np.random.default_rng(0), "keep"))
-    env.close()
+    random_episode(1, seed=0, policy="keep", scenario="urban", penetration=0.3)
     assert len(blockers_kernel.blockers.signatures) == 1
     assert len(blockers_kernel.merges.signatures) == 1
     assert len(blockers_kernel.take_nearer.signatures) == 1

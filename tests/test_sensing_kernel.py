@@ -8,8 +8,6 @@ import numpy as np
 import pytest
 
 from mixed_traffic import compiled
-from mixed_traffic.env import parallel_env
-from mixed_traffic.experiments.bench_env import bench_actions
 from mixed_traffic.sensing import camera, gnss, lidar, neighbours, noise, perception
 from mixed_traffic.sensing.camera import NO_LIGHT
 from mixed_traffic.sensing.frame import PerceptionFrame
@@ -191,10 +189,7 @@ def test_sensing_kernel_warm_loads_the_specialisation_the_env_calls() -> None:
     from mixed_traffic.sensing import sensing_kernel
 
     sensing_kernel.warm()
-    env = parallel_env(scenario="urban", penetration=0.3, seed=0, episode_length=2.0)
-    obs, _ = env.reset(seed=0)
-    env.step(bench_actions(env, obs, env.action_space(None), np.random.default_rng(0), "keep"))
-    env.close()
+    random_episode(1, seed=0, policy="keep", scenario="urban", penetration=0.3)
     kernels = (sensing_kernel.degrade, sensing_kernel.vehicle_features,
                sensing_kernel.ego_features, sensing_kernel.lane_sort,
                sensing_kernel.query_lanes, sensing_kernel.traffic_lights)  # fmt: skip

@@ -11,8 +11,7 @@ import numpy as np
 import pytest
 
 from mixed_traffic import compiled
-from mixed_traffic.env import parallel_env, reward, step_kernel, termination
-from mixed_traffic.experiments.bench_env import bench_actions
+from mixed_traffic.env import reward, step_kernel, termination
 
 from .conftest import random_episode, same_bits
 
@@ -97,11 +96,6 @@ def test_episode_kernels_equal_numpy(monkeypatch, kw: dict, steps: int) -> None:
 def test_warm_loads_one_signature_per_kernel() -> None:
     """``warm`` loads the specialisation a real env step uses (dtypes, layouts, flags)."""
     step_kernel.warm()
-    env = parallel_env(scenario="ring", penetration=1 / 22, seed=0)
-    rng = np.random.default_rng(0)
-    obs, _ = env.reset(seed=0)
-    for _ in range(40):
-        obs, *_ = env.step(bench_actions(env, obs, env.action_space(None), rng, "keep"))
-    env.close()
+    random_episode(40, seed=0, policy="keep", scenario="ring", penetration=1 / 22)
     for kernel in (step_kernel.event_codes, step_kernel.reward_terms):
         assert len(kernel.signatures) == 1, kernel
