@@ -40,3 +40,17 @@ def inline(fn: Callable[..., Any]) -> Callable[..., Any]:
     if numba is None:
         return fn
     return numba.njit(inline="always")(fn)
+
+
+@inline
+def minimum(a: float, b: float) -> float:
+    """``np.minimum`` of two floats in a kernel: the NaN where either is NaN (Python's ``min``
+    drops it), ``a`` on a tie. (numba caches a kernel by its own file: edit this and clear the
+    cache, ``__pycache__`` or ``NUMBA_CACHE_DIR``.)"""
+    return a if (a <= b or a != a) else b
+
+
+@inline
+def maximum(a: float, b: float) -> float:
+    """``np.maximum`` of two floats in a kernel: the NaN where either is NaN, ``a`` on a tie."""
+    return a if (a >= b or a != a) else b

@@ -15,26 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from mixed_traffic.compiled import inline, njit
+from mixed_traffic.compiled import inline, maximum, minimum, njit
 
 _L, _C, _R = 0, 1, 2
 _TWO_PI = 2 * np.pi
-
-
-@inline
-def _mn(a: float, b: float) -> float:
-    """``np.minimum`` of two floats (NaN wins)."""
-    if a != a or b != b:
-        return a + b
-    return a if a <= b else b
-
-
-@inline
-def _mx(a: float, b: float) -> float:
-    """``np.maximum`` of two floats (NaN wins)."""
-    if a != a or b != b:
-        return a + b
-    return a if a >= b else b
 
 
 @inline
@@ -47,7 +31,7 @@ def _limits(a, ln, v, offset, wp_speed, wp_orient, pv_speed, pv_dist, sf, deadba
     for j in range(m):
         s = wp_speed[a, ln, j]
         spd[j] = s if s > 0.5 else np.inf
-        lowest = _mn(lowest, spd[j])
+        lowest = minimum(lowest, spd[j])
     lim = spd[0] if np.isfinite(spd[0]) else lowest
     lim = lim if np.isfinite(lim) else 13.9
     w = min(5, m - 1) if m > 1 else 1
@@ -58,21 +42,21 @@ def _limits(a, ln, v, offset, wp_speed, wp_orient, pv_speed, pv_dist, sf, deadba
         j1 = min(j0 + w, m - 1)
         o = wp_orient[a, ln, j1] - wp_orient[a, ln, j0] + np.pi
         kap = abs(o % _TWO_PI - np.pi) / w
-        v_curve = np.sqrt(curve_accel / _mx(kap, 1e-4))
-        inside = _mx(1.0 - kap * ins, 0.3)
-        target[j] = _mn(sf * spd[j], v_curve) * inside
-    v0 = _mn(sf * lim, target[0])
+        v_curve = np.sqrt(curve_accel / maximum(kap, 1e-4))
+        inside = maximum(1.0 - kap * ins, 0.3)
+        target[j] = minimum(sf * spd[j], v_curve) * inside
+    v0 = minimum(sf * lim, target[0])
     va = v[a]
     a_lim = np.inf
     for j in range(m):
         lower = (target[j] < target[0] - deadband) and (target[j] < va)
         need = (target[j] * target[j] - va * va) / (2 * (j + 1.0)) if lower else np.inf
-        a_lim = _mn(a_lim, need)
+        a_lim = minimum(a_lim, need)
     for j in range(k):
         pv_t, pv_d = sf * pv_speed[a, ln, j], pv_dist[a, ln, j]
         far = (pv_t < va) and (pv_d > float(m))
         need = (pv_t * pv_t - va * va) / (2 * pv_d) if far else np.inf
-        a_lim = _mn(a_lim, need)
+        a_lim = minimum(a_lim, need)
     return lim, v0, 1.3 * a_lim if a_lim < 0 else np.inf
 
 
@@ -102,7 +86,7 @@ def idm_inputs(
     stop_room = np.empty(A)
     spd, target = np.empty(wp_speed.shape[2]), np.empty(wp_speed.shape[2])
     for a in range(A):
-        stop_room[a] = _mx(light_dist[a, _C] - stop_margin, 0.05)
+        stop_room[a] = maximum(light_dist[a, _C] - stop_margin, 0.05)
         for i in range(L):
             ln = lanes[i] if exists[a, lanes[i]] else _C
             lim_now[i, a], v0[i, a], a_lim[i, a] = _limits(
@@ -145,8 +129,8 @@ def idm_inputs(
 def _yields(dist, gap, lat, rel, j, signal_min, yield_decel, hv_s0):  # fmt: skip
     """``_yield_to`` of one neighbour in side column ``j``."""
     towards = lat * float(j - _C) > signal_min
-    close = _mx(-rel, 0.0)
-    can = close * close / (2 * _mx(gap - 1.0, 0.1)) <= yield_decel
+    close = maximum(-rel, 0.0)
+    can = close * close / (2 * maximum(gap - 1.0, 0.1)) <= yield_decel
     return np.isfinite(dist) and towards and (gap > hv_s0) and can
 
 
@@ -167,14 +151,14 @@ def combine(
         for i in range(L):
             bound = _light(a, lim_now[i, a], acc[a, 2 * i + 1], stop_room[a], v, light,
                            light_dist, give_way, max_decel_stop, yellow_stop_decel, vj, vj2)  # fmt: skip
-            base[i] = _mn(_mn(acc[a, 2 * i], a_lim[i, a]), _mn(bound, unseen))
+            base[i] = minimum(minimum(acc[a, 2 * i], a_lim[i, a]), minimum(bound, unseen))
         col = 2 * L
         for q in range(Q):
             lead = np.inf
             for _ in range(3 * call_frames[q]):
-                lead = _mn(lead, acc[a, col] if relevant[a, col] else np.inf)
+                lead = minimum(lead, acc[a, col] if relevant[a, col] else np.inf)
                 col += 1
-            out[q, a] = _mn(base[np.searchsorted(lanes, call_lane[q])], lead)
+            out[q, a] = minimum(base[np.searchsorted(lanes, call_lane[q])], lead)
     return out
 
 
@@ -185,11 +169,11 @@ def _light(a, lim_now, a_stop, room, v, light, light_dist, give_way, max_decel_s
     va, st, ld = v[a], light[a, _C], light_dist[a, _C]
     need_stop = va * va / (2 * room)
     stop = (st == 0 and need_stop < max_decel_stop) or (st == 1 and need_stop < yellow_stop_decel)
-    a_stop = _mn(a_stop, -need_stop * 1.1 if need_stop > 1.0 else a_stop)
+    a_stop = minimum(a_stop, -need_stop * 1.1 if need_stop > 1.0 else a_stop)
     bound = a_stop if stop else np.inf
-    a_j = (vj2 - va * va) / (2 * _mx(ld - 1.0, 0.5)) if va > vj else np.inf
+    a_j = (vj2 - va * va) / (2 * maximum(ld - 1.0, 0.5)) if va > vj else np.inf
     if st >= 0 and np.isfinite(ld) and give_way[a] and lim_now < 20.0:
-        bound = _mn(bound, a_j)
+        bound = minimum(bound, a_j)
     return bound
 
 
@@ -197,7 +181,7 @@ def _light(a, lim_now, a_stop, room, v, light, light_dist, give_way, max_decel_s
 def _unseen(a, v_mean, light, signal_dist, stop_margin, signal_sight_decel):  # fmt: skip
     """``_unseen_signal_bound`` of agent ``a``."""
     sig = signal_dist[a]
-    need = v_mean[a] * v_mean[a] / (2 * _mx(sig - stop_margin, 0.05))
+    need = v_mean[a] * v_mean[a] / (2 * maximum(sig - stop_margin, 0.05))
     if light[a, _C] < 0 and np.isfinite(sig) and need >= signal_sight_decel:
         return -need
     return np.inf

@@ -14,26 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from mixed_traffic.compiled import inline, njit
+from mixed_traffic.compiled import inline, maximum, minimum, njit
 
 _L, _C, _R = 0, 1, 2
 LEFT, FOLLOW, RIGHT = 0, 1, 2
-
-
-@inline
-def _mn(a: float, b: float) -> float:
-    """``np.minimum`` of two floats (NaN wins)."""
-    if a != a or b != b:
-        return a + b
-    return a if a <= b else b
-
-
-@inline
-def _mx(a: float, b: float) -> float:
-    """``np.maximum`` of two floats (NaN wins)."""
-    if a != a or b != b:
-        return a + b
-    return a if a >= b else b
 
 
 @inline
@@ -43,15 +27,15 @@ def _safe(a, j, v, ln, vdist, vrel, vlen, exists, s0, rear_headway, rear_2dec, b
     va = v[a]
     rd = -vdist[a, j, 1]
     rgap = rd - ln[a]
-    v_rear = _mx(va + vrel[a, j, 1], 0.0)
-    closing = _mx(vrel[a, j, 1], 0.0)
+    v_rear = maximum(va + vrel[a, j, 1], 0.0)
+    closing = maximum(vrel[a, j, 1], 0.0)
     req_r = s0 + rear_headway * v_rear + closing * closing / rear_2dec
     if relaxed:
         req_r = 0.5 * req_r
     rear_ok = (not np.isfinite(rd)) or (rgap > req_r)
     fd = vdist[a, j, 0]
     fgap = fd - vlen[a, j, 0]
-    fclose = _mx(-vrel[a, j, 0], 0.0)
+    fclose = maximum(-vrel[a, j, 0], 0.0)
     req_f = s0 + 0.5 * va + fclose * fclose / b_2
     if relaxed:
         req_f = 0.5 * req_f
@@ -65,19 +49,19 @@ def _forced(a, j, v, ln, vdist, vrel, vlen, exists, hv_s0, hv_T, hv_a, hv_den, f
     va = v[a]
     rd = -vdist[a, j, 1]
     rgap = rd - ln[a]
-    v_r = _mx(va + vrel[a, j, 1], 0.0)
+    v_r = maximum(va + vrel[a, j, 1], 0.0)
     s_star = hv_s0 + v_r * hv_T + v_r * (v_r - va) / hv_den
-    s_star = _mx(s_star, hv_s0)
-    z = s_star / _mx(rgap, 0.1)
+    s_star = maximum(s_star, hv_s0)
+    z = s_star / maximum(rgap, 0.1)
     acc_r = hv_a * (1.0 - z * z)
     dv = v_r - va
-    kin = dv * dv / (2 * _mx(rgap - hv_s0, 0.1)) <= frd
+    kin = dv * dv / (2 * maximum(rgap - hv_s0, 0.1)) <= frd
     rear_ok = (not np.isfinite(rd)) or (((acc_r >= -frd) or kin) and (rgap > hv_s0 + 0.3 * v_r))
     fd = vdist[a, j, 0]
     fgap = fd - vlen[a, j, 0]
-    fclose = _mx(-vrel[a, j, 0], 0.0)
+    fclose = maximum(-vrel[a, j, 0], 0.0)
     front_ok = (not np.isfinite(fd)) or (
-        (fgap > 1.5 + 0.3 * va) and (fclose * fclose / (2 * _mx(fgap - 1.0, 0.1)) <= ffd)
+        (fgap > 1.5 + 0.3 * va) and (fclose * fclose / (2 * maximum(fgap - 1.0, 0.1)) <= ffd)
     )
     return exists[a, j] and rear_ok and front_ok
 
@@ -91,17 +75,17 @@ def _wait(a, j, v, ln, vdist, vrel, vlen, acc_cur, hv_s0, hv_T, need_den, ffd, a
     has_f, has_r = np.isfinite(fd), np.isfinite(rd)
     fgap = fd - vlen[a, j, 0] if has_f else 1e3
     rgap = rd - ln[a] if has_r else 1e3
-    v_f = _mx(va + vrel[a, j, 0], 0.0)
-    v_r = _mx(va + vrel[a, j, 1], 0.0)
+    v_f = maximum(va + vrel[a, j, 0], 0.0)
+    v_r = maximum(va + vrel[a, j, 1], 0.0)
     need_r = (hv_s0 + hv_T * v_r) / need_den + 0.5
     need_f = 1.5 + 0.3 * va
     slack = fgap + rgap - need_r - need_f
-    e = fgap - (need_f + 0.5 * _mn(slack, 20.0))
+    e = fgap - (need_f + 0.5 * minimum(slack, 20.0))
     v_ref = v_f if has_f else (v_r + 1.0 if has_r else va)
     acc_gap = 0.4 * e + 1.0 * (v_ref - va)
-    acc_pass = 1.0 * (_mx(v_r - 2.0, 0.0) - va)
-    acc = _mn(_mx(acc_gap if slack > 0 else acc_pass, -ffd), acc_max)
-    return _mn(acc, acc_cur[a])
+    acc_pass = 1.0 * (maximum(v_r - 2.0, 0.0) - va)
+    acc = minimum(maximum(acc_gap if slack > 0 else acc_pass, -ffd), acc_max)
+    return minimum(acc, acc_cur[a])
 
 
 @inline
@@ -111,12 +95,12 @@ def _hidden(a, v, vdist, vrel, vlen, exists, hidden_gap, hd_2):  # fmt: skip
     cap = np.inf
     for j in (_L, _R):
         fd = vdist[a, j, 0]
-        v_o = _mx(va + vrel[a, j, 0], 0.0)
+        v_o = maximum(va + vrel[a, j, 0], 0.0)
         rear = fd - vlen[a, j, 0]
-        room = _mn(fd + hidden_gap, rear if rear > 0 else np.inf) - 0.5
-        v_max = v_o + np.sqrt(hd_2 * _mx(room, 0.0))
+        room = minimum(fd + hidden_gap, rear if rear > 0 else np.inf) - 0.5
+        v_max = v_o + np.sqrt(hd_2 * maximum(room, 0.0))
         if exists[a, j] and np.isfinite(fd) and vlen[a, j, 0] > 0.1:
-            cap = _mn(cap, 4.0 * (v_max - va))
+            cap = minimum(cap, 4.0 * (v_max - va))
     return cap
 
 
@@ -199,8 +183,8 @@ def decision(
         go_l[a], go_r[a] = g_l, g_r
         # _executed_accels
         af = acc_f[a]
-        al = _mn(acc_l[a], acc_fc[a]) if g_l else af
-        ar = _mn(acc_r[a], acc_fc[a]) if g_r else af
+        al = minimum(acc_l[a], acc_fc[a]) if g_l else af
+        ar = minimum(acc_r[a], acc_fc[a]) if g_r else af
         if m and not (g_l and (sl or (gl and cl))):
             al = _wait(a, _L, v, ln, vdist, vrel, vlen, acc_f, hv_s0, hv_T, need_den, ffd,
                        acc_max)  # fmt: skip
@@ -208,5 +192,5 @@ def decision(
             ar = _wait(a, _R, v, ln, vdist, vrel, vlen, acc_f, hv_s0, hv_T, need_den, ffd,
                        acc_max)  # fmt: skip
         cap = _hidden(a, v, vdist, vrel, vlen, exists, hidden_gap, hd_2)
-        out_f[a], out_l[a], out_r[a] = _mn(af, cap), _mn(al, cap), _mn(ar, cap)
+        out_f[a], out_l[a], out_r[a] = minimum(af, cap), minimum(al, cap), minimum(ar, cap)
     return dec, go_l, go_r, out_f, out_l, out_r

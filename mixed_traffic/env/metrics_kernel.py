@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mixed_traffic.compiled import inline, njit
+from mixed_traffic.compiled import inline, maximum, minimum, njit
 
 #: Crossing states, as ``flow_metrics`` (int8).
 UNSEEN, UPSTREAM, INSIDE, INSIDE_UNKNOWN, CROSSED, LEFT = 0, 1, 2, 3, 4, 5
@@ -31,30 +31,18 @@ def _in(st):
 
 
 @inline
-def _maximum(a, b):
-    """``np.maximum`` of two floats: NaN if either is NaN."""
-    return a if (a >= b or a != a) else b
-
-
-@inline
-def _minimum(a, b):
-    """``np.minimum`` of two floats: NaN if either is NaN."""
-    return a if (a <= b or a != a) else b
-
-
-@inline
 def _entry_time(t, s, v, t_prev):
     """``flow_metrics.entry_time`` of one vehicle [s]."""
-    back = s / _maximum(v, V_MIN) if v > V_MIN else 0.0
-    return _maximum(t - back, t_prev)
+    back = s / maximum(v, V_MIN) if v > V_MIN else 0.0
+    return maximum(t - back, t_prev)
 
 
 @inline
 def _exit_time(t_last, s_last, v_last, length, t_next):
     """``flow_metrics.exit_time`` of one vehicle [s]."""
-    ahead = _maximum(length - s_last, 0.0)
-    fwd = ahead / _maximum(v_last, V_MIN) if v_last > V_MIN else t_next - t_last
-    return _minimum(t_last + fwd, t_next)
+    ahead = maximum(length - s_last, 0.0)
+    fwd = ahead / maximum(v_last, V_MIN) if v_last > V_MIN else t_next - t_last
+    return minimum(t_last + fwd, t_next)
 
 
 @njit
@@ -209,8 +197,8 @@ def _range(ln, pos, c, ahead, lane_tab, offset_tab, window, lane_length, band, k
     b = rel + w if ahead else rel
     top = lane_length[other if other >= 0 else len(lane_length) - 1] + 1.0
     base = max(other, 0) * band
-    a = base + _minimum(_maximum(a, -1.0), top)
-    b = base + _minimum(_maximum(b, -1.0), top)
+    a = base + minimum(maximum(a, -1.0), top)
+    b = base + minimum(maximum(b, -1.0), top)
     if not ahead:  # searches keep keys in (a, b]; behind's [a, b) is (a⁻, b⁻]
         a = np.nextafter(a, -np.inf)
         b = np.nextafter(b, -np.inf)

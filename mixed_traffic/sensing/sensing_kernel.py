@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mixed_traffic.compiled import inline, njit
+from mixed_traffic.compiled import inline, maximum, njit
 
 _CURRENT = 1
 _NO_LIGHT = -1
@@ -173,12 +173,6 @@ def ego_features(rows, lane, lane_pos, heading, speed, length, width, lateral, w
 
 
 @inline
-def _maximum(a, b):
-    """``np.maximum`` of two floats: ``a`` where ``a >= b`` or NaN (numpy propagates NaN)."""
-    return a if a >= b or a != a else b
-
-
-@inline
 def _connection(lane, edge, conn_keys, conn_vals, n_edges):
     """``LaneGraph.connection`` of one lane row and edge row: the first lane row of the
     connection, -1 if there is none."""
@@ -237,7 +231,7 @@ def query_lanes(rows, lane, lane_pos, lane3, lane_length, lane_next, pred, conn_
         r = rows[a]
         cur = np.int64(lane[r])
         cs = max(cur, 0)
-        denom = _maximum(lane_length[cs], 1e-9)
+        denom = maximum(lane_length[cs], 1e-9)
         for c in range(3):
             ln = lane3[cs, c] if cur >= 0 else -1
             ls = max(ln, 0)
@@ -281,7 +275,7 @@ def traffic_lights(rows, lanes, next_edge, lane_pos, lane_length, tls_keys, tls_
     state = np.empty((A, 3), np.int8)
     dist = np.empty((A, 3))
     for a in range(A):
-        denom = _maximum(lane_length[max(lanes[a, _CURRENT], 0)], 1e-9)
+        denom = maximum(lane_length[max(lanes[a, _CURRENT], 0)], 1e-9)
         for c in range(3):
             ln = lanes[a, c]
             ls = max(ln, 0)
@@ -293,7 +287,7 @@ def traffic_lights(rows, lanes, next_edge, lane_pos, lane_length, tls_keys, tls_
             if tl >= 0 and link >= 0 and flat < n_chars:
                 state[a, c] = code[chars[flat]]
                 d = lane_length[ls] - lane_pos[rows[a]] * (lane_length[ls] / denom)
-                dist[a, c] = _maximum(d, 0.0)
+                dist[a, c] = maximum(d, 0.0)
             else:
                 state[a, c] = _NO_LIGHT
                 dist[a, c] = np.inf
