@@ -61,6 +61,16 @@ def sim(tmp_path: Path) -> Iterator[Sim]:
     s.backend.close()
 
 
+#: (env kwargs, steps) of the episodes the step-stage kernel tests run, and their test ids.
+STEP_CASES = [
+    ({"scenario": "ring", "penetration": 1 / 22}, 150),
+    ({"scenario": "straight", "penetration": 0.5, "density": 120.0}, 120),
+    ({"scenario": "merge", "penetration": 0.3}, 150),
+    ({"scenario": "urban", "penetration": 0.3}, 200),
+]
+STEP_IDS = [c[0]["scenario"] for c in STEP_CASES]
+
+
 def random_episode(
     steps: int, seed: int = 3, action_seed: int = 0, end_metrics: bool = False,
     policy: str = "random", **env_kw,

@@ -15,17 +15,10 @@ from mixed_traffic import compiled
 from mixed_traffic.env import action, control, control_kernel, space_time, truth
 from mixed_traffic.env import parallel as env_parallel
 
+from .conftest import STEP_CASES as CASES
 from .conftest import random_episode, same_bits
 
 needs_numba = pytest.mark.skipif(compiled.numba is None, reason="numba is not installed")
-
-CASES = [
-    ({"scenario": "ring", "penetration": 1 / 22}, 150),
-    ({"scenario": "straight", "penetration": 0.5, "density": 120.0}, 120),
-    ({"scenario": "merge", "penetration": 0.3}, 150),
-    ({"scenario": "urban", "penetration": 0.3}, 200),
-]
-IDS = [c[0]["scenario"] for c in CASES]
 
 
 def _state(ctl: control.BicycleController) -> tuple[np.ndarray, ...]:
