@@ -45,12 +45,13 @@ def inline(fn: Callable[..., Any]) -> Callable[..., Any]:
 @inline
 def minimum(a: float, b: float) -> float:
     """``np.minimum`` of two floats in a kernel: the NaN where either is NaN (Python's ``min``
-    drops it), ``a`` on a tie. (numba caches a kernel by its own file: edit this and clear the
-    cache, ``__pycache__`` or ``NUMBA_CACHE_DIR``.)"""
-    return a if (a <= b or a != a) else b
+    drops it), ``b`` on a tie (as numpy: ``minimum(0.0, -0.0)`` is -0.0). (numba caches a
+    kernel by its own file: edit this and clear the cache, ``__pycache__`` or
+    ``NUMBA_CACHE_DIR``.)"""
+    return a if (a < b or a != a) else b
 
 
 @inline
 def maximum(a: float, b: float) -> float:
-    """``np.maximum`` of two floats in a kernel: the NaN where either is NaN, ``a`` on a tie."""
-    return a if (a >= b or a != a) else b
+    """``np.maximum`` of two floats in a kernel: the NaN where either is NaN, ``b`` on a tie."""
+    return a if (a > b or a != a) else b

@@ -176,3 +176,38 @@ def test_warm_loads_one_signature_per_kernel() -> None:
                control_kernel.front_view, control_kernel.edie_add)  # fmt: skip
     for kernel in kernels:
         assert len(kernel.signatures) == 1, kernel
+
+
+@needs_numba
+def test_rollout_kernel_equals_numpy(monkeypatch) -> None:
+    """The safety module's predicted offsets (``control.bicycle_rollout``) on every call of
+    AUTO episodes, kernel against the step loop, and on random states that clip the course and
+    brake to a stop (pure math)."""
+    import agents.rules.safety as safety
+    from mixed_traffic.config import EnvConfig
+    from mixed_traffic.experiments.runner import run_episode
+
+    seen = Counter()
+
+    def both(v, psi, d, steer, accel, kappa, wheelbase, dt, steps):
+        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        ref = control.bicycle_rollout(v, psi, d, steer, accel, kappa, wheelbase, dt, steps)
+        monkeypatch.setenv(compiled.SWITCH, "numba")
+        out = control.bicycle_rollout(v, psi, d, steer, accel, kappa, wheelbase, dt, steps)
+        same_bits(out, ref)
+        seen["calls"] += len(v)
+        seen["steered"] += int(np.sum(np.abs(steer) > 0.01))
+        return out
+
+    monkeypatch.setattr(safety, "bicycle_rollout", both)
+    for scenario in ("urban", "merge"):
+        cfg = EnvConfig(scenario=scenario, penetration=0.3, episode_length=15.0)
+        assert run_episode(cfg, "auto", 0.0)["status"] == "ok"
+    assert seen["calls"] > 500 and seen["steered"] > 0
+    rng = np.random.default_rng(0)
+    n = 2000
+    v, psi, d = rng.uniform(0, 30, n), rng.uniform(-1.5, 1.5, n), rng.uniform(-3, 3, n)
+    steer, accel, kappa = rng.uniform(-0.6, 0.6, n), rng.uniform(-9, 3, n), rng.normal(0, 0.05, n)
+    both(v, psi, d, steer, accel, kappa, 2.7, 0.1, 10)
+    clipped = np.abs(psi + np.arctan(0.5 * np.tan(steer))) > control.MAX_COURSE
+    assert clipped.any() and (v + 10 * 0.1 * accel < 0).any()

@@ -27,9 +27,19 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from agents.rules import acc_lc_features_kernel
 from agents.rules.acc_lc_config import LANE_C as _C
 from agents.rules.acc_lc_config import AccLcConfig
+from mixed_traffic import compiled
 from mixed_traffic.env.api import CURVATURE_WINDOW, EGO_SCALE, SPEED_SCALE, WAYPOINT_SCALE
+
+_KEYS = ("v", "h", "len", "wid", "d", "v_mean", "vlat_hist", "wp_speed", "wp_orient", "pv_dist",
+         "pv_speed", "present", "vdist", "vrel", "vlen", "vwid", "vlat", "h_dist", "h_rel",
+         "h_len", "h_wid", "h_lat", "exists", "mask", "light", "light_dist", "signal_dist",
+         "give_way")  # fmt: skip
+"""The keys of :func:`features`, in its order (the kernel's outputs)."""
+_OPTIONAL = ("limits", "signals", "give_way")
+"""Keys an older observation lacks (:func:`features` then runs the numpy stages)."""
 
 
 def lane_curvature(f: Mapping[str, np.ndarray]) -> np.ndarray:
@@ -43,7 +53,30 @@ def lane_curvature(f: Mapping[str, np.ndarray]) -> np.ndarray:
 
 
 def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarray]:
-    """Stacked observation ``ob`` (A, ...) per key -> the SI features of the module docstring."""
+    """Stacked observation ``ob`` (A, ...) per key -> the SI features of the module docstring;
+    compiled (:mod:`agents.rules.acc_lc_features_kernel`) unless ``compiled.enabled()`` is off
+    or the observation is an older one (without the ``_OPTIONAL`` keys)."""
+    ego = ob["ego"]
+    fast = compiled.enabled() and len(ego) and np.shape(ego)[1] >= 2
+    if fast and all(k in ob for k in _OPTIONAL):
+        return _features_compiled(ob, c)
+    return _features_reference(ob, c)
+
+
+def _features_compiled(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarray]:
+    """:func:`_features_reference` in one kernel."""
+    scale = np.array([c.lidar_range, SPEED_SCALE, np.pi, EGO_SCALE[2], 5.0, 2.0])
+    arrays = [np.asarray(ob[k]) for k in ("ego", "lanes", "vehicles", "lights", "node_mask",
+                                          "action_mask", "limits", "signals", "give_way")]  # fmt: skip
+    out = acc_lc_features_kernel.decode(
+        *arrays, c.dt, c.long_length, c.preview_range, c.camera_range, EGO_SCALE,
+        WAYPOINT_SCALE, scale, SPEED_SCALE,
+    )  # fmt: skip
+    return dict(zip(_KEYS, out))
+
+
+def _features_reference(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarray]:
+    """The numpy reference of :func:`features`."""
     ego = np.asarray(ob["ego"], np.float64)  # (A, z, 5)
     lanes = np.asarray(ob["lanes"], np.float64)  # (A, 3, z, 4m)
     veh = np.asarray(ob["vehicles"], np.float64)  # (A, 3, z, 12)

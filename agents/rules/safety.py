@@ -37,7 +37,7 @@ import numpy as np
 from agents.rules.acc_lc import FOLLOW, LEFT, RIGHT, AccLcPlan, AccLcPolicy, lane_curvature
 from agents.rules.rss import RssConfig
 from mixed_traffic.config import VehicleConfig
-from mixed_traffic.env.api import bicycle_frenet_step, to_accel_brake, to_physical
+from mixed_traffic.env.api import bicycle_rollout, to_accel_brake, to_physical
 
 
 @dataclass(frozen=True)
@@ -90,14 +90,9 @@ class SafetyModule:
         """(A,) lateral offset [m, current-lane frame] after holding the physical ``steer``
         [rad] and ``accel`` [m/s²] (A,) for ``horizon`` seconds."""
         c, f = self.config, plan.features
-        kappa = lane_curvature(f)
-        v, psi, d = f["v"], f["h"], f["d"].copy()
-        for _ in range(max(1, round(c.horizon / c.dt))):
-            v, _, dd, psi, _ = bicycle_frenet_step(
-                v, psi, d, steer, accel, kappa, self.vehicle.wheelbase, c.dt
-            )
-            d = d + dd
-        return d
+        steps = max(1, round(c.horizon / c.dt))
+        return bicycle_rollout(f["v"], f["h"], f["d"], steer, accel, lane_curvature(f),
+                               self.vehicle.wheelbase, c.dt, steps)  # fmt: skip
 
     def corridor(self, plan: AccLcPlan, decision: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(A,) lowest and highest lateral offset [m] the chosen decision may reach."""

@@ -11,7 +11,7 @@ from ``mixed_traffic.config`` only, never from the env's internals.
 """
 
 from mixed_traffic.env.action import N_DECISIONS, N_PARAMS, to_accel_brake, to_physical
-from mixed_traffic.env.control import CURVATURE_WINDOW, bicycle_frenet_step
+from mixed_traffic.env.control import CURVATURE_WINDOW, bicycle_frenet_step, bicycle_rollout
 from mixed_traffic.env.termination import DEAD_END_DISTANCE
 from mixed_traffic.sensing.observation import (
     EGO_SCALE,
@@ -29,6 +29,7 @@ __all__ = [
     "SPEED_SCALE",
     "WAYPOINT_SCALE",
     "bicycle_frenet_step",
+    "bicycle_rollout",
     "observation_space",
     "to_accel_brake",
     "to_physical",

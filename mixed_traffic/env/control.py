@@ -108,6 +108,32 @@ def bicycle_frenet_step(
     return v_new, ds, dd, psi_new, course
 
 
+def bicycle_rollout(
+    v: np.ndarray,
+    psi: np.ndarray,
+    d: np.ndarray,
+    steer: np.ndarray,
+    accel: np.ndarray,
+    kappa: np.ndarray,
+    wheelbase: float,
+    dt: float,
+    steps: int,
+) -> np.ndarray:
+    """(A,) lateral offset [m] after ``steps`` steps of :func:`bicycle_frenet_step` holding
+    ``steer`` [rad] and ``accel`` [m/s²] from ``v``, ``psi`` and ``d`` (arrays (A,), units as
+    there). One kernel (``control_kernel.frenet_rollout``) unless ``compiled.enabled()`` is off;
+    the step loop is the reference."""
+    if compiled.enabled() and len(v):
+        lr = 0.5 * wheelbase
+        beta = np.arctan(lr / wheelbase * np.tan(steer))  # numpy's, as in the step
+        args = (np.ascontiguousarray(x, np.float64) for x in (v, psi, d, accel, kappa, beta))
+        return control_kernel.frenet_rollout(*args, lr, dt, steps, MAX_COURSE)
+    for _ in range(steps):
+        v, _, dd, psi, _ = bicycle_frenet_step(v, psi, d, steer, accel, kappa, wheelbase, dt)
+        d = d + dd
+    return d
+
+
 @dataclass
 class ControlCommand:
     """What one control step sends to SUMO and predicts, per agent (rows follow ``ids``)."""

@@ -72,6 +72,29 @@ def frenet_compute(v, psi, body, length, r, lateral, accel, kappa, beta, lr, dt,
 
 
 @njit
+def frenet_rollout(v, psi, d, accel, kappa, beta, lr, dt, steps, max_course):
+    """(A,) lateral offset [m] after ``steps`` Frenet steps of ``control.bicycle_frenet_step``
+    from ``v``, ``psi``, ``d`` (A,) holding ``accel`` with side-slip angle ``beta`` (numpy's)
+    on curvature ``kappa`` (``control.bicycle_rollout``'s kernel; inputs are not written)."""
+    A = len(v)
+    out = np.empty(A)
+    for a in range(A):
+        va, pa, da, b, kap = v[a], psi[a], d[a], beta[a], kappa[a]
+        for _ in range(steps):
+            v_new = _max(va + accel[a] * dt, 0.0)
+            yaw_rate = v_new * np.sin(b) / lr
+            scale = 1.0 / _max(1.0 - kap * da, 0.1)
+            s_dot0 = v_new * np.cos(_clip(pa + b, -max_course, max_course)) * scale
+            psi_new = pa + (yaw_rate - kap * s_dot0) * dt
+            psi_new = _clip(psi_new + b, -max_course, max_course) - b
+            course = _clip(0.5 * (pa + psi_new) + b, -max_course, max_course)
+            da = da + v_new * np.sin(course) * dt
+            va, pa = v_new, psi_new
+        out[a] = da
+    return out
+
+
+@njit
 def allowed(decision, mask):
     """(executed (A,) int64, replaced (A,) bool) of ``action.allowed_decisions``.
 
@@ -199,6 +222,7 @@ def warm() -> None:
     env passes, on one agent: a process that forks workers calls this once."""
     f, r = np.ones(1), np.zeros(1, np.int64)
     frenet_compute(f.copy(), f.copy(), f.copy(), f.copy(), r, f, f, f, f, 1.5, 0.1, 1.3)
+    frenet_rollout(f, f, f, f, f, f, 1.5, 0.1, 10, 1.3)
     allowed(r, np.ones((1, 3), np.int8))
     physical(r, np.zeros((1, 3, 2)), 1.0, 3.0, 6.0)
     i = np.zeros((1, 3, 2), np.int64)
