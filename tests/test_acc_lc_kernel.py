@@ -10,6 +10,7 @@ import pytest
 import agents.rules.acc_lc as acc_lc
 from agents.rules import acc_lc_features as feat
 from agents.rules import acc_lc_longitudinal as lon
+from agents.rules import rss as acc_lc_rss
 from agents.rules.acc_lc_config import AccLcConfig
 from mixed_traffic import compiled
 from mixed_traffic.config import EnvConfig
@@ -31,7 +32,7 @@ def test_lane_accels_kernel_equals_numpy(monkeypatch, scenario: str, policy: str
     """Every call of a whole episode (leaders in every lane column, mandatory changes with
     their end gap, lights, give-way lines, fog's unseen signals; AUTO's teacher too), the
     decoded features and the lane accelerations."""
-    seen = {"agents": 0, "leaders": 0, "bounded": 0, "decoded": 0}
+    seen = {"agents": 0, "leaders": 0, "bounded": 0, "decoded": 0, "capped": 0}
 
     def decode(ob, c):
         ref = feat._features_reference(ob, c)
@@ -52,10 +53,22 @@ def test_lane_accels_kernel_equals_numpy(monkeypatch, scenario: str, policy: str
 
     monkeypatch.setattr(acc_lc, "lane_accels", both)
     monkeypatch.setattr(acc_lc, "features", decode)
+
+    def caps(f, c, rss):
+        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        ref = acc_lc_rss.rss_caps(f, c, rss)
+        monkeypatch.setenv(compiled.SWITCH, "numba")
+        out = acc_lc_rss.rss_caps(f, c, rss)
+        same_bits(ref, out, "rss_caps")
+        seen["capped"] += int(np.isfinite(out).sum())
+        return out
+
+    monkeypatch.setattr(acc_lc, "rss_caps", caps)
     cfg = EnvConfig(scenario=scenario, penetration=0.3, episode_length=25.0, weather=weather)
     assert run_episode(cfg, policy, 0.0)["status"] == "ok"
     assert seen["agents"] > 250 and seen["leaders"] > 0 and seen["decoded"] == seen["agents"]
     assert seen["bounded"] > 0 or scenario != "urban", "the urban run met lights"
+    assert seen["capped"] > 0 or policy != "auto", "AUTO's governor and safety read RSS caps"
 
 
 @pytest.mark.parametrize("history", [2, 5, 9, 20])
@@ -111,3 +124,4 @@ def test_warm_loads_the_kernels_a_plan_calls() -> None:
     assert run_episode(cfg, "acc-lc", 0.0)["status"] == "ok"
     assert len(acc_lc_kernel.idm_inputs.signatures) == 1
     assert len(acc_lc_kernel.combine.signatures) == 1
+    assert len(acc_lc_kernel.rss_caps.signatures) == 1

@@ -183,7 +183,10 @@ def warm() -> None:
     them) for the dtypes and layouts a real plan passes, on a zero observation: a process that
     forks workers calls this once, and they inherit the kernels."""
     space = observation_space(EnvConfig())
-    AccLcPolicy().plan({k: np.zeros((1, *s.shape), s.dtype) for k, s in space.spaces.items()})
+    plan = AccLcPolicy().plan(
+        {k: np.zeros((1, *s.shape), s.dtype) for k, s in space.spaces.items()}
+    )
+    plan.rss_caps(RssConfig())
 
 
 # ---------------------------------------------------------------------- steps of plan()

@@ -102,19 +102,9 @@ def idm_inputs(
             lane, first = call_lane[q], K - call_frames[q]
             vq = v0[np.searchsorted(lanes, lane), a]
             for j in range(3):
-                shift = float(j - _C) * -lane_width
-                present = exists[a, j] or j == _C
                 for kk in range(first, K):
-                    dist = h_dist[a, j, kk]
-                    gap = dist - h_len[a, j, kk]
-                    lat = abs(h_lat[a, j, kk] + shift - offset[a])
-                    half = 0.5 * (wid[a] + h_wid[a, j, kk]) + 0.4
-                    if j == _C:
-                        half = half + (0.6 if lane != _C else 0.0)
-                    rel = np.isfinite(dist) and (lat < half or j == lane) and present
-                    if lane == _C and j != _C and not rel:
-                        rel = _yields(dist, gap, h_lat[a, j, kk], h_rel[a, j, kk], j,
-                                      signal_min, yield_decel, hv_s0)  # fmt: skip
+                    rel, gap = _leader(a, lane, j, kk, offset, exists, wid, h_dist, h_len, h_lat,
+                                       h_rel, h_wid, lane_width, signal_min, yield_decel, hv_s0)  # fmt: skip
                     end = has_end[q] and j == _C and h_len[a, j, kk] < 0.1
                     relevant[a, col] = rel
                     cols[0, a, col] = gap if rel else np.inf
@@ -123,6 +113,50 @@ def idm_inputs(
                     cols[3, a, col] = vq
                     col += 1
     return cols, relevant, lim_now, a_lim, stop_room
+
+
+@inline
+def _leader(a, lane, j, kk, offset, exists, wid, h_dist, h_len, h_lat, h_rel, h_wid, lane_width,
+            signal_min, yield_decel, hv_s0):  # fmt: skip
+    """(is a leader, bumper gap [m]) of agent ``a``'s history vehicle (``j``, ``kk``) when
+    driving in lane column ``lane`` (``leader_inputs``): the lane's own, the others' on
+    lateral overlap, and neighbours to yield to."""
+    dist = h_dist[a, j, kk]
+    gap = dist - h_len[a, j, kk]
+    lat = abs(h_lat[a, j, kk] + float(j - _C) * -lane_width - offset[a])
+    half = 0.5 * (wid[a] + h_wid[a, j, kk]) + 0.4
+    if j == _C:
+        half = half + (0.6 if lane != _C else 0.0)
+    rel = np.isfinite(dist) and (lat < half or j == lane) and (exists[a, j] or j == _C)
+    if lane == _C and j != _C and not rel:
+        rel = _yields(dist, gap, h_lat[a, j, kk], h_rel[a, j, kk], j, signal_min, yield_decel,
+                      hv_s0)  # fmt: skip
+    return rel, gap
+
+
+@njit
+def rss_caps(v, offset, exists, wid, h_dist, h_len, h_lat, h_rel, h_wid, lane_width, signal_min,
+             yield_decel, hv_s0, rho, rho_sq4, ego_decel, lead_2, min_gap):  # fmt: skip
+    """(A, 3) ``rss.rss_caps``: per lane column the lowest RSS-safe acceleration [m/s²] behind
+    the leaders of every history frame (inf = none); ``rho`` the response time [s],
+    ``rho_sq4`` = rho² / 4, ``lead_2`` twice the leader's braking, as ``rss_accel``."""
+    A, K = h_dist.shape[0], h_dist.shape[2]
+    out = np.empty((A, 3))
+    for a in range(A):
+        for lane in range(3):
+            cap = np.inf
+            for j in range(3):
+                for kk in range(K):
+                    rel, gap = _leader(a, lane, j, kk, offset, exists, wid, h_dist, h_len, h_lat,
+                                       h_rel, h_wid, lane_width, signal_min, yield_decel, hv_s0)  # fmt: skip
+                    if rel:
+                        v_lead = maximum(v[a] - -h_rel[a, j, kk], 0.0)
+                        room = gap - min_gap + v_lead * v_lead / lead_2
+                        disc = rho_sq4 + 2 * (room - v[a] * rho / 2) / ego_decel
+                        x = ego_decel * (-rho / 2 + np.sqrt(disc)) if disc >= 0 else 0.0
+                        cap = minimum(cap, (maximum(x, 0.0) - v[a]) / rho if disc >= 0 else -np.inf)
+            out[a, lane] = cap
+    return out
 
 
 @inline

@@ -14,8 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agents.rules import acc_lc_kernel
 from agents.rules.acc_lc_config import AccLcConfig
 from agents.rules.acc_lc_longitudinal import leader_inputs
+from mixed_traffic import compiled
 
 
 @dataclass(frozen=True)
@@ -57,7 +59,19 @@ def rss_accel(v: np.ndarray, gap: np.ndarray, v_lead: np.ndarray, c: RssConfig) 
 def rss_caps(f: Mapping[str, np.ndarray], acc: AccLcConfig, c: RssConfig) -> np.ndarray:
     """(A, 3) highest RSS-safe acceleration [m/s²] per lane column (left, current, right;
     the decision index) behind the leaders ACC-LC sees when driving there (every history
-    frame; the virtual vehicle at a lane's end is a stopped leader); inf = none."""
+    frame; the virtual vehicle at a lane's end is a stopped leader); inf = none. Compiled
+    (``acc_lc_kernel.rss_caps``) unless ``compiled.enabled()`` is off."""
+    if compiled.enabled() and len(f["v"]):
+        keys = ("v", "d", "exists", "wid", "h_dist", "h_len", "h_lat", "h_rel", "h_wid")
+        return acc_lc_kernel.rss_caps(
+            *(f[k] for k in keys), acc.lane_width_min, acc.signal_min, acc.yield_decel,
+            acc.hv_s0, c.response, c.response**2 / 4, c.ego_decel, 2 * c.lead_decel, c.min_gap,
+        )  # fmt: skip
+    return _rss_caps_reference(f, acc, c)
+
+
+def _rss_caps_reference(f: Mapping[str, np.ndarray], acc: AccLcConfig, c: RssConfig) -> np.ndarray:
+    """The numpy reference of :func:`rss_caps`."""
     v = f["v"][:, None]
     caps = []
     for lane in range(3):
