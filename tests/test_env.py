@@ -106,7 +106,7 @@ def test_agents_enter_leave_and_report_terms() -> None:
             _assert_batch_is_stacked(e, obs)
             seen |= set(e.agents)
             if e.agents:  # memory stays flat: finished agents leave no observation or history
-                assert set(e._last_obs) <= set(e.agents) >= set(e._builder._slot)
+                assert set(e._batches.last) <= set(e.agents) >= set(e._builder._slot)
             for a, i in info.items():
                 assert set(i["reward_terms"]) <= set(TERM_NAMES)
                 if i["event"]:

@@ -24,7 +24,7 @@ def test_flat_observation_round_trips_the_dict() -> None:
     try:
         obs, _ = e.reset(seed=0)
         space = e.observation_space(e.possible_agents[0])
-        dict_obs = e.unwrapped._last_obs
+        dict_obs = {a: e.unwrapped._batches.last_obs(a) for a in obs}
         assert isinstance(space, spaces.Box) and space.dtype == np.float32
         assert obs and all(o.shape == space.shape and o.dtype == np.float32 for o in obs.values())
         for a, o in obs.items():

@@ -179,6 +179,28 @@ def stack_actions(
     return decision, params
 
 
+def stack_batch(
+    decision: Any, params: Any, agents: Sequence[str], space: spaces.Dict | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`stack_actions` for actions already stacked in ``agents`` order: ``decision``
+    (A,) integers and ``params`` (A, 3, 2); the same arrays, and the same errors naming the
+    agent (a shape or dtype that is not that names the arrays)."""
+    space = space if space is not None else action_space()
+    n = len(agents)
+    dec, par = np.asarray(decision), np.asarray(params, dtype=np.float64)
+    if dec.shape != (n,) or par.shape != (n, N_DECISIONS, N_PARAMS) or dec.dtype.kind not in "iu":
+        raise ValueError(f"step_batch takes decision ({n},) integers and params ({n}, 3, 2) for "
+                         f"the {n} live agents in env.agents order, got decision {dec.shape} "
+                         f"{dec.dtype} and params {par.shape}")  # fmt: skip
+    low, high = (b.astype(np.float64) for b in (space["params"].low, space["params"].high))
+    in_range = ((dec >= 0) & (dec < N_DECISIONS)).all() and np.isfinite(par).all()
+    if in_range and (par >= low - 1e-6).all() and (par <= high + 1e-6).all():
+        return dec.astype(np.int64), np.clip(par, low, high)
+    # the per-agent path names the first bad agent
+    return stack_actions({a: {"decision": int(d), "params": p} for a, d, p in zip(agents, dec, par)},
+                         agents, space)  # fmt: skip
+
+
 _INT_TYPES = (int, np.int64, np.int32, np.int16, np.int8, np.uint64, np.uint32, np.uint16, np.uint8)
 
 

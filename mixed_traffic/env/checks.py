@@ -25,6 +25,14 @@ def check_reset_args(seed: Any, options: Any) -> None:
 def check_step(phase: str, actions: Any, episode_length: float) -> None:
     """Name a ``step()`` call before ``reset()``, after ``close()`` or after the episode ended
     (``phase``), or whose ``actions`` are not a dict."""
+    check_phase(phase, episode_length)
+    if not isinstance(actions, Mapping):
+        raise ValueError(f"step() takes a dict of actions, one per live agent (agent id -> "
+                         f"{{'decision', 'params'}}), got {type(actions).__name__}")  # fmt: skip
+
+
+def check_phase(phase: str, episode_length: float) -> None:
+    """Name a step before ``reset()``, after ``close()`` or after the episode ended."""
     if phase == "new":
         raise RuntimeError("step() before reset(): call reset() to start an episode first")
     if phase == "closed":
@@ -32,9 +40,6 @@ def check_step(phase: str, actions: Any, episode_length: float) -> None:
     if phase == "ended":
         raise RuntimeError(f"step() after the episode ended at episode_length="
                            f"{episode_length} s: call reset()")  # fmt: skip
-    if not isinstance(actions, Mapping):
-        raise ValueError(f"step() takes a dict of actions, one per live agent (agent id -> "
-                         f"{{'decision', 'params'}}), got {type(actions).__name__}")  # fmt: skip
 
 
 def check_warmup(warmup: float, episode_length: float) -> None:

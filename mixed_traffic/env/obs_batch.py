@@ -1,28 +1,69 @@
 """The observations of one step as batches: what a batched policy wants, without stacking the
-per-agent dicts of the PettingZoo API again (``MixedTrafficEnv.observation_batch``)."""
+per-agent dicts of the PettingZoo API again (``MixedTrafficEnv.observation_batch``); and what
+``MixedTrafficEnv.step_batch`` returns instead of those dicts."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
+from itertools import repeat
+from typing import NamedTuple
 
 import numpy as np
 
 Arrays = Mapping[str, np.ndarray]
 
 
+class BatchStep(NamedTuple):
+    """One ``step_batch``: rows follow ``agents``, the A agents that acted."""
+
+    agents: list[str]
+    """(A,) the agents that acted, in the order of their actions."""
+    rewards: np.ndarray
+    """(A,) float64 rewards (``step``'s)."""
+    terminated: np.ndarray
+    """(A,) bool: the agent's trip ended (``events`` says why)."""
+    truncated: np.ndarray
+    """(A,) bool: the episode reached its time limit."""
+    events: list[str]
+    """(A,) 'arrived', a terminal reason, or ''."""
+    entered: list[str]
+    """Agents that entered the network this step (they act from the next step on)."""
+
+
 class StepBatches:
     """The arrays ``ObservationBuilder.build`` made since the last SUMO step, one part per
-    call (the step's agents, then agents that entered), each ``{key: (A_part, ...)}``."""
+    call (the step's agents, then agents that entered), each ``{key: (A_part, ...)}``; and
+    where each agent's last observation is (``last``: its part's arrays and row)."""
 
     def __init__(self) -> None:
         self.parts: list[tuple[list[str], Arrays]] = []
+        self.last: dict[str, tuple[Arrays, int]] = {}
+
+    def reset(self) -> None:
+        """A new episode: no observation yet."""
+        self.parts, self.last = [], {}
 
     def clear(self) -> None:
-        """A new SUMO step: the parts are stale."""
+        """A new SUMO step: the parts are stale (the last observations stay)."""
         self.parts = []
 
     def add(self, ids: Sequence[str], arrays: Arrays) -> None:
         self.parts.append((list(ids), arrays))
+        self.last.update(zip(ids, zip(repeat(arrays), range(len(ids)))))
+
+    def last_obs(self, agent: str) -> dict[str, np.ndarray] | None:
+        """The last observation of ``agent`` as a per-agent dict (views), None if none."""
+        at = self.last.get(agent)
+        return None if at is None else {k: v[at[1]] for k, v in at[0].items()}
+
+    def forget(self, agents: Sequence[str], keep: bool) -> None:
+        """Drop the last observations of ``agents`` (whole steps' arrays are then freed), or
+        with ``keep`` replace each by a compact copy (a fixed fleet returns it until the agent
+        enters again)."""
+        for a in agents:
+            at = self.last.pop(a, None)
+            if at is not None and keep:
+                self.last[a] = ({k: v[at[1] : at[1] + 1].copy() for k, v in at[0].items()}, 0)
 
     def gather(self, agents: list[str], single: Callable[[str], Arrays]) -> dict[str, np.ndarray]:
         """``{key: (A, ...)}`` of ``agents`` in that order. The usual step is one part in the

@@ -67,12 +67,18 @@ from pettingzoo.utils.conversions import parallel_to_aec
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import checks
-from mixed_traffic.env.action import action_space, allowed_decisions, stack_actions, to_physical
+from mixed_traffic.env.action import (
+    action_space,
+    allowed_decisions,
+    stack_actions,
+    stack_batch,
+    to_physical,
+)
 from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
 from mixed_traffic.env.av_metrics import AVMetrics
 from mixed_traffic.env.control import BicycleController
 from mixed_traffic.env.flow_metrics import FlowRecorder
-from mixed_traffic.env.obs_batch import StepBatches
+from mixed_traffic.env.obs_batch import BatchStep, StepBatches
 from mixed_traffic.env.reward import agent_rewards
 from mixed_traffic.env.step_truth import av_step, step_memory
 from mixed_traffic.env.sumo_sync import fan_choices, follow_sumo_routes, give_way_gates
@@ -165,8 +171,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._tls_prev: dict[str, str] = {}
         self._memory = StepMemory()
         self._step_truth: tuple[Rows, PerceptionFrame] | None = None
-        self._last_obs: dict[str, dict] = {}
-        self._batches = StepBatches()  # the step's observation arrays (observation_batch)
+        self._batches = StepBatches()  # observation arrays (observation_batch, last ones)
         self._phase = "new"  # new -> running -> ended (time limit) | closed
         self._replaced: set[str] = set()  # agents whose decision the mask forbade this step
 
@@ -235,7 +240,7 @@ class MixedTrafficEnv(ParallelEnv):
                                   self.warmup, every, cfg.av_window)  # fmt: skip
         self._av = AVMetrics(cfg.step_length, cfg.reward.rear_speed_drop)
         self._table.reset(list(self.possible_agents) if cfg.fixed_fleet else [])
-        self._last_obs = {}
+        self._batches.reset()
         self._memory = StepMemory()
         snap = self._advance()
         self._backend.drop_pending(demand.placed_ids)
@@ -254,7 +259,7 @@ class MixedTrafficEnv(ParallelEnv):
         limit = min(self.sim_time + cfg.reset_wait, end)
         obs: dict[str, dict] = {}
         while not self.agents and self.sim_time < limit - 1e-9:
-            obs, *_ = self._step_once({})
+            obs, *_ = self._step_once(*_no_actions())
         if not self.agents and not allow_none:
             within = (f"within reset_wait={cfg.reset_wait} s" if limit < end - 1e-9
                       else f"during the {cfg.episode_length} s episode")  # fmt: skip
@@ -277,13 +282,26 @@ class MixedTrafficEnv(ParallelEnv):
 
     # ------------------------------------------------------------------ step
     def step(self, actions: dict[str, Any]):
-        out = self._step_once(actions)
+        checks.check_step(self._phase, actions, self.config.episode_length)
+        out = self._step_once(*stack_actions(actions, self.agents, self._act_space))
         return self._idle(*out) if self._idles() else out
 
-    def _step_once(self, actions: dict[str, Any]):
-        """One simulation step: the agents act, SUMO moves, the PettingZoo dicts."""
-        checks.check_step(self._phase, actions, self.config.episode_length)
-        decision, params = stack_actions(actions, self.agents, self._act_space)  # action
+    def step_batch(self, decision: Any, params: Any) -> BatchStep:
+        """``step`` for batched policies: ``decision`` (A,) and ``params`` (A, 3, 2) of the A
+        live agents in ``env.agents`` order. Runs the same step without the per-agent dicts of
+        the PettingZoo API (no ``infos``: the reward terms are in ``step``'s); the next
+        observations are ``observation_batch()``, the metrics and records are the same."""
+        checks.check_phase(self._phase, self.config.episode_length)
+        out = self._step_once(*stack_batch(decision, params, self.agents, self._act_space), False)
+        entered = list(out.entered)
+        if self._idles():  # run on until an AV enters or the episode ends, as step() does
+            while not self.agents and self._phase == "running":
+                entered += self._step_once(*_no_actions(), False).entered
+        return out._replace(entered=entered)
+
+    def _step_once(self, decision: np.ndarray, params: np.ndarray, dicts: bool = True):
+        """One simulation step: the agents act (their stacked actions), SUMO moves; the
+        PettingZoo dicts, or without ``dicts`` a ``BatchStep``."""
         decision = self._allowed(decision)
         self._extras.command(self._table.slots_of, self.agents, decision, params)
         steer, accel = to_physical(decision, params, self.config.vehicle)
@@ -292,12 +310,12 @@ class MixedTrafficEnv(ParallelEnv):
         rows = self._table.live_rows(snap)
         truth, sensed = self._sense(snap, rows)  # perception
         events = self._events(snap, rows, cmd)  # termination
-        rewards, terms, changed = self._rewards(snap, rows, truth, events)  # reward
+        rewards, terms, changed = self._rewards(snap, rows, truth, events, dicts)  # reward
         self._record(snap, rows, truth, rewards, changed)  # metrics
         self._remember(snap, rows, truth)
-        obs = self._observe(snap, rows, sensed)  # observation
+        obs = self._observe(snap, rows, sensed, dicts)  # observation
         self._step_truth = (rows, truth)  # reused if agents enter in _finish
-        return self._finish(snap, obs, rewards, terms, events)
+        return self._finish(snap, obs, rewards, terms, events, dicts)
 
     def _idles(self) -> bool:
         """The last agent left mid-episode (one trip per agent, the env drives the AVs)."""
@@ -308,7 +326,9 @@ class MixedTrafficEnv(ParallelEnv):
         """Run on with nobody acting until an AV enters (its entries join the step's dicts)
         or the episode ends (every info then carries ``"episode"``): ``while env.agents:``."""
         while not self.agents and self._phase == "running":
-            for mine, theirs in zip((obs, rew, term, trunc, infos), self._step_once({})):
+            for mine, theirs in zip(
+                (obs, rew, term, trunc, infos), self._step_once(*_no_actions())
+            ):
                 mine.update(theirs)
         if self._phase == "ended":
             self._summarise(infos)
@@ -394,11 +414,11 @@ class MixedTrafficEnv(ParallelEnv):
         return np.array([self.hdmap.edge_row.get(e, -1) for e in edges], np.int64)
 
     def _rewards(self, snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame,
-                 events: dict[str, str]):  # fmt: skip
+                 events: dict[str, str], dicts: bool = True):  # fmt: skip
         """Reward, named terms and completed lane changes (bool per agent number) of every
         agent that acted."""
         return agent_rewards(self.config, self.hdmap, self._memory, self._table, snap, rows,
-                             truth, events, self.scenario.ring, self._desired)  # fmt: skip
+                             truth, events, self.scenario.ring, self._desired, dicts)  # fmt: skip
 
     def _record(self, snap, rows: Rows, truth: PerceptionFrame, rewards: dict[str, float],
                 changed: np.ndarray) -> None:  # fmt: skip
@@ -413,27 +433,62 @@ class MixedTrafficEnv(ParallelEnv):
         self._memory = step_memory(snap, rows, truth, self._table)
         self._tls_prev = dict(self._tls)
 
-    def _observe(self, snap, rows: Rows, sensed: PerceptionFrame) -> dict[str, dict]:
+    def _observe(self, snap, rows: Rows, sensed: PerceptionFrame,
+                 dicts: bool = True) -> dict[str, dict]:  # fmt: skip
+        """The observations of ``rows``' agents (per agent, or with ``dicts`` False none: the
+        batch only)."""
         ids, t = rows.ids, self._table
         if not ids:
             return {}
         extra = self._extras.keys(
             self.hdmap, snap, rows.r, rows.slots, t.route_table, t.route_len, sensed
         )
-        obs = self._builder.build(snap, ids, rows.r, sensed, t.route_table[rows.slots], extra)
+        obs = self._builder.build(snap, ids, rows.r, sensed, t.route_table[rows.slots], extra,
+                                  dicts)  # fmt: skip
         self._batches.add(ids, self._builder.last_batch)
-        self._last_obs.update(obs)
         return obs
 
-    def _finish(self, snap, obs, rewards, terms, events):
-        """Retire finished agents, admit new ones, and assemble the PettingZoo dicts."""
+    def _finish(self, snap, obs, rewards, terms, events, dicts: bool = True):
+        """Retire finished agents, admit new ones; the PettingZoo dicts of the agents that
+        acted and entered, or without ``dicts`` their ``BatchStep``."""
         cfg, table = self.config, self._table
         done = sorted(a for a, e in events.items() if e)
         self._retire(done, events)
         truncate = snap.time >= cfg.episode_length - 1e-9
         agents = list(self.agents)
-        # per-agent dicts of the API, filled by C-level maps and patched where an event happened
-        ended = [] if cfg.fixed_fleet else list(set(done).intersection(agents))
+        ended = set() if cfg.fixed_fleet else set(done).intersection(agents)
+        if dicts:
+            out = self._api_dicts(agents, ended, truncate, obs, rewards, terms, events)
+        else:
+            out = BatchStep(
+                agents, np.fromiter(map(rewards.get, agents, repeat(0.0)), np.float64, len(agents)),
+                np.fromiter(map(ended.__contains__, agents), bool, len(agents)),
+                np.fromiter((truncate and a not in ended for a in agents), bool, len(agents)),
+                list(map(events.get, agents, repeat(""))), [],
+            )  # fmt: skip
+        self._forget(done)
+        if not cfg.fixed_fleet:
+            table.finished.update(done)
+            table.agents = [a for a in agents if a not in ended]
+        new = [] if truncate else self._admit(snap, done)  # nobody enters at the time limit
+        if new:
+            new_obs = self._observe_new(snap, new, dicts)
+            if dicts:
+                self._enter(out, new, new_obs)
+            else:
+                out.entered.extend(new)
+        if truncate:
+            self._phase = "ended"
+            table.agents = []
+            if dicts:
+                self._summarise(out[4])
+        self._snap = snap
+        return out
+
+    def _api_dicts(self, agents: list[str], ended: set[str], truncate: bool, obs, rewards, terms,
+                   events) -> tuple[dict, dict, dict, dict, dict]:  # fmt: skip
+        """The PettingZoo dicts of the agents that acted, filled by C-level maps and patched
+        where an event happened."""
         terminated = dict.fromkeys(agents, False)
         terminated.update(dict.fromkeys(ended, True))
         truncated = dict.fromkeys(agents, truncate)
@@ -444,26 +499,18 @@ class MixedTrafficEnv(ParallelEnv):
             infos[a]["decision_replaced"] = True
         obs_out = dict(zip(agents, map(obs.get, agents)))
         for a in [a for a, o in obs_out.items() if o is None]:  # not observed this step
-            obs_out[a] = self._last_obs.get(a, self._empty_obs)
-        self._forget(done)
+            obs_out[a] = self._batches.last_obs(a) or self._empty_obs
         rew_out = dict(zip(agents, map(rewards.get, agents, repeat(0.0))))
-        if not cfg.fixed_fleet:
-            table.finished.update(done)
-            table.agents = [a for a in agents if not terminated[a]]
-        new = [] if truncate else self._admit(snap, done)  # nobody enters at the time limit
-        if new:
-            new_obs = self._observe_new(snap, new)
-            for a in new:
-                if a not in obs_out or cfg.fixed_fleet:
-                    obs_out[a], rew_out[a] = new_obs[a], rew_out.get(a, 0.0)
-                    terminated[a], truncated[a] = False, False
-                    infos.setdefault(a, {"reward_terms": {}, "event": ""})["event"] = "entered"
-        if truncate:
-            self._phase = "ended"
-            table.agents = []
-            self._summarise(infos)
-        self._snap = snap
         return obs_out, rew_out, terminated, truncated, infos
+
+    def _enter(self, out: tuple[dict, ...], new: list[str], new_obs: dict[str, dict]) -> None:
+        """Add the agents that entered (``new``, their observations) to the step's dicts."""
+        obs_out, rew_out, terminated, truncated, infos = out
+        for a in new:
+            if a not in obs_out or self.config.fixed_fleet:
+                obs_out[a], rew_out[a] = new_obs[a], rew_out.get(a, 0.0)
+                terminated[a], truncated[a] = False, False
+                infos.setdefault(a, {"reward_terms": {}, "event": ""})["event"] = "entered"
 
     def _forget(self, done: list[str]) -> None:
         """Free what finished agents hold (history slots; last observations, which are views
@@ -471,10 +518,7 @@ class MixedTrafficEnv(ParallelEnv):
         of each last observation: it is returned until the agent enters again."""
         self._builder.drop(done)
         self._extras.drop(self._table.slots_of(done))
-        for a in done:
-            last = self._last_obs.pop(a, None)
-            if last is not None and self.config.fixed_fleet:
-                self._last_obs[a] = {k: v.copy() for k, v in last.items()}
+        self._batches.forget(done, keep=self.config.fixed_fleet)
 
     def _retire(self, done: list[str], events: dict[str, str]) -> None:
         """End the trips of ``done`` agents; SUMO already removed arrived and collided ones."""
@@ -488,11 +532,12 @@ class MixedTrafficEnv(ParallelEnv):
         for a in done:  # not live until admitted again (the step's snapshot still shows it)
             self._table.end_trip(a)
 
-    def _observe_new(self, snap: TrafficSnapshot, new: list[str]) -> dict[str, dict]:
+    def _observe_new(self, snap: TrafficSnapshot, new: list[str],
+                     dicts: bool = True) -> dict[str, dict]:  # fmt: skip
         """Observations of agents that entered this step (they act from the next step on)."""
         rows = self._table.live_rows(snap).subset(new, self._table.slot)
         truth, sensed = self._sense(snap, rows)
-        new_obs = self._observe(snap, rows, sensed)
+        new_obs = self._observe(snap, rows, sensed, dicts)
         self._remember_new(snap, rows, truth)
         return new_obs
 
@@ -518,7 +563,7 @@ class MixedTrafficEnv(ParallelEnv):
         from the arrays the step built for all agents at once, so it saves stacking the
         per-agent dicts; equal to stacking them."""
         agents = list(self.agents if agents is None else agents)
-        return self._batches.gather(agents, lambda a: self._last_obs.get(a, self._empty_obs))
+        return self._batches.gather(agents, lambda a: self._batches.last_obs(a) or self._empty_obs)
 
     # ------------------------------------------------------------------ metrics, render, close
     def episode_metrics(self) -> dict[str, float | None]:
@@ -581,6 +626,11 @@ class MixedTrafficEnv(ParallelEnv):
         so copies neither overwrite each other's route file nor delete it on close."""
         self.__dict__.update(state)
         self._tmp = scratch_dir()
+
+
+def _no_actions() -> tuple[np.ndarray, np.ndarray]:
+    """The stacked actions of no agent (a step nobody acts in)."""
+    return np.zeros(0, np.int64), np.zeros((0, 3, 2))
 
 
 def parallel_env(**kwargs: Any) -> MixedTrafficEnv:

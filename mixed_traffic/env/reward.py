@@ -259,11 +259,12 @@ def total_reward(terms: Mapping[str, np.ndarray], cfg: RewardConfig) -> np.ndarr
 def agent_rewards(
     cfg: EnvConfig, hd: HDMap, memory: StepMemory, table: AgentTable, snap: TrafficSnapshot,
     rows: Rows, truth: PerceptionFrame, events: dict[str, str], ring: bool = False,
-    desired: float = 0.0,
+    desired: float = 0.0, dicts: bool = True,
 ):  # fmt: skip
     """Reward, named terms and completed lane changes (bool per agent number) of every
     agent that acted; ``ring``: the network is a ring (for r5, r6 and r8); ``desired``: r8's
-    reference speed [m/s] (0 = the lane limits)."""
+    reference speed [m/s] (0 = the lane limits); ``dicts`` False: the named terms only of
+    agents that left the network (the others' stay arrays, unbuilt)."""
     prev = memory
     rewards: dict[str, float] = {}
     terms_out: dict[str, dict[str, float]] = {}
@@ -286,10 +287,11 @@ def agent_rewards(
     terms.update(traffic_terms(cfg.reward, hd, snap, now[p], table.route_table[slots],
                                table.route_len[slots], ring, desired))  # fmt: skip
     total = total_reward(terms, cfg.reward)
-    names = list(terms)
-    columns = [np.asarray(v, np.float64).tolist() for v in terms.values()]
-    # one {term: value} dict per agent, built by C-level maps (hundreds of agents per step)
-    terms_out.update(zip(ids, map(dict, map(zip, repeat(names), zip(*columns)))))
+    if dicts:
+        names = list(terms)
+        columns = [np.asarray(v, np.float64).tolist() for v in terms.values()]
+        # one {term: value} dict per agent, built by C-level maps (hundreds of agents per step)
+        terms_out.update(zip(ids, map(dict, map(zip, repeat(names), zip(*columns)))))
     rewards.update(zip(ids, np.asarray(total, np.float64).tolist()))
     return rewards, terms_out, table.by_slot(prev.slots[p], np.asarray(changed, bool), False)
 

@@ -101,7 +101,7 @@ def _env_and_policy(config: EnvConfig, policy: str):
 def _step(env, agent) -> None:
     from mixed_traffic.experiments.runner import decide
 
-    env.step(decide(env, agent)[0])
+    env.step_batch(*decide(env, agent)[:2])
 
 
 def realtime_factor(avs: int, args: argparse.Namespace) -> dict:

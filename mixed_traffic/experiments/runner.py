@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from agents.policies import checkpoint_path, make_policy, to_actions, with_inputs
+from agents.policies import checkpoint_path, make_policy, with_inputs
 from agents.rules.spec import parse_policy
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.checks import check_warmup
@@ -204,31 +204,30 @@ def batch_policy(name: str, config: EnvConfig, checkpoint: str | Path | None, fa
                        m=config.sensors.waypoints, dt=config.step_length, family=family)  # fmt: skip
 
 
-def decide(env: MixedTrafficEnv, agent: Any) -> tuple[dict[str, Any], float]:
-    """``agent``'s actions for ``env``'s live agents (one batched call), and its inference
-    time [s]; none when no agent is live."""
+def decide(env: MixedTrafficEnv, agent: Any) -> tuple[np.ndarray, np.ndarray, float]:
+    """``agent``'s stacked actions for ``env``'s live agents (one batched call: decision (A,),
+    params (A, 3, 2)), and its inference time [s]; empty when no agent is live."""
     agents = list(env.agents)
     if not agents:
-        return {}, 0.0
+        return np.zeros(0, np.int64), np.zeros((0, 3, 2)), 0.0
     batch = env.observation_batch(agents)
     t = time.perf_counter()
     decision, params = agent.act(batch, agents)
-    seconds = time.perf_counter() - t
-    return to_actions(agents, decision, params), seconds
+    return decision, params, time.perf_counter() - t
 
 
 def _drive(env: MixedTrafficEnv, agent: Any, frames: _Gif, progress: bool) -> tuple[float, int]:
     """Step ``env`` to its time limit under ``agent``; (inference time [s], decisions)."""
     config = env.config
     infer, decisions = 0.0, 0
-    obs, _ = env.reset(seed=config.seed, options={"allow_no_agents": True})  # all-human draws count
+    env.reset(seed=config.seed, options={"allow_no_agents": True})  # all-human draws count
     frames.add(env)
     steps = range(config.steps_per_episode)
     for _ in tqdm(steps, desc="steps", leave=False, disable=not progress):
-        actions, seconds = decide(env, agent)
+        decision, params, seconds = decide(env, agent)
         infer += seconds
-        decisions += len(actions)
-        obs, *_ = env.step(actions)
+        decisions += len(decision)
+        env.step_batch(decision, params)
         frames.add(env)
         if env.sim_time >= config.episode_length - 1e-9:
             break

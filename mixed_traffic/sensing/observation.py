@@ -240,6 +240,7 @@ class ObservationBuilder:
         sensed: PerceptionFrame,
         routes: Sequence[Sequence[int]] | np.ndarray,
         extra: dict[str, np.ndarray] | None = None,
+        dicts: bool = True,
     ) -> dict[str, dict[str, np.ndarray]]:
         """Observations of all agents; shifts each built agent's history by one frame.
 
@@ -251,6 +252,7 @@ class ObservationBuilder:
             routes: per agent, the edge rows of its route (or (A, W) of them padded with -1).
             extra: further keys built elsewhere, ``{key: (A, ...)}`` in the order of
                 ``agent_ids`` (the V2X ``downstream``).
+            dicts: False builds only ``last_batch`` and returns ``{}``.
         Returns:
             ``{agent_id: {key: array}}`` per the module table; arrays are fresh copies. The
             per-agent arrays are views of ``last_batch`` (``{key: (A, ...)}``, rows in the
@@ -272,7 +274,9 @@ class ObservationBuilder:
         h_lights = _push(self._lights, slots, lights, axis=2)
         self.last_batch = {"ego": h_ego, "lanes": h_lanes, "vehicles": h_veh, "lights": h_lights,
                            "limits": limits, "signals": signals, "give_way": gw,
-                           "node_mask": node, "action_mask": act}  # fmt: skip
+                           "node_mask": node, "action_mask": act, **(extra or {})}  # fmt: skip
+        if not dicts:
+            return {}
         # list(array) makes the per-agent views in C; a dict literal per agent is the cheapest
         out = {
             a: {"ego": e, "lanes": ln, "vehicles": v, "lights": li, "limits": lm,
@@ -282,7 +286,6 @@ class ObservationBuilder:
                 list(limits), list(signals), list(gw), list(node), list(act))
         }  # fmt: skip
         for key, arr in (extra or {}).items():
-            self.last_batch[key] = arr
             for o, x in zip(out.values(), list(arr)):
                 o[key] = x
         return out
