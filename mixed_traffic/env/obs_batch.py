@@ -5,7 +5,7 @@ per-agent dicts of the PettingZoo API again (``MixedTrafficEnv.observation_batch
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from itertools import repeat
+from itertools import chain, repeat
 from typing import NamedTuple
 
 import numpy as np
@@ -38,17 +38,19 @@ class StepBatches:
     def __init__(self) -> None:
         self.parts: list[tuple[list[str], Arrays]] = []
         self.last: dict[str, tuple[Arrays, int]] = {}
+        self._gathered: tuple[list[str], dict[str, np.ndarray]] | None = None
 
     def reset(self) -> None:
         """A new episode: no observation yet."""
-        self.parts, self.last = [], {}
+        self.parts, self.last, self._gathered = [], {}, None
 
     def clear(self) -> None:
         """A new SUMO step: the parts are stale (the last observations stay)."""
-        self.parts = []
+        self.parts, self._gathered = [], None
 
     def add(self, ids: Sequence[str], arrays: Arrays) -> None:
         self.parts.append((list(ids), arrays))
+        self._gathered = None
         self.last.update(zip(ids, zip(repeat(arrays), range(len(ids)))))
 
     def last_obs(self, agent: str) -> dict[str, np.ndarray] | None:
@@ -60,17 +62,28 @@ class StepBatches:
         """Drop the last observations of ``agents`` (whole steps' arrays are then freed), or
         with ``keep`` replace each by a compact copy (a fixed fleet returns it until the agent
         enters again)."""
+        self._gathered = None
         for a in agents:
             at = self.last.pop(a, None)
             if at is not None and keep:
                 self.last[a] = ({k: v[at[1] : at[1] + 1].copy() for k, v in at[0].items()}, 0)
 
     def gather(self, agents: list[str], single: Callable[[str], Arrays]) -> dict[str, np.ndarray]:
-        """``{key: (A, ...)}`` of ``agents`` in that order. The usual step is one part in the
-        agents' order (returned as it is); a later part wins for an agent in two; an agent in
-        none (a fixed fleet's agent waiting to enter) makes the batch from ``single(agent)``."""
+        """``{key: (A, ...)}`` of ``agents`` in that order (the arrays are shared: do not
+        write into them). The usual step is one part in the agents' order (returned as it
+        is), or that and the agents that entered (joined); a later part wins for an agent in
+        two; an agent in none (a fixed fleet's agent waiting to enter) makes the batch from
+        ``single(agent)``. The last gather is kept until the parts change."""
+        if self._gathered is None or self._gathered[0] != agents:
+            self._gathered = (list(agents), self._gather(agents, single))
+        return dict(self._gathered[1])
+
+    def _gather(self, agents: list[str], single: Callable[[str], Arrays]) -> dict[str, np.ndarray]:
         if len(self.parts) == 1 and self.parts[0][0] == agents:
             return dict(self.parts[0][1])
+        if self.parts and list(chain.from_iterable(ids for ids, _ in self.parts)) == agents:
+            return {k: np.concatenate([arrays[k] for _, arrays in self.parts])
+                    for k in self.parts[0][1]}  # fmt: skip
         offset, where = 0, {}
         for ids, _ in self.parts:
             where.update(zip(ids, range(offset, offset + len(ids))))
