@@ -64,28 +64,33 @@ def _limits(a, ln, v, offset, wp_speed, wp_orient, pv_speed, pv_dist, sf, deadba
 def idm_inputs(
     v, offset, exists, wp_speed, wp_orient, pv_speed, pv_dist, light_dist, wid, h_dist, h_len,
     h_lat, h_rel, h_wid, lanes, call_lane, call_frames, call_end, has_end, sf, deadband,
-    curve_accel, stop_margin, s0, lane_width, signal_min, yield_decel, hv_s0,
+    curve_accel, stop_margin, s0, lane_width, signal_min, yield_decel, hv_s0, T, den,
 ):  # fmt: skip
-    """The IDM's input columns of ``lane_accels`` for A agents.
+    """The IDM's inputs of ``lane_accels`` for A agents, one entry per IDM term it needs.
 
     Args: the features (``v``, ``offset``, ``wid``, ``light_dist`` ... as in
     :mod:`agents.rules.acc_lc_features`; history arrays (A, 3, K)); ``lanes`` (L,) the sorted
     lane columns called; per call (Q,) its lane column, frames (K or 1) and whether it has an
-    end gap, ``call_end`` (Q, A) [m]; the config's scalars.
-    Returns ``cols`` (4, A, 2L + 3 Σ frames): gap [m], closing speed [m/s], standstill gap [m]
-    and desired speed [m/s] (per lane its free road and light stop, then each call's leaders);
-    ``relevant`` (A, W) which columns are leaders; ``lim_now`` and ``a_lim`` (L, A) [m/s,
-    m/s²]; ``stop_room`` (A,) [m].
+    end gap, ``call_end`` (Q, A) [m]; the config's scalars (``den`` = 2 sqrt(a b)).
+    Returns per entry (U,), agent by agent (per lane its free road and light stop, then each
+    call's relevant leaders): gap [m], closing speed [m/s], standstill gap [m], the IDM's
+    ``z`` (desired over actual gap) and the flat index ``i A + a`` of its lane and agent into
+    (L, A) arrays; then ``relevant`` (A, 3 Σ frames) which leader columns are entries;
+    ``lim_now``, ``a_lim`` and ``v0`` (L, A) [m/s, m/s², m/s]; ``stop_room`` (A,) [m].
     """
     A, K = h_dist.shape[0], h_dist.shape[2]
     L, Q = len(lanes), len(call_lane)
-    W = 2 * L + 3 * int(call_frames.sum())
-    cols = np.empty((4, A, W))
+    W = 3 * int(call_frames.sum())
+    cap = A * (2 * L + W)
+    gap_e, dv_e, s0_e, z_e = np.empty(cap), np.empty(cap), np.empty(cap), np.empty(cap)
+    at_e = np.empty(cap, np.int64)
     relevant = np.zeros((A, W), np.bool_)
     lim_now, a_lim, v0 = np.empty((L, A)), np.empty((L, A)), np.empty((L, A))
     stop_room = np.empty(A)
     spd, target = np.empty(wp_speed.shape[2]), np.empty(wp_speed.shape[2])
+    u = 0
     for a in range(A):
+        va = v[a]
         stop_room[a] = maximum(light_dist[a, _C] - stop_margin, 0.05)
         for i in range(L):
             ln = lanes[i] if exists[a, lanes[i]] else _C
@@ -93,26 +98,58 @@ def idm_inputs(
                 a, ln, v, offset, wp_speed, wp_orient, pv_speed, pv_dist, sf, deadband,
                 curve_accel, spd, target)  # fmt: skip
             # the free road, and the stop before the light
-            cols[0, a, 2 * i], cols[0, a, 2 * i + 1] = np.inf, stop_room[a]
-            cols[1, a, 2 * i], cols[1, a, 2 * i + 1] = 0.0, v[a]
-            cols[2, a, 2 * i], cols[2, a, 2 * i + 1] = s0, s0
-            cols[3, a, 2 * i], cols[3, a, 2 * i + 1] = v0[i, a], v0[i, a]
-        col = 2 * L
+            gap_e[u], dv_e[u], s0_e[u], z_e[u], at_e[u] = np.inf, 0.0, s0, 0.0, i * A + a
+            room = stop_room[a]
+            gap_e[u + 1], dv_e[u + 1], s0_e[u + 1], at_e[u + 1] = room, va, s0, i * A + a
+            z_e[u + 1] = _z(va, va, room, s0, T, den)
+            u += 2
+        col = 0
         for q in range(Q):
             lane, first = call_lane[q], K - call_frames[q]
-            vq = v0[np.searchsorted(lanes, lane), a]
+            at = np.searchsorted(lanes, lane) * A + a
             for j in range(3):
                 for kk in range(first, K):
                     rel, gap = _leader(a, lane, j, kk, offset, exists, wid, h_dist, h_len, h_lat,
                                        h_rel, h_wid, lane_width, signal_min, yield_decel, hv_s0)  # fmt: skip
-                    end = has_end[q] and j == _C and h_len[a, j, kk] < 0.1
                     relevant[a, col] = rel
-                    cols[0, a, col] = gap if rel else np.inf
-                    cols[1, a, col] = -h_rel[a, j, kk]
-                    cols[2, a, col] = call_end[q, a] if end else s0
-                    cols[3, a, col] = vq
                     col += 1
-    return cols, relevant, lim_now, a_lim, stop_room
+                    if rel:
+                        end = has_end[q] and j == _C and h_len[a, j, kk] < 0.1
+                        s0_u = call_end[q, a] if end else s0
+                        gap_e[u], dv_e[u], s0_e[u], at_e[u] = gap, -h_rel[a, j, kk], s0_u, at
+                        z_e[u] = _z(va, dv_e[u], gap, s0_u, T, den)
+                        u += 1
+    return (gap_e[:u], dv_e[:u], s0_e[:u], z_e[:u], at_e[:u], relevant, lim_now, a_lim, v0,
+            stop_room)  # fmt: skip
+
+
+@inline
+def _z(v, dv, gap, s0, T, den):
+    """The IDM's desired over actual gap (``_idm``'s ``z``); 0 on a free road."""
+    s_star = s0 + maximum(0.0, v * T + v * dv / den)
+    return s_star / maximum(gap, 0.1) if np.isfinite(gap) else 0.0
+
+
+@inline
+def _idm_acc(v, v0, z, p3, free, gap, dv, s0, iidm, a_max, max_decel_2, e_decel, e_span):  # fmt: skip
+    """``_idm``'s acceleration of one entry from its ``z``, ``free`` (IIDM's free-road
+    acceleration of its lane, else IDM's (v / v0)⁴) and ``p3`` (z ** (2 a / free), numpy's)."""
+    if iidm:
+        close = z >= 1.0
+        if v <= v0:
+            soft = free * (1.0 - p3) if free > 1e-9 else free
+            acc = a_max * (1.0 - z * z) if close else soft
+        else:
+            acc = free + a_max * (1.0 - z * z) if close else free
+    else:
+        acc = a_max * (1.0 - free - z * z)
+    # the kinematic emergency term
+    v_lead = maximum(v - dv, 0.0)
+    room = maximum(gap - minimum(1.0, 0.5 * s0) + v_lead * v_lead / max_decel_2, 0.05)
+    need = v * v / (2 * room) if np.isfinite(gap) else 0.0
+    r = (need - e_decel) / e_span
+    r = 0.0 if r < 0.0 else (1.0 if r > 1.0 else r)  # np.clip: NaN and -0.0 stay
+    return minimum(acc, (1.0 - r) * acc - r * 1.2 * need)
 
 
 @inline
@@ -170,27 +207,40 @@ def _yields(dist, gap, lat, rel, j, signal_min, yield_decel, hv_s0):  # fmt: ski
 
 @njit
 def combine(
-    acc, relevant, lim_now, a_lim, stop_room, v, v_mean, light, light_dist, give_way, signal_dist,
-    lanes, call_lane, call_frames, max_decel_stop, yellow_stop_decel, vj, vj2, stop_margin,
-    signal_sight_decel,
+    gap, dv, s0, z, at, free, p3, v0, relevant, lim_now, a_lim, stop_room, v, v_mean, light,
+    light_dist, give_way, signal_dist, lanes, call_lane, call_frames, max_decel_stop,
+    yellow_stop_decel, vj, vj2, stop_margin, signal_sight_decel, iidm, a_max, max_decel_2,
+    e_decel, e_span,
 ):  # fmt: skip
-    """(Q, A) each call's acceleration [m/s²] from the IDM's ``acc`` (A, W) of
-    :func:`idm_inputs`' columns: the lane's free road bounded by its limits ahead and its
-    light (``_light_bound``), and the call's relevant leaders."""
-    A, L, Q = acc.shape[0], len(lanes), len(call_lane)
+    """(Q, A) each call's acceleration [m/s²] from :func:`idm_inputs`' entries (``free`` and
+    ``v0`` (L, A) flat, ``p3`` (U,) numpy's powers): the lane's free road bounded by its limits
+    ahead and its light (``_light_bound``), and the call's relevant leaders."""
+    A, L, Q = len(v), len(lanes), len(call_lane)
     out = np.empty((Q, A))
     base = np.empty(L)
+    u = 0
     for a in range(A):
+        va = v[a]
         unseen = _unseen(a, v_mean, light, signal_dist, stop_margin, signal_sight_decel)
         for i in range(L):
-            bound = _light(a, lim_now[i, a], acc[a, 2 * i + 1], stop_room[a], v, light,
-                           light_dist, give_way, max_decel_stop, yellow_stop_decel, vj, vj2)  # fmt: skip
-            base[i] = minimum(minimum(acc[a, 2 * i], a_lim[i, a]), minimum(bound, unseen))
-        col = 2 * L
+            road = _idm_acc(va, v0[at[u]], z[u], p3[u], free[at[u]], gap[u], dv[u], s0[u], iidm,
+                            a_max, max_decel_2, e_decel, e_span)  # fmt: skip
+            u += 1
+            stop = _idm_acc(va, v0[at[u]], z[u], p3[u], free[at[u]], gap[u], dv[u], s0[u], iidm,
+                            a_max, max_decel_2, e_decel, e_span)  # fmt: skip
+            u += 1
+            bound = _light(a, lim_now[i, a], stop, stop_room[a], v, light, light_dist,
+                           give_way, max_decel_stop, yellow_stop_decel, vj, vj2)  # fmt: skip
+            base[i] = minimum(minimum(road, a_lim[i, a]), minimum(bound, unseen))
+        col = 0
         for q in range(Q):
             lead = np.inf
             for _ in range(3 * call_frames[q]):
-                lead = minimum(lead, acc[a, col] if relevant[a, col] else np.inf)
+                if relevant[a, col]:
+                    lead = minimum(lead, _idm_acc(va, v0[at[u]], z[u], p3[u], free[at[u]],
+                                                  gap[u], dv[u], s0[u], iidm, a_max,
+                                                  max_decel_2, e_decel, e_span))  # fmt: skip
+                    u += 1
                 col += 1
             out[q, a] = minimum(base[np.searchsorted(lanes, call_lane[q])], lead)
     return out

@@ -91,7 +91,8 @@ def lane_accels(
 def _lane_accels_compiled(
     f: Features, c: AccLcConfig, calls: Sequence[LaneCall], offset: np.ndarray
 ) -> list[np.ndarray]:
-    """:func:`_lane_accels_reference` in two kernels around the numpy IDM."""
+    """:func:`_lane_accels_reference` in two kernels around numpy's powers of the IDM: the
+    free-road terms once per lane and agent, z's power only for the terms that read it."""
     v, A = f["v"], len(f["v"])
     lanes = np.array(sorted({q.lane for q in calls}), np.int64)
     K = f["h_dist"].shape[2]
@@ -101,27 +102,30 @@ def _lane_accels_compiled(
     lane = np.array([q.lane for q in calls], np.int64)
     # (A,) views of the ego row are strided: contiguous, one kernel specialisation for any A
     offset, wid = np.ascontiguousarray(offset), np.ascontiguousarray(f["wid"])
-    cols, relevant, lim_now, a_lim, stop_room = acc_lc_kernel.idm_inputs(
+    gap, dv, s0, z, at, relevant, lim_now, a_lim, v0, stop_room = acc_lc_kernel.idm_inputs(
         v, offset, f["exists"], f["wp_speed"], f["wp_orient"], f["pv_speed"], f["pv_dist"],
         f["light_dist"], wid, f["h_dist"], f["h_len"], f["h_lat"], f["h_rel"], f["h_wid"],
         lanes, lane, frames, ends, has_end, c.speed_factor, c.limit_deadband, c.curve_accel,
-        c.stop_margin, c.s0, c.lane_width_min, c.signal_min, c.yield_decel, c.hv_s0,
+        c.stop_margin, c.s0, c.lane_width_min, c.signal_min, c.yield_decel, c.hv_s0, c.T,
+        2.0 * np.sqrt(c.a * c.b),
     )  # fmt: skip
-    # the IDM (elementwise) of the columns combine() reads: each lane's, and the leaders
-    used = relevant.copy()
-    used[:, : 2 * len(lanes)] = True
-    acc = np.empty(used.shape)
-    acc[used] = _idm(
-        np.broadcast_to(v[:, None], used.shape)[used],
-        *(x[used] for x in cols[[3, 0, 1]]),
-        c,
-        cols[2][used],
-    )
+    v0 = np.maximum(v0, 0.1)  # (L, A): _idm's, as _iidm's free-road terms below
+    p3 = np.zeros(len(z))
+    if c.iidm:
+        below = v <= v0
+        free = np.where(below, c.a * (1.0 - (v / v0) ** 4),
+                        -c.b * (1.0 - (v0 / np.maximum(v, 0.1)) ** (4.0 * c.a / c.b)))  # fmt: skip
+        soft = (below & (free > 1e-9)).ravel()[at] & ~(z >= 1.0)  # the terms that read z's power
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore", under="ignore"):
+            p3[soft] = z[soft] ** (2.0 * c.a / np.maximum(free, 1e-9)).ravel()[at[soft]]
+    else:
+        free = (np.minimum(v, 2 * v0) / v0) ** 4
     out = acc_lc_kernel.combine(
-        acc, relevant, lim_now, a_lim, stop_room, v, f["v_mean"], f["light"], f["light_dist"],
-        f["give_way"], f["signal_dist"], lanes, lane, frames, c.max_decel * 1.1,
-        c.yellow_stop_decel, c.junction_speed, c.junction_speed**2, c.stop_margin,
-        c.signal_sight_decel,
+        gap, dv, s0, z, at, free.ravel(), p3, v0.ravel(), relevant, lim_now, a_lim, stop_room, v,
+        f["v_mean"], f["light"], f["light_dist"], f["give_way"], f["signal_dist"], lanes, lane,
+        frames, c.max_decel * 1.1, c.yellow_stop_decel, c.junction_speed, c.junction_speed**2,
+        c.stop_margin, c.signal_sight_decel, c.iidm, c.a, 2 * c.max_decel, c.emergency_decel,
+        c.emergency_span,
     )  # fmt: skip
     return list(out)
 
