@@ -27,8 +27,9 @@ from mixed_traffic.paths import cache_dir
 from mixed_traffic.world.backend import binary
 from mixed_traffic.world.network import SPLIT_ARGS, build_network
 
-AV_LADDER = (250, 500, 1000, 1500, 2000, 2500, 3000, 4000)
-"""Rungs of the ladder [AVs the road holds]; a rung reports the AVs actually in the network."""
+AV_LADDER = (250, 500, 1000, 1500, 2000, 2100, 2250, 2500, 3000, 4000)
+"""Rungs of the ladder [AVs the road is sized for]; a rung reports the AVs actually in the
+network, about 96 % of its size (2,100 is the first rung with 2,000 AVs in it)."""
 CITY_BLOCK = 150.0
 """Block length of the city grid [m]."""
 CITY_LANES = 2
