@@ -55,9 +55,9 @@ def test_lane_accels_kernel_equals_numpy(monkeypatch, scenario: str, policy: str
     monkeypatch.setattr(acc_lc, "features", decode)
 
     def caps(f, c, rss):
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = acc_lc_rss.rss_caps(f, c, rss)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = acc_lc_rss.rss_caps(f, c, rss)
         same_bits(ref, out, "rss_caps")
         seen["capped"] += int(np.isfinite(out).sum())
@@ -109,7 +109,7 @@ def test_kernel_off_runs_the_reference(monkeypatch) -> None:
     """``MIXED_TRAFFIC_KERNELS=numpy`` runs the numpy stages."""
     called = []
     monkeypatch.setattr(lon, "_lane_accels_reference", lambda *a: called.append(a) or [])
-    monkeypatch.setenv(compiled.SWITCH, "numpy")
+    monkeypatch.setattr(compiled, "ENABLED", False)
     lon.lane_accels({"v": np.zeros(2)}, None, [], np.zeros(2))
     assert len(called) == 1
 

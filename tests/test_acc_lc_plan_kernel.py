@@ -69,7 +69,7 @@ def test_episode_records_equal_without_kernels(monkeypatch) -> None:
     cfg = EnvConfig(scenario="merge", penetration=0.3, episode_length=25.0)
 
     def record(switch: str) -> dict:
-        monkeypatch.setenv(compiled.SWITCH, switch)
+        monkeypatch.setattr(compiled, "ENABLED", switch == "numba")
         rec = dict(run_episode(cfg, "acc-lc", 0.0))
         rec.pop("created", None), rec.pop("wall_time", None)
         rec["metrics"] = {k: v for k, v in rec.get("metrics", {}).items() if k != "avg_it"}
@@ -82,7 +82,7 @@ def test_kernel_off_runs_the_reference(monkeypatch) -> None:
     """``MIXED_TRAFFIC_KERNELS=numpy`` runs the numpy stages."""
     called = []
     monkeypatch.setattr(acc_lc, "_decision_reference", lambda *a: called.append(a) or ())
-    monkeypatch.setenv(compiled.SWITCH, "numpy")
+    monkeypatch.setattr(compiled, "ENABLED", False)
     acc_lc._decision({"v": np.zeros(2)}, None, np.zeros(2, bool), None)
     assert len(called) == 1
 

@@ -39,11 +39,11 @@ def test_compute_kernel_equals_numpy(monkeypatch) -> None:
 
     def both(self, ids, steer, accel, lane, lane_pos, lateral):
         before = _state(self)
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = stage(self, ids, steer, accel, lane, lane_pos, lateral)
         after = _state(self)
         _set_state(self, before)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = stage(self, ids, steer, accel, lane, lane_pos, lateral)
         same_bits(vars(out), vars(ref))
         same_bits(_state(self), after)
@@ -75,9 +75,9 @@ def test_action_kernels_equal_numpy(monkeypatch) -> None:
     def both_allowed(decision, mask):
         # the random actions respect the masks: the other decisions, too, on the same masks
         for shift in (1, 2, 0):
-            monkeypatch.setenv(compiled.SWITCH, "numpy")
+            monkeypatch.setattr(compiled, "ENABLED", False)
             ref = allowed((decision + shift) % 3, mask)
-            monkeypatch.setenv(compiled.SWITCH, "numba")
+            monkeypatch.setattr(compiled, "ENABLED", True)
             out = allowed((decision + shift) % 3, mask)
             same_bits(out, ref)
             seen["replaced"] += int(out[1].sum())
@@ -86,9 +86,9 @@ def test_action_kernels_equal_numpy(monkeypatch) -> None:
         return out
 
     def both_physical(decision, params, vehicle):
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = physical(decision, params, vehicle)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = physical(decision, params, vehicle)
         same_bits(out, ref)
         seen["calls"] += len(decision)
@@ -117,10 +117,10 @@ def test_front_view_kernel_equals_numpy(monkeypatch) -> None:
     names = ("exists", "distance", "length", "closing", "gap")
 
     def both(self, snap, frame, k, r):
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         init(self, snap, frame, k, r)
         ref = {n: getattr(self, n) for n in names}
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         init(self, snap, frame, k, r)
         same_bits({n: getattr(self, n) for n in names}, ref)
         seen["calls"] += len(k)
@@ -147,9 +147,9 @@ def test_edie_add_kernel_equals_numpy(monkeypatch) -> None:
 
     def both(self, t, s, v):
         ref = copy.deepcopy(self)
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         add(ref, t, s, v)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         add(self, t, s, v)
         same_bits(vars(self), vars(ref))
         if self._steps:
@@ -190,9 +190,9 @@ def test_rollout_kernel_equals_numpy(monkeypatch) -> None:
     seen = Counter()
 
     def both(v, psi, d, steer, accel, kappa, wheelbase, dt, steps):
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = control.bicycle_rollout(v, psi, d, steer, accel, kappa, wheelbase, dt, steps)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = control.bicycle_rollout(v, psi, d, steer, accel, kappa, wheelbase, dt, steps)
         same_bits(out, ref)
         seen["calls"] += len(v)

@@ -37,9 +37,9 @@ def test_neighbour_kernel_equals_numpy(monkeypatch, scenario: str, penetration: 
     calls = []
 
     def both(*args, **kw):
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = neighbours.find_neighbours(*args, **kw)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = neighbours.find_neighbours(*args, **kw)
         _equal(out, ref)
         calls.append(len(out.lane))
@@ -65,9 +65,9 @@ def test_traffic_terms_kernel_equals_numpy(monkeypatch, scenario: str, penetrati
     calls = []
 
     def run_both(cfg, hd, snap, rows, routes, route_len, ring, desired):
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = traffic_terms.traffic_terms(cfg, hd, snap, rows, routes, route_len, ring, desired)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = traffic_terms.traffic_terms(cfg, hd, snap, rows, routes, route_len, ring, desired)
         assert list(out) == list(ref) == list(traffic_terms.TRAFFIC_TERMS)
         for name in ref:
@@ -106,20 +106,16 @@ def test_warm_loads_the_kernel_the_env_calls() -> None:
 
 @needs_numba
 def test_kernels_switch_off() -> None:
-    """``MIXED_TRAFFIC_KERNELS=numpy`` selects the reference stages."""
+    """``MIXED_TRAFFIC_KERNELS=numpy`` at a process's start selects the reference stages."""
     import os
+    import subprocess
+    import sys
 
-    saved = os.environ.get(compiled.SWITCH)
-    try:
-        os.environ[compiled.SWITCH] = "numpy"
-        assert not compiled.enabled()
-        os.environ[compiled.SWITCH] = "numba"
-        assert compiled.enabled()
-    finally:
-        if saved is None:
-            os.environ.pop(compiled.SWITCH, None)
-        else:
-            os.environ[compiled.SWITCH] = saved
+    probe = "from mixed_traffic import compiled; print(compiled.enabled())"
+    for value, expected in (("numpy", "False"), ("numba", "True")):
+        env = dict(os.environ, **{compiled.SWITCH: value})
+        out = subprocess.run([sys.executable, "-c", probe], env=env, capture_output=True, text=True)
+        assert out.stdout.strip() == expected, (value, out.stderr[-300:])
 
 
 def _episode(metrics: bool, **kw) -> tuple[list, parallel_env]:

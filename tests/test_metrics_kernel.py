@@ -92,9 +92,9 @@ def test_metrics_kernel_equals_numpy(monkeypatch, scenario: str, penetration: fl
                                      kw: dict) -> None:  # fmt: skip
     """Crossings (entries, exits, arrivals), delay indices, densities, speeds, the speed
     spread around the AVs and every step's infos, with random actions, bit for bit."""
-    monkeypatch.setenv(compiled.SWITCH, "numpy")
+    monkeypatch.setattr(compiled, "ENABLED", False)
     ref = _episode(scenario, penetration, steps, **kw)
-    monkeypatch.setenv(compiled.SWITCH, "numba")
+    monkeypatch.setattr(compiled, "ENABLED", True)
     out = _episode(scenario, penetration, steps, **kw)
     _same(out, ref)
     # the compared values were measured, so a wrong kernel shows

@@ -61,7 +61,7 @@ def test_observation_kernel_equals_numpy(monkeypatch, scenario: str, kw: dict,
         calls.append(len(out[0]))
         return out
 
-    monkeypatch.setenv(compiled.SWITCH, "numba")
+    monkeypatch.setattr(compiled, "ENABLED", True)
     monkeypatch.setattr(ObservationBuilder, "_frame_compiled", both)
     random_episode(steps, scenario=scenario, **kw)
     assert sum(calls) > steps, "the kernel ran for the agents"
@@ -70,7 +70,7 @@ def test_observation_kernel_equals_numpy(monkeypatch, scenario: str, kw: dict,
 @needs_numba
 def test_observation_kernel_switch_off(monkeypatch) -> None:
     """``MIXED_TRAFFIC_KERNELS=numpy`` builds the frame with the numpy stages."""
-    monkeypatch.setenv(compiled.SWITCH, "numpy")
+    monkeypatch.setattr(compiled, "ENABLED", False)
 
     def fail(*args):
         raise AssertionError("the kernel ran")
@@ -83,7 +83,7 @@ def test_observation_kernel_switch_off(monkeypatch) -> None:
 def test_observation_warm_loads_the_kernel_the_env_calls(monkeypatch) -> None:
     """``warm()`` (the sweep's fork server calls it) loads the specialisation a real step uses,
     so forked cells add none."""
-    monkeypatch.setenv(compiled.SWITCH, "numba")
+    monkeypatch.setattr(compiled, "ENABLED", True)
     observation_kernel.warm()
     random_episode(1, seed=0, policy="keep", scenario="ring", penetration=1 / 22)
     assert len(observation_kernel.features.signatures) == 1

@@ -30,9 +30,9 @@ def _both(monkeypatch, fn, found: list):
     """``fn`` run with the numpy stages and with the kernels on the same inputs, compared."""
 
     def both(*args, **kw):
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = fn(*args, **kw)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = fn(*args, **kw)
         _same_bits(out, ref)
         found.append(int((ref[0] >= 0).sum()))
@@ -94,9 +94,9 @@ def test_in_the_way_kernel_equals_numpy(monkeypatch, scenario: str, penetration:
 
     def both(snap, hdmap, rows, vehicle, distance, *args):
         v_ref, d_ref = vehicle.copy(), distance.copy()
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = in_the_way(snap, hdmap, rows, v_ref, d_ref, *args)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = in_the_way(snap, hdmap, rows, vehicle, distance, *args)
         _same_bits((*out, vehicle, distance), (*ref, v_ref, d_ref))
         taken.append(int(ref[0].sum()))

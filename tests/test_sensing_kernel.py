@@ -45,9 +45,9 @@ def _arrays(f: PerceptionFrame) -> tuple:
 
 def _both(monkeypatch, fn):
     """``fn`` with the numpy stage and with the kernel on the same inputs: (out, ref)."""
-    monkeypatch.setenv(compiled.SWITCH, "numpy")
+    monkeypatch.setattr(compiled, "ENABLED", False)
     ref = fn()
-    monkeypatch.setenv(compiled.SWITCH, "numba")
+    monkeypatch.setattr(compiled, "ENABLED", True)
     return fn(), ref
 
 
@@ -154,11 +154,11 @@ def test_noise_kernels_equal_numpy(monkeypatch, scenario: str, penetration: floa
 
     def degrade(truth, w, sensors, rng):
         start = rng.bit_generator.state
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = noise.degrade(truth, w, sensors, rng)
         end = rng.bit_generator.state
         rng.bit_generator.state = start
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = noise.degrade(truth, w, sensors, rng)
         assert rng.bit_generator.state == end, "the same draws"
         _same_bits(_arrays(out), _arrays(ref))

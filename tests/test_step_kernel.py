@@ -28,9 +28,9 @@ def test_event_reasons_kernel_equals_numpy(monkeypatch) -> None:
     stage, events = termination.event_reasons, Counter()
 
     def both(*args):
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = stage(*args)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = stage(*args)
         same_bits(out, ref)
         events["calls"] += len(out)
@@ -53,9 +53,9 @@ def test_reward_terms_kernel_equals_numpy(monkeypatch) -> None:
     stage, hits = reward.reward_terms, Counter()
 
     def both(cfg, dt, **kw):
-        monkeypatch.setenv(compiled.SWITCH, "numpy")
+        monkeypatch.setattr(compiled, "ENABLED", False)
         ref = stage(cfg, dt, **kw)
-        monkeypatch.setenv(compiled.SWITCH, "numba")
+        monkeypatch.setattr(compiled, "ENABLED", True)
         out = stage(cfg, dt, **kw)
         assert list(out) == list(ref)
         same_bits(out, ref)
@@ -76,9 +76,9 @@ def test_episode_kernels_equal_numpy(monkeypatch, kw: dict, steps: int) -> None:
     """The same seeded episode with every numpy stage and with every kernel: observations,
     rewards, every named reward term, terminations, truncations and infos at every step, and
     the episode metrics at the end; some reward terms are not zero."""
-    monkeypatch.setenv(compiled.SWITCH, "numpy")
+    monkeypatch.setattr(compiled, "ENABLED", False)
     ref = random_episode(steps, action_seed=3, end_metrics=True, **kw)
-    monkeypatch.setenv(compiled.SWITCH, "numba")
+    monkeypatch.setattr(compiled, "ENABLED", True)
     out = random_episode(steps, action_seed=3, end_metrics=True, **kw)
     assert len(out) == len(ref) > 10
     same_bits(out, ref)
