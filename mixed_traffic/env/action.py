@@ -179,6 +179,11 @@ def stack_actions(
     return decision, params
 
 
+def no_actions() -> tuple[np.ndarray, np.ndarray]:
+    """The stacked actions of no agent (a step nobody acts in)."""
+    return np.zeros(0, np.int64), np.zeros((0, N_DECISIONS, N_PARAMS))
+
+
 def stack_batch(
     decision: Any, params: Any, agents: Sequence[str], space: spaces.Dict | None = None
 ) -> tuple[np.ndarray, np.ndarray]:

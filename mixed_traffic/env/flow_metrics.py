@@ -356,6 +356,13 @@ class FlowRecorder:
         actual, free = self._per_vehicle(ids)
         return delay_index(actual, free)
 
+    def mean_delay_index(self, ids: Iterable[str]) -> float | None:
+        """Mean delay index of the vehicles ``ids`` seen in the measurement segment (None: none
+        was)."""
+        di = self.delay_index(ids)
+        di = di[np.isfinite(di)] if len(di) else di
+        return float(np.mean(di)) if len(di) else None
+
     def trip_delay_index(self, ids: Iterable[str]) -> np.ndarray:
         """(len(ids),) delay index over each vehicle's whole observed time in the network."""
         k = self._known(ids)

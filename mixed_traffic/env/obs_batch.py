@@ -1,33 +1,14 @@
 """The observations of one step as batches: what a batched policy wants, without stacking the
-per-agent dicts of the PettingZoo API again (``MixedTrafficEnv.observation_batch``); and what
-``MixedTrafficEnv.step_batch`` returns instead of those dicts."""
+per-agent dicts of the PettingZoo API again (``MixedTrafficEnv.observation_batch``)."""
 
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from itertools import chain, repeat
-from typing import NamedTuple
 
 import numpy as np
 
 Arrays = Mapping[str, np.ndarray]
-
-
-class BatchStep(NamedTuple):
-    """One ``step_batch``: rows follow ``agents``, the A agents that acted."""
-
-    agents: list[str]
-    """(A,) the agents that acted, in the order of their actions."""
-    rewards: np.ndarray
-    """(A,) float64 rewards (``step``'s)."""
-    terminated: np.ndarray
-    """(A,) bool: the agent's trip ended (``events`` says why)."""
-    truncated: np.ndarray
-    """(A,) bool: the episode reached its time limit."""
-    events: list[str]
-    """(A,) 'arrived', a terminal reason, or ''."""
-    entered: list[str]
-    """Agents that entered the network this step (they act from the next step on)."""
 
 
 class StepBatches:

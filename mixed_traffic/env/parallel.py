@@ -56,7 +56,7 @@ import contextlib
 import shutil
 from collections.abc import Sequence
 from dataclasses import replace
-from itertools import compress, repeat
+from itertools import compress
 from pathlib import Path
 from typing import Any, ClassVar
 
@@ -70,6 +70,7 @@ from mixed_traffic.env import checks
 from mixed_traffic.env.action import (
     action_space,
     allowed_decisions,
+    no_actions,
     stack_actions,
     stack_batch,
     to_physical,
@@ -78,8 +79,9 @@ from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
 from mixed_traffic.env.av_metrics import AVMetrics
 from mixed_traffic.env.control import BicycleController
 from mixed_traffic.env.flow_metrics import FlowRecorder
-from mixed_traffic.env.obs_batch import BatchStep, StepBatches
+from mixed_traffic.env.obs_batch import StepBatches
 from mixed_traffic.env.reward import agent_rewards
+from mixed_traffic.env.step_output import BatchStep, add_entered, api_dicts, batch_step
 from mixed_traffic.env.step_truth import av_step, step_memory
 from mixed_traffic.env.sumo_sync import fan_choices, follow_sumo_routes, give_way_gates
 from mixed_traffic.env.termination import agent_events
@@ -259,7 +261,7 @@ class MixedTrafficEnv(ParallelEnv):
         limit = min(self.sim_time + cfg.reset_wait, end)
         obs: dict[str, dict] = {}
         while not self.agents and self.sim_time < limit - 1e-9:
-            obs, *_ = self._step_once(*_no_actions())
+            obs, *_ = self._step_once(*no_actions())
         if not self.agents and not allow_none:
             within = (f"within reset_wait={cfg.reset_wait} s" if limit < end - 1e-9
                       else f"during the {cfg.episode_length} s episode")  # fmt: skip
@@ -296,7 +298,7 @@ class MixedTrafficEnv(ParallelEnv):
         entered = list(out.entered)
         if self._idles():  # run on until an AV enters or the episode ends, as step() does
             while not self.agents and self._phase == "running":
-                entered += self._step_once(*_no_actions(), False).entered
+                entered += self._step_once(*no_actions(), False).entered
         return out._replace(entered=entered)
 
     def _step_once(self, decision: np.ndarray, params: np.ndarray, dicts: bool = True):
@@ -326,9 +328,7 @@ class MixedTrafficEnv(ParallelEnv):
         """Run on with nobody acting until an AV enters (its entries join the step's dicts)
         or the episode ends (every info then carries ``"episode"``): ``while env.agents:``."""
         while not self.agents and self._phase == "running":
-            for mine, theirs in zip(
-                (obs, rew, term, trunc, infos), self._step_once(*_no_actions())
-            ):
+            for mine, theirs in zip((obs, rew, term, trunc, infos), self._step_once(*no_actions())):
                 mine.update(theirs)
         if self._phase == "ended":
             self._summarise(infos)
@@ -458,14 +458,10 @@ class MixedTrafficEnv(ParallelEnv):
         agents = list(self.agents)
         ended = set() if cfg.fixed_fleet else set(done).intersection(agents)
         if dicts:
-            out = self._api_dicts(agents, ended, truncate, obs, rewards, terms, events)
+            out = api_dicts(agents, ended, truncate, obs, rewards, terms, events, self._replaced,
+                            lambda a: self._batches.last_obs(a) or self._empty_obs)  # fmt: skip
         else:
-            out = BatchStep(
-                agents, np.fromiter(map(rewards.get, agents, repeat(0.0)), np.float64, len(agents)),
-                np.fromiter(map(ended.__contains__, agents), bool, len(agents)),
-                np.fromiter((truncate and a not in ended for a in agents), bool, len(agents)),
-                list(map(events.get, agents, repeat(""))), [],
-            )  # fmt: skip
+            out = batch_step(agents, ended, truncate, rewards, events)
         self._forget(done)
         if not cfg.fixed_fleet:
             table.finished.update(done)
@@ -474,7 +470,7 @@ class MixedTrafficEnv(ParallelEnv):
         if new:
             new_obs = self._observe_new(snap, new, dicts)
             if dicts:
-                self._enter(out, new, new_obs)
+                add_entered(out, new, new_obs, cfg.fixed_fleet)
             else:
                 out.entered.extend(new)
         if truncate:
@@ -484,33 +480,6 @@ class MixedTrafficEnv(ParallelEnv):
                 self._summarise(out[4])
         self._snap = snap
         return out
-
-    def _api_dicts(self, agents: list[str], ended: set[str], truncate: bool, obs, rewards, terms,
-                   events) -> tuple[dict, dict, dict, dict, dict]:  # fmt: skip
-        """The PettingZoo dicts of the agents that acted, filled by C-level maps and patched
-        where an event happened."""
-        terminated = dict.fromkeys(agents, False)
-        terminated.update(dict.fromkeys(ended, True))
-        truncated = dict.fromkeys(agents, truncate)
-        truncated.update(dict.fromkeys(ended, False))
-        infos = {a: {"reward_terms": t if t is not None else {}, "event": e}
-                 for a, t, e in zip(agents, map(terms.get, agents), map(events.get, agents, repeat("")))}  # fmt: skip
-        for a in self._replaced.intersection(infos):
-            infos[a]["decision_replaced"] = True
-        obs_out = dict(zip(agents, map(obs.get, agents)))
-        for a in [a for a, o in obs_out.items() if o is None]:  # not observed this step
-            obs_out[a] = self._batches.last_obs(a) or self._empty_obs
-        rew_out = dict(zip(agents, map(rewards.get, agents, repeat(0.0))))
-        return obs_out, rew_out, terminated, truncated, infos
-
-    def _enter(self, out: tuple[dict, ...], new: list[str], new_obs: dict[str, dict]) -> None:
-        """Add the agents that entered (``new``, their observations) to the step's dicts."""
-        obs_out, rew_out, terminated, truncated, infos = out
-        for a in new:
-            if a not in obs_out or self.config.fixed_fleet:
-                obs_out[a], rew_out[a] = new_obs[a], rew_out.get(a, 0.0)
-                terminated[a], truncated[a] = False, False
-                infos.setdefault(a, {"reward_terms": {}, "event": ""})["event"] = "entered"
 
     def _forget(self, done: list[str]) -> None:
         """Free what finished agents hold (history slots; last observations, which are views
@@ -571,9 +540,7 @@ class MixedTrafficEnv(ParallelEnv):
         out: dict[str, Any] = dict.fromkeys(METRICS)
         out.update(self._recorder("episode_metrics").summary())
         out.update(self._av.summary())
-        di = self._flow.delay_index(sorted(self._av.rear_vehicles))
-        di = di[np.isfinite(di)] if len(di) else di
-        out["avg_di_c"] = float(np.mean(di)) if len(di) else None
+        out["avg_di_c"] = self._flow.mean_delay_index(sorted(self._av.rear_vehicles))
         return out
 
     def flow_diagnostics(self) -> dict[str, float | int | None]:
@@ -600,17 +567,11 @@ class MixedTrafficEnv(ParallelEnv):
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._snap is None:
             return None
-        if self._renderer is None:
-            from mixed_traffic.env.render import Renderer
+        from mixed_traffic.env.render import Renderer
 
-            self._renderer = Renderer(self.hdmap)
-        snap = self._snap
-        centre = None
-        rows = self._table.live_rows(snap)
-        if rows:
-            i = next(iter(rows.values()))
-            centre = np.array([snap.x[i], snap.y[i]])
-        return self._renderer.draw(snap, centre, self._tls)
+        self._renderer = self._renderer or Renderer(self.hdmap)
+        rows = self._table.live_rows(self._snap)  # centred on the first agent, if any
+        return self._renderer.draw(self._snap, rows.r[0] if rows else None, self._tls)
 
     def close(self) -> None:
         self._backend.close()
@@ -626,11 +587,6 @@ class MixedTrafficEnv(ParallelEnv):
         so copies neither overwrite each other's route file nor delete it on close."""
         self.__dict__.update(state)
         self._tmp = scratch_dir()
-
-
-def _no_actions() -> tuple[np.ndarray, np.ndarray]:
-    """The stacked actions of no agent (a step nobody acts in)."""
-    return np.zeros(0, np.int64), np.zeros((0, 3, 2))
 
 
 def parallel_env(**kwargs: Any) -> MixedTrafficEnv:

@@ -54,12 +54,15 @@ class Renderer:
     def draw(
         self,
         snap: TrafficSnapshot,
-        centre: np.ndarray | None = None,
+        centre: np.ndarray | int | None = None,
         tls_state: dict[str, str] | None = None,
     ) -> np.ndarray:
-        """(H, W, 3) uint8 image of the window around ``centre`` (x, y) [m]."""
+        """(H, W, 3) uint8 image of the window around ``centre`` (x, y) [m] or the vehicle in
+        that snapshot row (int; default: the vehicles' mean)."""
         v = self.view
         w, h = int(v.width_m * v.px_per_m), int(v.height_m * v.px_per_m)
+        if isinstance(centre, int | np.integer):
+            centre = np.array([snap.x[centre], snap.y[centre]])
         if centre is None:
             centre = (
                 np.array([snap.x.mean(), snap.y.mean()])
