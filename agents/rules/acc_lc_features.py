@@ -65,12 +65,11 @@ def features(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarr
 
 def _features_compiled(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[str, np.ndarray]:
     """:func:`_features_reference` in one kernel."""
-    scale = np.array([c.lidar_range, SPEED_SCALE, np.pi, EGO_SCALE[2], 5.0, 2.0])
     arrays = [np.asarray(ob[k]) for k in ("ego", "lanes", "vehicles", "lights", "node_mask",
                                           "action_mask", "limits", "signals", "give_way")]  # fmt: skip
     out = acc_lc_features_kernel.decode(
         *arrays, c.dt, c.long_length, c.preview_range, c.camera_range, EGO_SCALE,
-        WAYPOINT_SCALE, scale, SPEED_SCALE,
+        WAYPOINT_SCALE, _neighbour_scale(c), SPEED_SCALE,
     )  # fmt: skip
     return dict(zip(_KEYS, out))
 
@@ -89,7 +88,7 @@ def _features_reference(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[st
     f["wp_speed"] = wp[..., 3]  # (A, 3, m)
     f["wp_orient"] = wp[..., 2]
     _preview_features(f, ob, c)
-    scale = np.array([c.lidar_range, SPEED_SCALE, np.pi, EGO_SCALE[2], 5.0, 2.0])
+    scale = _neighbour_scale(c)
     _neighbour_features(f, veh, scale, A)
     _history_features(f, veh, scale, dh, valid, c.dt)
     f["vlen"] = _length(veh[:, :, -1].reshape(A, 3, 2, 6)[..., 3], c)
@@ -105,6 +104,12 @@ def _features_reference(ob: Mapping[str, np.ndarray], c: AccLcConfig) -> dict[st
     # an older observation has no give_way key: every line may then be one
     f["give_way"] = np.asarray(ob["give_way"])[:, 1] > 0 if "give_way" in ob else np.ones(A, bool)
     return f
+
+
+def _neighbour_scale(c: AccLcConfig) -> np.ndarray:
+    """(6,) scales of a neighbour's columns: distance, relative speed, heading, length, width,
+    lateral offset."""
+    return np.array([c.lidar_range, SPEED_SCALE, np.pi, EGO_SCALE[2], 5.0, 2.0])
 
 
 def _length(norm: np.ndarray, c: AccLcConfig) -> np.ndarray:
