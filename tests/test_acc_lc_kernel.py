@@ -115,13 +115,17 @@ def test_kernel_off_runs_the_reference(monkeypatch) -> None:
 
 
 def test_warm_loads_the_kernels_a_plan_calls() -> None:
-    """``warm()`` (the sweep's fork server calls it) loads the specialisations a real episode
-    uses, so forked cells add none."""
-    from agents.rules import acc_lc_kernel
+    """``warm()`` (the sweep's fork server calls it) loads the specialisations that ACC-LC's and
+    AUTO's episodes use, so forked cells compile none. (A test worker may hold others from
+    earlier tests: the check is that the episodes add none.)"""
+    from agents.rules import acc_lc_features_kernel, acc_lc_kernel, acc_lc_plan_kernel
 
     acc_lc.warm()
-    cfg = EnvConfig(scenario="straight", penetration=0.3, episode_length=2.0)
-    assert run_episode(cfg, "acc-lc", 0.0)["status"] == "ok"
-    assert len(acc_lc_kernel.idm_inputs.signatures) == 1
-    assert len(acc_lc_kernel.combine.signatures) == 1
-    assert len(acc_lc_kernel.rss_caps.signatures) == 1
+    kernels = [acc_lc_kernel.idm_inputs, acc_lc_kernel.combine, acc_lc_kernel.rss_caps,
+               acc_lc_features_kernel.decode, acc_lc_plan_kernel.decision]  # fmt: skip
+    warmed = [len(k.signatures) for k in kernels]
+    assert min(warmed) >= 1
+    for policy in ("acc-lc", "auto"):
+        cfg = EnvConfig(scenario="straight", penetration=0.3, episode_length=2.0)
+        assert run_episode(cfg, policy, 0.0)["status"] == "ok"
+    assert [len(k.signatures) for k in kernels] == warmed

@@ -83,7 +83,8 @@ def _ray_task_pids(name: bytes) -> list[int]:
 
 
 def test_a_killed_sweep_worker_is_a_failed_cell_that_the_next_run_retries(tmp_path: Path) -> None:
-    _kill_one_cell_and_rerun(tmp_path / "res", ["--episode-length", "30"], _cell_workers,
+    # 90 s episodes: a cell lasts several seconds (a 30 s cell ended before the kill)
+    _kill_one_cell_and_rerun(tmp_path / "res", ["--episode-length", "90"], _cell_workers,
                              patience=60, pause=1.0,
                              error="worker process died with exit code -9")  # fmt: skip
 
