@@ -290,9 +290,9 @@ class MixedTrafficEnv(ParallelEnv):
 
     def step_batch(self, decision: Any, params: Any) -> BatchStep:
         """``step`` for batched policies: ``decision`` (A,) and ``params`` (A, 3, 2) of the A
-        live agents in ``env.agents`` order. Runs the same step without the per-agent dicts of
-        the PettingZoo API (no ``infos``: the reward terms are in ``step``'s); the next
-        observations are ``observation_batch()``, the metrics and records are the same."""
+        live agents in ``env.agents`` order. The same step without the PettingZoo per-agent
+        dicts (no ``infos`` with reward terms, no last observation of an agent that ended);
+        the next observations are ``observation_batch()``, the metrics are the same."""
         checks.check_phase(self._phase, self.config.episode_length)
         out = self._step_once(*stack_batch(decision, params, self.agents, self._act_space), False)
         entered = list(out.entered)
