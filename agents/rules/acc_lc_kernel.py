@@ -1,14 +1,16 @@
 """ACC-LC's candidate-lane accelerations (:func:`agents.rules.acc_lc_longitudinal.lane_accels`)
-as two compiled kernels around the numpy IDM.
+as two compiled kernels around numpy's powers, and the RSS caps (:func:`rss_caps`).
 
 ``idm_inputs`` builds, per agent, what the numpy stages build with whole arrays: each lane's
 speed limits (curves, limits and the preview ahead) and every call's leaders (overlap,
-cooperation, the virtual end-of-lane vehicle), as the IDM's input columns. The IDM itself stays
-numpy: its non-integer powers (IIDM) use numpy's vectorised ``power``, which differs from libm's
-(the only one a kernel can call) in the last bit. ``combine`` then bounds each lane by its limits
-and light and takes every call's minimum over its leaders. Both kernels do the numpy stages'
-floating-point operations in the same order, so the results are equal bit for bit
-(tests/test_fast_paths.py checks it on SUMO states); the numpy stages stay the reference.
+cooperation, the virtual end-of-lane vehicle), as one entry per IDM term ACC-LC reads (gap,
+closing speed, standstill gap and the IDM's z). The IDM's powers stay numpy's: its vectorised
+``power`` differs from libm's (the only one a kernel can call) in the last bit; IIDM's free-road
+terms are taken once per lane and agent, z's power only for the terms that read it. ``combine``
+then computes each term's acceleration (IDM or IIDM, the kinematic emergency term), bounds each
+lane by its limits and light and takes every call's minimum over its leaders. The kernels do the
+numpy stages' floating-point operations in the same order, so the results are equal bit for bit
+(tests/test_acc_lc_kernel.py checks it on SUMO states); the numpy stages stay the reference.
 """
 
 from __future__ import annotations
