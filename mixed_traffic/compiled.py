@@ -61,3 +61,12 @@ def minimum(a: float, b: float) -> float:
 def maximum(a: float, b: float) -> float:
     """``np.maximum`` of two floats in a kernel: the NaN where either is NaN, ``b`` on a tie."""
     return a if (a > b or a != a) else b
+
+
+@inline
+def clip(x: float, lo: float, hi: float) -> float:
+    """``np.clip`` of one float in a kernel: the maximum with ``lo``, then the minimum with
+    ``hi`` (``hi`` when ``lo`` > ``hi``); a NaN stays NaN, and ``x`` on a tie
+    (``clip(-0.0, 0.0, 1.0)`` is -0.0, as numpy's)."""
+    y = lo if x < lo else x
+    return hi if y > hi else y

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mixed_traffic.compiled import inline, maximum, minimum, njit
+from mixed_traffic.compiled import clip, inline, maximum, minimum, njit
 
 _L, _C, _R = 0, 1, 2
 _TWO_PI = 2 * np.pi
@@ -149,8 +149,7 @@ def _idm_acc(v, v0, z, p3, free, gap, dv, s0, iidm, a_max, max_decel_2, e_decel,
     v_lead = maximum(v - dv, 0.0)
     room = maximum(gap - minimum(1.0, 0.5 * s0) + v_lead * v_lead / max_decel_2, 0.05)
     need = v * v / (2 * room) if np.isfinite(gap) else 0.0
-    r = (need - e_decel) / e_span
-    r = 0.0 if r < 0.0 else (1.0 if r > 1.0 else r)  # np.clip: NaN and -0.0 stay
+    r = clip((need - e_decel) / e_span, 0.0, 1.0)
     return minimum(acc, (1.0 - r) * acc - r * 1.2 * need)
 
 

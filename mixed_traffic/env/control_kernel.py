@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mixed_traffic.compiled import inline, njit
+from mixed_traffic.compiled import clip, inline, maximum, minimum, njit
 
 
 @njit
@@ -53,18 +53,13 @@ def frenet_compute(v, psi, body, length, r, lateral, accel, kappa, beta, lr, dt,
     course_out, body_out = np.empty(A), np.empty(A)
     for a in range(A):
         k = r[a]
-        b, d, kap = beta[a], lateral[a], kappa[a]
-        v_new = _max(v[k] + accel[a] * dt, 0.0)
-        yaw_rate = v_new * np.sin(b) / lr
-        scale = 1.0 / _max(1.0 - kap * d, 0.1)
-        s_dot0 = v_new * np.cos(_clip(psi[k] + b, -max_course, max_course)) * scale
-        psi_new = psi[k] + (yaw_rate - kap * s_dot0) * dt
-        psi_new = _clip(psi_new + b, -max_course, max_course) - b
-        course = _clip(0.5 * (psi[k] + psi_new) + b, -max_course, max_course)
+        d = lateral[a]
+        v_new, psi_new, course, scale = _frenet(v[k], psi[k], d, accel[a], kappa[a], beta[a], lr,
+                                                dt, max_course)  # fmt: skip
         ds = v_new * np.cos(course) * scale * dt
         dd = v_new * np.sin(course) * dt
         # SUMO's rear point trails the front's lateral path (control's module docstring)
-        body_new = body[k] * (1.0 - _min(ds / length[k], 1.0)) + dd
+        body_new = body[k] * (1.0 - minimum(ds / length[k], 1.0)) + dd
         v[k], psi[k], body[k] = v_new, psi_new, body_new
         speed[a], move[a], intended[a] = ds / dt, dd, d + dd
         course_out[a], body_out[a] = course, body_new
@@ -79,19 +74,27 @@ def frenet_rollout(v, psi, d, accel, kappa, beta, lr, dt, steps, max_course):
     A = len(v)
     out = np.empty(A)
     for a in range(A):
-        va, pa, da, b, kap = v[a], psi[a], d[a], beta[a], kappa[a]
+        va, pa, da = v[a], psi[a], d[a]
         for _ in range(steps):
-            v_new = _max(va + accel[a] * dt, 0.0)
-            yaw_rate = v_new * np.sin(b) / lr
-            scale = 1.0 / _max(1.0 - kap * da, 0.1)
-            s_dot0 = v_new * np.cos(_clip(pa + b, -max_course, max_course)) * scale
-            psi_new = pa + (yaw_rate - kap * s_dot0) * dt
-            psi_new = _clip(psi_new + b, -max_course, max_course) - b
-            course = _clip(0.5 * (pa + psi_new) + b, -max_course, max_course)
-            da = da + v_new * np.sin(course) * dt
-            va, pa = v_new, psi_new
+            va, pa, course, _ = _frenet(va, pa, da, accel[a], kappa[a], beta[a], lr, dt,
+                                        max_course)  # fmt: skip
+            da = da + va * np.sin(course) * dt
         out[a] = da
     return out
+
+
+@inline
+def _frenet(v, psi, d, accel, kap, b, lr, dt, max_course):
+    """One agent's ``bicycle_frenet_step`` up to its course: (new speed, new yaw, course, the
+    along-lane scale 1 / (1 - κ d)), the operations in the numpy step's order."""
+    v_new = maximum(v + accel * dt, 0.0)
+    yaw_rate = v_new * np.sin(b) / lr
+    scale = 1.0 / maximum(1.0 - kap * d, 0.1)
+    s_dot0 = v_new * np.cos(clip(psi + b, -max_course, max_course)) * scale
+    psi_new = psi + (yaw_rate - kap * s_dot0) * dt
+    psi_new = clip(psi_new + b, -max_course, max_course) - b
+    course = clip(0.5 * (psi + psi_new) + b, -max_course, max_course)
+    return v_new, psi_new, course, scale
 
 
 @njit
@@ -191,30 +194,6 @@ def _decision_col(d):
     if d < -3 or d >= 3:
         raise IndexError("decision outside the action space")
     return d + 3 if d < 0 else d
-
-
-@inline
-def _max(x, lo):
-    """np.maximum of one float and a bound: NaN propagates, -0.0 against 0.0 gives 0.0."""
-    if x != x or x > lo:
-        return x
-    return lo
-
-
-@inline
-def _min(x, hi):
-    """np.minimum of one float and a non-zero bound: NaN propagates."""
-    if x != x or x < hi:
-        return x
-    return hi
-
-
-@inline
-def _clip(x, lo, hi):
-    """np.clip of one float to non-zero bounds: NaN propagates, -0.0 stays."""
-    if x != x:
-        return x
-    return min(max(x, lo), hi)
 
 
 def warm() -> None:

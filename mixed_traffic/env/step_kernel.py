@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from mixed_traffic.compiled import inline, njit
+from mixed_traffic.compiled import clip, inline, njit
 
 #: Codes of ``event_codes``: 0 = none, then ``TERMINAL_REASONS``' order from 1 (collision).
 OFF_ROAD, ROUTE_DEVIATION, RED_LIGHT, SPEED_LIMIT = 2, 3, 4, 5
@@ -133,7 +133,7 @@ def reward_terms(
         change = _gap(gap_new[a], lidar_range, min_gap) / _gap(gap_old[a], lidar_range, min_gap)
         change -= 1.0
         if cap > 0:
-            change = _clip(change, -cap, cap)
+            change = clip(change, -cap, cap)
         r2_change[a] = change * gain if lane_changed[a] else 0.0
         r3[a] = -abs(accel[a] - prev_accel[a]) / (2.0 * acc_threshold)
         dv = rear_speed_now[a] - rear_speed_prev[a]
@@ -144,17 +144,9 @@ def reward_terms(
 
 
 @inline
-def _clip(x, lo, hi):
-    """np.clip of one float: max then min, NaN propagating."""
-    if x != x:
-        return x
-    return min(max(x, lo), hi)
-
-
-@inline
 def _gap(g, lidar_range, min_gap):
     """A bumper gap for the lane-change ratio [m]: none (NaN/inf) = the range, clipped."""
-    return _clip(g if np.isfinite(g) else lidar_range, min_gap, lidar_range)
+    return clip(g if np.isfinite(g) else lidar_range, min_gap, lidar_range)
 
 
 def conn_keys(conn_to: dict, n_edges: int) -> np.ndarray:

@@ -12,21 +12,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from mixed_traffic.compiled import inline, njit
+from mixed_traffic.compiled import clip, inline, njit
 
 _CURRENT = 1
 #: ``sensing.camera.NO_LIGHT``.
 _NO_LIGHT = -1
-
-
-@inline
-def _clip(x, lo, hi):
-    """``np.clip`` of a scalar (NaN passes through, as in numpy)."""
-    if x < lo:
-        return lo
-    if x > hi:
-        return hi
-    return x
 
 
 @inline
@@ -79,7 +69,7 @@ def features(
     for a in range(A):
         r = rows[a]
         for f in range(5):
-            ego[a, f] = _clip(ego_in[a, f] / ego_scale[f], -1.0, 1.0)
+            ego[a, f] = clip(ego_in[a, f] / ego_scale[f], -1.0, 1.0)
         mandatory, end_dist = _action_mask(
             a, r, lanes, nxt, after, lane_pos, lane_length, lane_edge, edge_lanes, lane_index,
             edge_length, exit_lane, conn_keys, conn_vals, n_edges, short_edge,
@@ -105,7 +95,7 @@ def features(
             for s in range(3):
                 lights[a, c, s] = 1.0 if (light_state[a, c] == s) and on else 0.0
             x = light_dist[a, c] / camera_range if on else 0.0
-            lights[a, c, 3] = _clip(x, -reach, reach) if reach > 1.0 else _clip(x, -1.0, 1.0)
+            lights[a, c, 3] = clip(x, -reach, reach) if reach > 1.0 else clip(x, -1.0, 1.0)
             node[a, c, 0] = lanes[a, c] >= 0
             node[a, c, 2] = on and lanes[a, c] >= 0
         gw[a, _CURRENT] = give_way[a] and light_state[a, _CURRENT] != _NO_LIGHT
@@ -172,7 +162,7 @@ def _waypoints(a, r, lanes, pos, via, z, heading, lane_index, wp_offset, wp_coun
                 np.float64(wp_speed[w]),
             )
             for i in range(4):
-                x = _clip(f[i] / wp_scale[4 * j + i], -1.0, 1.0)
+                x = clip(f[i] / wp_scale[4 * j + i], -1.0, 1.0)
                 wp[a, c, 4 * j + i] = x if lanes[a, c] >= 0 else 0.0
 
 
@@ -224,7 +214,7 @@ def _signals(a, lanes, pos, via, nxt, after, lane_length, exit_lane, exit_dist, 
         if tl < 0:
             dist = far if (tl2 >= 0 and beyond >= 0) else np.inf
         if lanes[a, c] >= 0 and dist <= rng:
-            signals[a, c] = _clip(dist / rng, 1e-4, 1.0)
+            signals[a, c] = clip(dist / rng, 1e-4, 1.0)
 
 
 @inline
@@ -242,7 +232,7 @@ def _vehicles(a, lanes, veh_in, found_in, mandatory, end_dist, ego_speed, lane_w
                 if is_virt:  # the stopped vehicle at the lane's end
                     x = (end_dist, -ego_speed, 0.0, 0.0, width, 0.0)[f]
                 x = x / veh_scale[f]
-                x = _clip(x, -reach, reach) if (f == 0 and reach > 1.0) else _clip(x, -1.0, 1.0)
+                x = clip(x, -reach, reach) if (f == 0 and reach > 1.0) else clip(x, -1.0, 1.0)
                 veh[a, c, 6 * s + f] = x if (found or is_virt) else 0.0
             if found or is_virt:
                 node[a, c, 1] = 1
