@@ -72,6 +72,14 @@ def waypoint_curvature(hdmap: HDMap, window: int = CURVATURE_WINDOW) -> np.ndarr
     return raw[hdmap.ahead_table(window)].mean(axis=1)
 
 
+def side_slip(steer: np.ndarray, wheelbase: float) -> tuple[float, np.ndarray]:
+    """(l_r [m], β (A,) [rad]): the CoG's distance from the rear axle and the side-slip angle
+    β = arctan(l_r / L · tan δ) of steering angles ``steer`` (A,) [rad] (numpy's SIMD tan and
+    arctan, which the kernels take as given)."""
+    lr = 0.5 * wheelbase
+    return lr, np.arctan(lr / wheelbase * np.tan(steer))
+
+
 def bicycle_frenet_step(
     v: np.ndarray,
     psi: np.ndarray,
@@ -94,9 +102,8 @@ def bicycle_frenet_step(
         ``v_new`` [m/s], ``ds`` and ``dd`` displacement along/across the lane [m], ``psi_new``
         [rad] and ``course`` = ψ_mid + β relative to the lane [rad].
     """
-    lr = 0.5 * wheelbase
+    lr, beta = side_slip(steer, wheelbase)
     v_new = np.maximum(v + accel * dt, 0.0)
-    beta = np.arctan(lr / wheelbase * np.tan(steer))
     yaw_rate = v_new * np.sin(beta) / lr
     scale = 1.0 / np.maximum(1.0 - kappa * d, 0.1)
     s_dot0 = v_new * np.cos(np.clip(psi + beta, -max_course, max_course)) * scale
@@ -124,8 +131,7 @@ def bicycle_rollout(
     there). One kernel (``control_kernel.frenet_rollout``) unless ``compiled.enabled()`` is off;
     the step loop is the reference."""
     if compiled.enabled() and len(v):
-        lr = 0.5 * wheelbase
-        beta = np.arctan(lr / wheelbase * np.tan(steer))  # numpy's, as in the step
+        lr, beta = side_slip(steer, wheelbase)
         args = (np.ascontiguousarray(x, np.float64) for x in (v, psi, d, accel, kappa, beta))
         return control_kernel.frenet_rollout(*args, lr, dt, steps, MAX_COURSE)
     for _ in range(steps):
@@ -294,9 +300,7 @@ class BicycleController:
     ) -> ControlCommand:
         """``compute``'s arithmetic in ``control_kernel.frenet_compute``; β and the heading's
         arctan2 stay numpy's (its SIMD tan/arctan/arctan2 differ from libm's in the last bit)."""
-        wheelbase = self.vehicle.wheelbase
-        lr = 0.5 * wheelbase
-        beta = np.arctan(lr / wheelbase * np.tan(steer))  # as in bicycle_frenet_step
+        lr, beta = side_slip(steer, self.vehicle.wheelbase)
         f64 = np.float64
         speed, move, intended, course, body = control_kernel.frenet_compute(
             self.v, self.psi, self.body_offset, self.length, r, np.ascontiguousarray(lateral, f64),

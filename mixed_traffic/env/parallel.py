@@ -295,11 +295,10 @@ class MixedTrafficEnv(ParallelEnv):
         the next observations are ``observation_batch()``, the metrics are the same."""
         checks.check_phase(self._phase, self.config.episode_length)
         out = self._step_once(*stack_batch(decision, params, self.agents, self._act_space), False)
-        entered = list(out.entered)
         if self._idles():  # run on until an AV enters or the episode ends, as step() does
             while not self.agents and self._phase == "running":
-                entered += self._step_once(*no_actions(), False).entered
-        return out._replace(entered=entered)
+                out.entered.extend(self._step_once(*no_actions(), False).entered)
+        return out
 
     def _step_once(self, decision: np.ndarray, params: np.ndarray, dicts: bool = True):
         """One simulation step: the agents act (their stacked actions), SUMO moves; the

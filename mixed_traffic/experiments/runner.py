@@ -24,6 +24,7 @@ from tqdm import tqdm
 from agents.policies import checkpoint_path, make_policy, with_inputs
 from agents.rules.spec import parse_policy
 from mixed_traffic.config import EnvConfig
+from mixed_traffic.env.action import no_actions
 from mixed_traffic.env.checks import check_warmup
 from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.paths import cache_dir
@@ -209,7 +210,7 @@ def decide(env: MixedTrafficEnv, agent: Any) -> tuple[np.ndarray, np.ndarray, fl
     params (A, 3, 2)), and its inference time [s]; empty when no agent is live."""
     agents = list(env.agents)
     if not agents:
-        return np.zeros(0, np.int64), np.zeros((0, 3, 2)), 0.0
+        return *no_actions(), 0.0
     batch = env.observation_batch(agents)
     t = time.perf_counter()
     decision, params = agent.act(batch, agents)
