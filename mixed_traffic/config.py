@@ -22,6 +22,8 @@ SECOND_INSTANCE = ("traci", "error")
 LANE_TERMS = ("offset", "waypoint")
 #: Highest density accepted, veh/km per lane: a 5 m car plus a 2 m standstill gap.
 JAM_DENSITY_PER_LANE = 1000.0 / 7.0
+#: Episode length where neither the config nor the scenario's spec gives one [s].
+DEFAULT_EPISODE_LENGTH = 120.0
 #: Circumferences a ring scenario may be scaled to [m] (``EnvConfig.ring_length``).
 RING_LENGTH_RANGE = (150.0, 400.0)
 
@@ -339,8 +341,9 @@ class EnvConfig:
     """Weather preset: normal | rain | fog | night (sensor noise and misdetection)."""
     seed: int = 0
     """Root seed for SUMO, demand, sensor noise, numpy and torch."""
-    episode_length: float = 120.0
-    """Simulated time per episode [s]; reaching it truncates."""
+    episode_length: float | None = None
+    """Simulated time per episode [s]; reaching it truncates. None = the scenario's (120 s
+    unless its spec gives one: wave-highway's queue needs 420 s)."""
     step_length: float = 0.1
     """Simulation and decision step dt [s] (paper: 0.1 s)."""
     lateral_resolution: float = 0.8
@@ -388,11 +391,9 @@ class EnvConfig:
         _check_choice(self, "second_instance", SECOND_INSTANCE)
         if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
             raise ValueError(f"EnvConfig.seed={self.seed!r} must be an integer >= 0")
-        _check_range(self, "episode_length", 0.0, 86400.0, lo_open=True)
         _check_range(self, "step_length", 0.01, 1.0)
-        if self.episode_length < self.step_length:
-            raise ValueError(f"EnvConfig.episode_length={self.episode_length!r} is shorter than one "
-                             f"step (step_length={self.step_length!r})")  # fmt: skip
+        if self.episode_length is not None:
+            self._check_episode_length()
         _check_bool(self, "fixed_fleet")
         _check_bool(self, "v2x")
         if self.ring_vehicles is not None:
@@ -409,6 +410,12 @@ class EnvConfig:
             if not isinstance(getattr(self, name), cls):
                 raise ValueError(f"EnvConfig.{name}={getattr(self, name)!r} must be a "
                                  f"{cls.__name__}(...) (a dict goes through EnvConfig.from_dict)")  # fmt: skip
+
+    def _check_episode_length(self) -> None:
+        _check_range(self, "episode_length", 0.0, 86400.0, lo_open=True)
+        if self.episode_length < self.step_length:
+            raise ValueError(f"EnvConfig.episode_length={self.episode_length!r} is shorter than one "
+                             f"step (step_length={self.step_length!r})")  # fmt: skip
 
     def _check_ring_length(self) -> None:
         """Accept one length, a (low, high) pair or (); a bare number (or a JSON list) becomes

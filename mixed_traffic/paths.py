@@ -1,4 +1,5 @@
-"""Where the project's files live: the shipped scenarios and checkpoint, and the per-user cache."""
+"""Where the project's files live: the shipped scenarios and checkpoint, the committed
+references, where commands write by default, and the per-user cache."""
 
 from __future__ import annotations
 
@@ -18,6 +19,19 @@ def _shipped_scenarios() -> Path:
 
 SCENARIOS_DIR = Path(os.environ.get("MIXED_TRAFFIC_SCENARIOS", _shipped_scenarios()))
 CHECKPOINT = REPO_ROOT / "agents" / "checkpoints" / "auto.pt"
+RESULTS = Path("results")
+"""Where commands write by default, relative to the working folder (ignored by git in a
+checkout): no command changes a tracked file unless asked to (``--update-reference``)."""
+
+
+def reference(relative: str) -> Path:
+    """A committed reference file of the checkout (``reports/penetration.pdf``, ...), which
+    only ``--update-reference`` rewrites; ``ValueError`` when there is no checkout (an
+    installed wheel has no references to update)."""
+    if not (REPO_ROOT / "reports").is_dir():
+        raise ValueError(f"--update-reference rewrites the references of a checkout, and "
+                         f"{REPO_ROOT} is none (run it in a clone of the repository)")  # fmt: skip
+    return REPO_ROOT / relative
 
 
 def cache_dir(kind: str) -> Path:

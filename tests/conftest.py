@@ -43,6 +43,7 @@ def start_sim(
     defaults = {"density": 60.0, "penetration": 0.2, "episode_length": 60.0}
     cfg = config if config is not None else EnvConfig(**{**defaults, **overrides})
     sc = load_scenario(cfg.scenario)
+    cfg = sc.configure(cfg)  # the scenario's defaults, as the env fills them in
     hd = sc.hdmap
     demand = make_demand(sc, cfg, np.random.default_rng(cfg.seed))
     rf = tmp_path / f"demand_{kind}.rou.xml"

@@ -45,7 +45,7 @@ def test_measured_density_within_ten_percent(density: float) -> None:
 
 @pytest.mark.parametrize("penetration", [0.0, 0.2, 0.55, 1.0])
 def test_penetration_exact_and_ids(penetration: float) -> None:
-    config = EnvConfig(density=120, penetration=penetration, seed=7)
+    config = EnvConfig(density=120, penetration=penetration, seed=7, episode_length=120)
     demand = make_demand(load_scenario(config.scenario), config, np.random.default_rng(7))
     everyone = [v.vid for v in (*demand.vehicles, *demand.queue)]
     n_av = round(penetration * len(everyone))

@@ -13,6 +13,7 @@ from agents.training.config import TrainConfig
 from mixed_traffic.config import EnvConfig, SensorConfig
 from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.experiments import evaluate, sweep
+from mixed_traffic.paths import REPO_ROOT
 
 FOLLOW = {"decision": 1, "params": np.zeros((3, 2), np.float32)}
 
@@ -64,10 +65,12 @@ def test_an_unwritable_records_file_fails_before_the_episode(tmp_path: Path, cap
     assert f"{blocker} is a file, not a folder" in capsys.readouterr().err
 
 
-def test_a_sweep_into_another_folder_writes_its_report_there(tmp_path: Path) -> None:
+def test_a_sweep_writes_its_report_beside_its_results(tmp_path: Path) -> None:
     config = sweep.SweepConfig(out=tmp_path / "elsewhere")
     assert config.report_pdf == tmp_path / "elsewhere" / "penetration.pdf"
-    assert sweep.SweepConfig().report_pdf == Path("reports/penetration.pdf")
+    assert sweep.SweepConfig().report_pdf == Path("results/penetration/penetration.pdf")
+    reference = sweep.SweepConfig(update_reference=True).report_pdf
+    assert reference == REPO_ROOT / "reports" / "penetration.pdf"
 
 
 def test_a_step_too_coarse_for_the_av_control_is_warned_about() -> None:

@@ -198,7 +198,7 @@ def test_user_sumocfg_uses_its_own_vehicles(tmp_path: Path) -> None:
     sc = load_scenario(str(cfg))
     n_prob = len(sc.own_vehicles) - (3 + 10 + 5 + 2)
     assert 10 < n_prob < 50, "probability flow: about 0.3 per second over 100 s"
-    config = EnvConfig(scenario=str(cfg), penetration=0.25, seed=3)
+    config = sc.configure(EnvConfig(scenario=str(cfg), penetration=0.25, seed=3))
     demand = make_demand(sc, config, np.random.default_rng(3))
     n = len(sc.own_in_episode(config.episode_length))  # the 100 s probability flow: 120 s
     assert n < len(sc.own_vehicles) and len(demand.av_ids) == round(0.25 * n)

@@ -189,7 +189,7 @@ def test_default_penetration_sweep_cells() -> None:
     sweep = parse_args([])
     assert sweep == SweepConfig()
     assert sweep.results == Path("results/penetration")
-    assert sweep.report_pdf == Path("reports/penetration.pdf")
+    assert sweep.report_pdf == Path("results/penetration/penetration.pdf")
     density = parse_args(["--density", "--values", "60", "90", "--no-report"])
     assert density.axis_values() == (60.0, 90.0) and density.report_pdf is None
     assert density.results == Path("results/density")

@@ -185,6 +185,14 @@ def test_all_human_traffic_on_the_wave_road_forms_waves_that_travel_upstream() -
     assert m["collisions"] == 0
 
 
+def test_free_flow_ahead_of_the_queue_has_no_wave_speed() -> None:
+    """The first 120 s on the held-out road, before the queue reaches the segment: the speed
+    patterns drive downstream with the vehicles (about +90 km/h), which is no wave."""
+    m = run_episode(EnvConfig(scenario="wave-highway-eval", penetration=0.0, episode_length=120.0),
+                    "idm", warmup=30.0)["metrics"]  # fmt: skip
+    assert m["speed_std"] >= 1.5 and m["wave_speed"] is None
+
+
 def test_the_wave_check_passes_and_fails_on_its_thresholds() -> None:
     """The check's verdicts from given records (pure): halving, waves, terminal events."""
     from mixed_traffic.experiments.waves import Cell, ring_rows, road_rows

@@ -1,8 +1,7 @@
 """Train Stable-Baselines3's PPO on a benchmark task, in legs that resume.
 
-    pip install -e ".[ppo]"
     python -m mixed_traffic.benchmark.ppo --task ring-v2 --seed 0 --steps 400000
-    python -m mixed_traffic.evaluate --policy ppo --checkpoint agents/checkpoints/ppo/ring-v2-s0/best.zip
+    python -m mixed_traffic.evaluate --policy ppo --checkpoint results/ppo/ring-v2-s0/best.zip
 
 One policy is shared by every AV (parameter sharing through SuperSuit's PettingZoo-to-vector-env
 conversion: each AV is one row of SB3's batch). The AVs act through the longitudinal interface
@@ -26,7 +25,7 @@ import json
 import pickle
 import sys
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +37,7 @@ from mixed_traffic.benchmark import get_task, selection, task_config
 from mixed_traffic.benchmark.interface import LongitudinalWrapper
 from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
+from mixed_traffic.paths import RESULTS
 from mixed_traffic.provenance import atomic_write, git_revision, sumo_version
 
 #: The reward scaler's running statistics, beside ``model.zip``.
@@ -91,17 +91,17 @@ class PpoConfig:
     """First seed of the per-leg validation (the same every leg; the eval uses 0, 1, 2 …)."""
     val_seeds: int = 2
     """Validation episodes per validation config (seeds ``val_seed`` onwards)."""
-    out: Path = field(default=Path())
-    """Folder of the run; default ``agents/checkpoints/ppo/<task>-s<seed>``."""
-    init: Path = field(default=Path())
+    out: Path | None = None
+    """Folder of the run (default: results/ppo/<task>-s<seed>; the shipped runs are in
+    agents/checkpoints/ppo)."""
+    init: Path | None = None
     """A curriculum: a new run starts from this ``model.zip`` (weights, optimiser and decision
     count of another run, e.g. of an earlier task version) instead of random weights."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "task", get_task(self.task).name)
-        if not self.out.parts:
-            default = Path("agents/checkpoints/ppo") / f"{self.task}-s{self.seed}"
-            object.__setattr__(self, "out", default)
+        if self.out is None:
+            object.__setattr__(self, "out", RESULTS / "ppo" / f"{self.task}-s{self.seed}")
         for name in ("steps", "leg", "n_steps", "batch_size", "n_epochs", "val_seeds"):
             if getattr(self, name) < 1:
                 raise ValueError(f"--{name.replace('_', '-')}={getattr(self, name)} must be >= 1")
@@ -115,7 +115,7 @@ class PpoConfig:
         ):
             raise ValueError("--seed and --val-seed must be >= 0, --gamma in (0, 1], "
                              "--learning-rate in (0, 1)")  # fmt: skip
-        if self.init.parts:
+        if self.init is not None:
             read_meta(self.init)  # ValueError naming a --init that is not a PPO run's model.zip
         if not self.hidden or min(self.hidden) < 1:
             raise ValueError(f"--hidden={list(self.hidden)}: give layer widths >= 1")
@@ -192,7 +192,7 @@ def _model(cfg: PpoConfig, venv: Any) -> Any:
     from stable_baselines3 import PPO
 
     path = cfg.out / "model.zip"
-    if path.is_file() or cfg.init.parts:
+    if path.is_file() or cfg.init is not None:
         return PPO.load(str(path if path.is_file() else cfg.init), env=venv, device="cpu")
     arch = list(cfg.hidden)
     interface = interface_config(cfg)
@@ -342,7 +342,7 @@ def _record(
 def _init_seconds(cfg: PpoConfig) -> float:
     """Training time [s] behind ``cfg.init`` (its run's metadata), 0 without one: a curriculum's
     time counts from its first stage."""
-    if not cfg.init.parts:
+    if cfg.init is None:
         return 0.0
     return float(read_meta(cfg.init).get("train_seconds", 0.0))
 

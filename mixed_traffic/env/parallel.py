@@ -42,7 +42,8 @@ Metrics
 
 Arguments: every field of ``EnvConfig`` as a keyword (``parallel_env(density=180, ...)``) or a
 whole ``config=EnvConfig(...)``; ``render_mode`` ``"rgb_array"`` (headless bird's-eye view) or
-``"human"`` (sumo-gui, needs a display); ``warmup`` [s] before flow metrics count;
+``"human"`` (sumo-gui, needs a display); ``warmup`` [s] before flow metrics count (default:
+the scenario's where the episode is longer, else 0);
 ``trace=True`` keeps every vehicle's trajectory in the measurement segment (``trajectories()``);
 ``metrics=False`` records no metrics (a training env: its observations, rewards and infos are
 the same, each step is cheaper, and ``episode_metrics()`` raises);
@@ -121,7 +122,7 @@ class MixedTrafficEnv(ParallelEnv):
         self,
         config: EnvConfig | None = None,
         render_mode: str | None = None,
-        warmup: float = 0.0,
+        warmup: float | None = None,
         sumo_drives_avs: bool = False,
         trace: bool = False,
         metrics: bool = True,
@@ -139,13 +140,13 @@ class MixedTrafficEnv(ParallelEnv):
         if render_mode == "human":
             checks.check_gui()
         self.render_mode = render_mode
-        checks.check_warmup(warmup, cfg.episode_length)
-        self.warmup = warmup
         self.sumo_drives_avs = sumo_drives_avs
         self.trace = trace
         self.metrics = metrics
         self._bundled = load_scenario(cfg.scenario)
         self.config = cfg = self._bundled.configure(cfg)
+        self.warmup = self._bundled.default_warmup(warmup, 0.0, cfg.episode_length)
+        checks.check_warmup(self.warmup, cfg.episode_length)
         checks.warn_coarse_step(cfg.step_length)
         # ring_length: the episode's ring circumference [m] (None: no ring); the longest first
         self.scenario, self.ring_length = episode_ring(self._bundled, cfg.ring_length, None)

@@ -6,9 +6,12 @@ generalised definitions then give, over any region A of the grid, the flow q = �
 the density k = Σt / |A| (|A| in lane-metres × seconds), and the space-mean speed v = Σd / Σt.
 Memory grows with the episode's length (two floats per cell), never with the vehicles.
 
-``wave_speed`` estimates how fast speed disturbances travel along the road: the lag that
+``wave_speed`` estimates how fast stop-and-go waves travel along the road: the lag that
 maximises the cross-correlation of the speed series of two places ``Δx`` apart gives
-c = Δx / lag. Stop-and-go waves travel upstream (c < 0; observed: −15 to −20 km/h).
+c = Δx / lag. Waves travel upstream (c < 0) at the congested branch's characteristic speed,
+about −(car length + jam gap) / T (observed: −15 to −20 km/h). A pattern that moves
+downstream is the vehicles carrying their own speed variations, not a wave, and a faster
+upstream one is no physical wave: both give NaN (None in the records), as does a flat field.
 """
 
 from __future__ import annotations
@@ -27,14 +30,25 @@ BIN_S = 1.0
 WAVE_WINDOW = (3, 5)
 """Smoothing window of the speed field for waves: cells along x, cells along t."""
 WAVE_SEPARATIONS = (30.0, 50.0, 70.0)
-"""Distances between the two places whose speed series are correlated [m] (short enough that
-a wave of a minute's period cannot be mistaken for the next one)."""
+"""Distances between the two places whose speed series are correlated [m]: short, so that a
+wave is seen before it changes; at 70 m the lags searched (± 50 s) can reach the next wave of
+a one-minute train, which ``WAVE_AGREEMENT`` rejects."""
 MIN_WAVE_SPEED = 5.0
-"""Slowest disturbance looked for [km/h]: it bounds the lags searched."""
+"""Slowest wave looked for [km/h]: it bounds the lags searched, both ways."""
+JAM_SPACING = 7.0
+"""Front-to-front spacing of a standing queue [m]: a 5 m car and a 2 m gap (143 veh/km)."""
+MIN_HEADWAY = 0.6
+"""A short time headway [s], half the 1.0-1.5 s of freeway drivers: a bound, not a typical one."""
+MAX_WAVE_SPEED = 3.6 * JAM_SPACING / MIN_HEADWAY
+"""Fastest possible wave [km/h], 42: the congested branch of the fundamental diagram,
+q = (1 − k·JAM_SPACING) / T, has the characteristic speed −JAM_SPACING / T."""
 MIN_SPEED_SPREAD = 1.0
 """Standard deviation of the smoothed speed field [m/s] below which there are no waves."""
 MIN_CORRELATION = 0.5
 """Correlation the best lag must reach for a wave speed to be reported [-]."""
+WAVE_AGREEMENT = 0.25
+"""Relative distance from the separations' median [-] within which their wave speeds are one
+wave's: a lag is resolved to a few tenths of a second, and is 2.6 s at the shortest."""
 
 
 class SpaceTimeField:
@@ -118,7 +132,8 @@ class SpaceTimeField:
         return 3600.0 * float(self._dist.sum()) / area if area > 0 else math.nan
 
     def wave_speed(self) -> float:
-        """Speed of the speed disturbances along the segment [km/h]; NaN without waves."""
+        """Speed of the stop-and-go waves along the segment [km/h], < 0 upstream; NaN without
+        waves (see ``wave_speed``)."""
         return wave_speed(self.distance, self.time, DX, BIN_S)
 
 
@@ -147,13 +162,15 @@ def smoothed_speed(dist: np.ndarray, time: np.ndarray, window: tuple[int, int]) 
 
 
 def wave_speed(dist: np.ndarray, time: np.ndarray, dx: float, bin_s: float) -> float:
-    """Propagation speed [km/h] of speed disturbances in a (T, X) grid of Edie sums.
+    """Speed [km/h] of the stop-and-go waves in a (T, X) grid of Edie sums (< 0: upstream).
 
-    The speed field is smoothed over ``WAVE_WINDOW`` cells; for each separation in
-    ``WAVE_SEPARATIONS`` the normalised cross-correlation of the speed series of all pairs
-    of places that far apart is averaged, and its best lag (within ``MIN_WAVE_SPEED``) τ (corr(v(x, t), v(x + Δx, t + τ)))
-    gives Δx / τ. The median over separations is returned, or NaN when the field is too flat
-    (std < ``MIN_SPEED_SPREAD``), too small, or no lag correlates well enough.
+    The speed field is smoothed over ``WAVE_WINDOW`` cells. For each separation Δx in
+    ``WAVE_SEPARATIONS`` that fits in the grid, the lag τ [s] maximising the correlation of
+    v(x, t) and v(x + Δx, t + τ), averaged over all pairs of places Δx apart, gives Δx / τ
+    (see ``_separation_speed`` for when it counts as a wave). The median of the estimates
+    within ``WAVE_AGREEMENT`` of their median is returned if they come from at least half of
+    the separations; NaN otherwise, or when the field is flat (std < ``MIN_SPEED_SPREAD``) or
+    too short.
     """
     v = smoothed_speed(dist, time, WAVE_WINDOW)
     if v.shape[0] < 20 or np.isnan(v).mean() > 0.2:
@@ -161,35 +178,46 @@ def wave_speed(dist: np.ndarray, time: np.ndarray, dx: float, bin_s: float) -> f
     v = np.where(np.isnan(v), np.nanmean(v), v)
     if v.std() < MIN_SPEED_SPREAD:
         return math.nan
-    speeds = []
-    for sep in WAVE_SEPARATIONS:
-        k = int(round(sep / dx))
-        if k < 1 or k >= v.shape[1]:
-            continue
-        max_lag = math.ceil(3.6 * k * dx / MIN_WAVE_SPEED / bin_s)
-        lag, corr = _best_lag(v[:, :-k], v[:, k:], max_lag)
-        if corr >= MIN_CORRELATION and abs(lag) > 1e-6:
-            speeds.append(3.6 * k * dx / (lag * bin_s))
-    return float(np.median(speeds)) if speeds else math.nan
+    shifts = [k for k in (round(sep / dx) for sep in WAVE_SEPARATIONS) if 1 <= k < v.shape[1]]
+    speeds = np.array([_separation_speed(v, k, dx, bin_s) for k in shifts])
+    if np.isnan(speeds).all():
+        return math.nan
+    # one wave gives one speed at every separation; spurious peaks of the correlation do not
+    centre = np.nanmedian(speeds)
+    agree = speeds[np.abs(speeds - centre) <= WAVE_AGREEMENT * abs(centre)]
+    return float(np.median(agree)) if 2 * len(agree) >= len(shifts) else math.nan
+
+
+def _separation_speed(v: np.ndarray, k: int, dx: float, bin_s: float) -> float:
+    """Wave speed [km/h] between the places ``k`` cells apart in the (T, X) speed field ``v``,
+    or NaN unless the global best lag over ± the slowest wave's lag is a wave: an interior
+    peak (not cut by the search range), correlated by at least ``MIN_CORRELATION``, upstream
+    at ``MIN_WAVE_SPEED`` to ``MAX_WAVE_SPEED``."""
+    max_lag = math.ceil(3.6 * k * dx / MIN_WAVE_SPEED / bin_s)
+    lag, corr = _best_lag(v[:, :-k], v[:, k:], max_lag)
+    if math.isnan(lag) or corr < MIN_CORRELATION or lag == 0:
+        return math.nan
+    c = 3.6 * k * dx / (lag * bin_s)
+    return c if -MAX_WAVE_SPEED <= c <= -MIN_WAVE_SPEED else math.nan
 
 
 def _best_lag(a: np.ndarray, b: np.ndarray, max_lag: int) -> tuple[float, float]:
     """The lag τ [cells], |τ| <= ``max_lag`` and at most a third of the series, maximising the
     mean over columns of corr(a[t], b[t + τ]) (refined between cells by a parabola through the
-    peak and its neighbours), and that correlation."""
+    peak and its neighbours), and that correlation; τ is NaN when the maximum lies on the edge
+    of the lags searched (the true peak may lie beyond)."""
     a = a - a.mean(axis=0)
     b = b - b.mean(axis=0)
-    n = len(a)
-    reach = min(max_lag, n // 3)
+    reach = min(max_lag, len(a) // 3)
     lags = np.arange(-reach, reach + 1)
     corr = np.array([_mean_corr(a, b, int(lag)) for lag in lags])
     i = int(np.argmax(corr))
-    if 0 < i < len(lags) - 1:
-        left, mid, right = corr[i - 1 : i + 2]
-        curve = left - 2 * mid + right
-        shift = 0.5 * (left - right) / curve if curve < 0 else 0.0
-        return float(lags[i] + shift), float(mid)
-    return float(lags[i]), float(corr[i])
+    if not 0 < i < len(lags) - 1:
+        return math.nan, float(corr[i])
+    left, mid, right = corr[i - 1 : i + 2]
+    curve = left - 2 * mid + right
+    shift = 0.5 * (left - right) / curve if curve < 0 else 0.0
+    return float(lags[i] + shift), float(mid)
 
 
 def _mean_corr(a: np.ndarray, b: np.ndarray, lag: int) -> float:

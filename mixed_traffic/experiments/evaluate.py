@@ -3,6 +3,10 @@
     python -m mixed_traffic.evaluate --policy idm --scenario straight --density 120 \\
         --penetration 0 --seeds 0 1 2 [--episode-length 120] [--warmup 30] [--json]
 
+The episode length and warm-up default to the scenario's own where its spec gives them
+(wave-highway: 420 s after 120 s, so that its queue reaches the measured segment), else 120 s
+and 30 s.
+
 prints a metrics table (one column per seed, plus the mean), appends one record per episode to
 ``--out`` (JSON lines, layout in ``mixed_traffic.schema``, atomic writes) and, with ``--json``,
 prints the records as JSON lines on stdout (the table then goes to stderr). Episodes run in
@@ -98,8 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="root seeds, one episode each (default: 0)",
     )  # fmt: skip
     parser.add_argument(
-        "--warmup", type=float, default=DEFAULT_WARMUP, metavar="S",
-        help=f"simulated time before density and speed are averaged [s] (default: {DEFAULT_WARMUP})",
+        "--warmup", type=float, default=None, metavar="S",
+        help="simulated time before density and speed are averaged [s] (default: the "
+        f"scenario's, {DEFAULT_WARMUP:g} s unless its spec gives one)",
     )  # fmt: skip
     parser.add_argument(
         "--out", type=Path, default=DEFAULT_OUT, metavar="FILE",
@@ -129,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         configs = [config_from_args(args, EnvConfig, seed=s) for s in args.seeds]
-        configs = [validate(c, args.warmup, args.policy) for c in configs]
+        configs, warmups = zip(*(validate(c, args.warmup, args.policy) for c in configs))
         if args.checkpoint is not None and args.policy not in LEARNED:
             raise ValueError(f"--checkpoint is used by a learned policy (auto, auto-raw, ppo, ppo-ring or a "
                              f"study policy), not {args.policy!r}")  # fmt: skip
@@ -143,11 +148,11 @@ def main(argv: list[str] | None = None) -> int:
     records: list[dict[str, Any]] = []
     failed = 0
     bar = not args.progress or len(configs) == 1 or None  # None: only on a terminal
-    for cfg in tqdm(configs, desc="episodes", disable=bar):
+    for cfg, warmup in tqdm(list(zip(configs, warmups)), desc="episodes", disable=bar):
         try:
             extra = {"checkpoint": args.checkpoint, "gif": args.gif if cfg is configs[0] else None,
                      "progress": args.progress and len(configs) == 1 and sys.stderr.isatty()}  # fmt: skip
-            record = run_episode(cfg, args.policy, args.warmup, **extra)
+            record = run_episode(cfg, args.policy, warmup, **extra)
         except (SumoError, ValueError) as e:  # e.g. SUMO failed, or a bad checkpoint
             print(f"error: seed {cfg.seed}: {e}", file=sys.stderr)
             failed += 1
@@ -166,7 +171,7 @@ def main(argv: list[str] | None = None) -> int:
         header = (
             f"policy={args.policy} scenario={configs[0].scenario} density={configs[0].density} "
             f"veh/km penetration={configs[0].penetration} episode={configs[0].episode_length} s "
-            f"warmup={args.warmup} s  records -> {args.out}"
+            f"warmup={warmups[0]} s  records -> {args.out}"
         )
         print(header + "\n" + table, file=sys.stderr if args.json else sys.stdout)
     if args.json:

@@ -33,7 +33,8 @@ from mixed_traffic.schema import CELL_KEYS, METRICS
 from mixed_traffic.world.registry import load_scenario
 
 DEFAULT_WARMUP = 30.0
-"""Simulated time before density and speed are averaged [s]."""
+"""Simulated time before density and speed are averaged [s], where the scenario's spec gives
+no warm-up of its own."""
 SUMO_DRIVEN = ("idm",)
 """Policies under which SUMO drives the AVs (no agent acts)."""
 
@@ -43,14 +44,20 @@ def sumo_drives(policy: str) -> bool:
     return parse_policy(policy).base in SUMO_DRIVEN
 
 
-def validate(config: EnvConfig, warmup: float, policy: str | None = None) -> EnvConfig:
+def validate(
+    config: EnvConfig, warmup: float | None, policy: str | None = None
+) -> tuple[EnvConfig, float]:
     """Everything an episode needs checked before any work starts: the policy name, the
     scenario, the density against its jam density and the warm-up. Raises ``ValueError``.
-    Returns ``config`` with the scenario's default density where it gives none."""
+    Returns ``config`` with the scenario's defaults (density, episode length) where it gives
+    none, and the warm-up [s]: ``warmup``, else the scenario's, else ``DEFAULT_WARMUP``."""
     if policy is not None:
         check_policy(policy)
+    scenario = load_scenario(config.scenario)
+    config = scenario.configure(config)
+    warmup = scenario.default_warmup(warmup, DEFAULT_WARMUP, config.episode_length)
     check_warmup(warmup, config.episode_length)
-    return load_scenario(config.scenario).configure(config)
+    return config, warmup
 
 
 def check_policy(policy: str) -> str:
@@ -79,7 +86,7 @@ def check_checkpoint(path: str | Path) -> None:
 def run_episode(
     config: EnvConfig,
     policy: str = "idm",
-    warmup: float = DEFAULT_WARMUP,
+    warmup: float | None = None,
     *,
     checkpoint: str | Path | None = None,
     gif: str | Path | None = None,
@@ -94,7 +101,8 @@ def run_episode(
         config: the environment; ``config.seed`` seeds demand, SUMO and sensor noise.
         policy: a name from ``schema.POLICIES`` or a rule's spec (``acc-lc:T=1.0``); the
             record's cell carries its canonical text, ``policy_params`` what it resolved to.
-        warmup: simulated time before flow metrics are averaged [s].
+        warmup: simulated time before flow metrics are averaged [s] (None: the scenario's,
+            else ``DEFAULT_WARMUP``).
         checkpoint: AUTO checkpoint for ``auto``/``auto-raw`` (default: the shipped one).
         gif: record the episode as an animated GIF here.
         trace: write every vehicle's trajectory in the measurement segment here (``.npz``:
@@ -111,6 +119,7 @@ def run_episode(
     fixed_u = reference_u(checkpoint) if parse_policy(policy).base == "auto-mean" else None
     t0 = time.perf_counter()
     # the env validates the config against its scenario before anything else is done
+    config, warmup = validate(config, warmup)
     env = MixedTrafficEnv(config=config, warmup=warmup, sumo_drives_avs=sumo_drives(policy),
                           render_mode="rgb_array" if gif else None, trace=trace is not None)  # fmt: skip
     config, meta = env.config, record_meta(env.config)  # the scenario's defaults filled in

@@ -8,10 +8,12 @@
 - ``--detection-range``: the LiDAR and camera ranges as a share of nominal (AUTO, rbp-dqn,
   ACC-LC).
 
-Each trained method without a checkpoint in agents/checkpoints/study/ is trained first
-(:mod:`mixed_traffic.experiments.study_methods`: one budget, seed and scenario set for all),
+Each trained method without a checkpoint in agents/checkpoints/study/ at the budget is trained
+first (:mod:`mixed_traffic.experiments.study_methods`: one budget, seed and scenario set for
+all) into ``results/study-checkpoints`` (the shipped folder only with ``--update-reference``),
 then the evaluation cells run through the sweep machinery (parallel, resumable, Ray with
-``--backend ray``) into ``results/study-<study>`` and the PDF goes to ``reports/<study>.pdf``.
+``--backend ray``) into ``results/study`` (``results/study-<study>`` for the sweeps) and the
+PDF goes beside them (over ``reports/<study>.pdf`` with ``--update-reference``).
 """
 
 from __future__ import annotations
@@ -32,7 +34,11 @@ from mixed_traffic.experiments.study_methods import (
     Budget,
     installed_steps,
 )
+from mixed_traffic.paths import RESULTS, reference
 from mixed_traffic.provenance import FolderBusyError, check_writable
+
+TRAINED_HERE = RESULTS / "study-checkpoints"
+"""Where methods trained by a study go unless it updates the shipped ones."""
 
 KINDS = ("baselines", "rl-models", "ablations", "robustness", "detection-range")
 SWEEP_STUDIES = {
@@ -73,8 +79,11 @@ class StudyConfig:
     """Training seed of every method."""
     runs: Path = RUNS
     """Folder of the training runs (resumable)."""
-    checkpoints: Path = STUDY_CHECKPOINTS
-    """Folder of the trained methods' checkpoints, lineage and curves (<policy>.pt/.json/.csv)."""
+    checkpoints: Path | None = None
+    """Folder of the trained methods' checkpoints, lineage and curves (<policy>.pt/.json/.csv)
+    (default: the shipped agents/checkpoints/study while it has every method at the budget;
+    else results/study-checkpoints, where a method missing there starts from the shipped
+    weights)."""
     workers: int = 2
     """Parallel evaluation workers (training uses 2 rollout workers; NoMUL 1)."""
     backend: str = "process"
@@ -85,7 +94,10 @@ class StudyConfig:
     """Results folder (default: results/study for the table studies, which share their cells;
     results/study-<study> for the sweeps)."""
     pdf: Path | None = None
-    """Report path (default: reports/<study>.pdf)."""
+    """Report path (default: <results folder>/<study>.pdf)."""
+    update_reference: bool = False
+    """Write the report over the committed reference, reports/<study>.pdf, and train what is
+    missing into the shipped agents/checkpoints/study."""
 
     def __post_init__(self) -> None:
         if self.study not in KINDS:
@@ -94,10 +106,23 @@ class StudyConfig:
             raise ValueError(f"--seeds={list(self.seeds)}: give at least 2 distinct seeds >= 0")
         if not self.env_steps > 0:
             raise ValueError(f"--env-steps={self.env_steps}: the training budget must be > 0")
+        if self.update_reference and self.pdf is not None:
+            raise ValueError("--update-reference writes the reference report: drop --pdf")
+        if self.checkpoints is None:
+            object.__setattr__(self, "checkpoints", self._default_checkpoints())
         self.sweep()  # the evaluation's own checks (scenario, policies, density, episode, ...)
         if self.study not in SWEEP_STUDIES and self.reference not in self.run_policies:
             raise ValueError(f"--reference={self.reference!r}: not among the policies "
                              f"{list(self.run_policies)}")  # fmt: skip
+
+    def _default_checkpoints(self) -> Path:
+        """The shipped folder, unless a method must be trained and the references stay."""
+        if self.update_reference:
+            return reference("agents/checkpoints/study")
+        shipped = [
+            p for p in self.trained if installed_steps(p, STUDY_CHECKPOINTS) >= self.env_steps
+        ]
+        return STUDY_CHECKPOINTS if len(shipped) == len(self.trained) else TRAINED_HERE
 
     @property
     def run_policies(self) -> tuple[str, ...]:
@@ -116,11 +141,13 @@ class StudyConfig:
         """Records folder: the table studies share results/study (a policy's cells run once
         for every study it is in), the sweeps have their own."""
         default = f"study-{self.study}" if self.study in SWEEP_STUDIES else "study"
-        return self.out or Path("results") / default
+        return self.out or RESULTS / default
 
     @property
     def report_pdf(self) -> Path:
-        return self.pdf or (self.out or Path("reports")) / f"{self.study}.pdf"
+        if self.update_reference:
+            return reference(f"reports/{self.study}.pdf")
+        return self.pdf or self.results / f"{self.study}.pdf"
 
     def budget(self) -> Budget:
         return Budget(env_steps=self.env_steps, seed=self.train_seed)
@@ -157,9 +184,10 @@ def check_trained(cfg: StudyConfig) -> None:
 
 def train_missing(cfg: StudyConfig, log=print) -> None:
     """Train every method of ``cfg`` without a checkpoint (each resumable in ``cfg.runs``)."""
-    from mixed_traffic.experiments.study_methods import train_method
+    from mixed_traffic.experiments.study_methods import copy_installed, train_method
 
     for name in missing_checkpoints(cfg):
+        copy_installed(name, STUDY_CHECKPOINTS, cfg.checkpoints)
         log(f"training {name} ({cfg.env_steps} transitions) in {cfg.runs / name} ...")
         t0 = time.time()
         cfg.runs.mkdir(parents=True, exist_ok=True)

@@ -84,6 +84,19 @@ def train_command(name: str, budget: Budget, runs: Path = RUNS) -> list[str]:
             "--out", str(runs / name)]  # fmt: skip
 
 
+def copy_installed(name: str, source: Path, dest: Path) -> None:
+    """Copy the installed ``name`` (checkpoint, lineage, curves) from ``source`` into ``dest``
+    when ``dest`` has none, so that training there continues from those weights as it would
+    in ``source``."""
+    if (dest / f"{name}.pt").exists() or not (source / f"{name}.pt").is_file():
+        return
+    dest.mkdir(parents=True, exist_ok=True)
+    for suffix in (".json", ".csv", ".pt"):  # the checkpoint last: it marks the copy complete
+        src = source / f"{name}{suffix}"
+        if src.is_file():
+            atomic_write(dest / src.name, lambda f, src=src: f.write(src.read_bytes()))
+
+
 def installed_steps(name: str, dest: Path) -> int:
     """Transitions the installed policy ``dest/<name>.pt`` was trained on (0 if none)."""
     info = dest / f"{name}.json"

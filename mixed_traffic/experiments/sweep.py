@@ -24,6 +24,7 @@ from tqdm import tqdm
 
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.experiments.cli import add_config_args, config_dest, config_from_args
+from mixed_traffic.paths import RESULTS, reference
 from mixed_traffic.provenance import (
     FolderBusyError,
     check_writable,
@@ -45,6 +46,7 @@ from mixed_traffic.schema import (
     TRACE_DIR,
 )
 from mixed_traffic.world.registry import load_scenario
+from mixed_traffic.world.scenario import Scenario
 
 PENETRATIONS = (0.2, 0.4, 0.6, 0.8, 1.0)
 DENSITIES = (60.0, 120.0, 180.0)
@@ -52,6 +54,10 @@ WEATHERS = ("normal", "rain", "fog", "night")
 DETECTION_RANGES = (0.6, 0.8, 1.0, 1.2)
 """Default detection ranges [share of the nominal 90 m LiDAR / 60 m camera] (the paper's
 LiDAR table spans 50-110 m)."""
+SWEEP_EPISODE_LENGTH = 150.0
+"""Episode length [s] where neither the options nor the scenario's spec give one."""
+SWEEP_WARMUP = 30.0
+"""Warm-up [s] where neither the options nor the scenario's spec give one."""
 AXES = ("penetration", "density", "weather", "detection_range")
 DEFAULT_VALUES = {"penetration": PENETRATIONS, "density": DENSITIES, "weather": WEATHERS,
                   "detection_range": DETECTION_RANGES}  # fmt: skip
@@ -84,10 +90,12 @@ class SweepConfig:
     acc-lc:T=1.0,speed_factor=1.0, idm, random, ..."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Root seeds; each cell runs once per seed."""
-    episode_length: float = 150.0
-    """Simulated time per episode [s]."""
-    warmup: float = 30.0
-    """Time before flow metrics are recorded [s]."""
+    episode_length: float | None = None
+    """Simulated time per episode [s] (default: the scenario's, 150 s unless its spec gives
+    one)."""
+    warmup: float | None = None
+    """Time before flow metrics are recorded [s] (default: the scenario's, 30 s unless its
+    spec gives one)."""
     checkpoint: Path | None = None
     """AUTO checkpoint (default: the shipped agents/checkpoints/auto.pt)."""
     checkpoints: Path | None = None
@@ -103,7 +111,10 @@ class SweepConfig:
     report: bool = True
     """Write figures and the PDF report after the cells."""
     pdf: Path | None = None
-    """PDF report path, figures beside it (default: reports/<axis>.pdf)."""
+    """PDF report path, figures beside it (default: <results folder>/<axis>.pdf)."""
+    update_reference: bool = False
+    """Write the report over the committed reference, reports/<axis>.pdf, and its figures
+    beside it (the README shows reports/penetration-dt_tf_vs_penetration.png)."""
     traffic: bool = True
     """Run the cells of the report's traffic figures: up to 7 short one-seed all-human cells
     over densities (fundamental diagram) and the trajectories of the first seed's reference
@@ -117,6 +128,10 @@ class SweepConfig:
 
         if self.axis not in AXES:
             bad("axis", f"choose from {AXES}")
+        try:  # names first: a typo is the error to show, not what follows from it
+            scenario = load_scenario(self.scenario)
+        except ValueError as e:
+            bad("scenario", str(e))
         if not self.policies:
             bad("policies", f"give at least one; choose from {list(POLICIES)}")
         from mixed_traffic.experiments.runner import check_checkpoint, check_policy
@@ -139,6 +154,9 @@ class SweepConfig:
             bad("seeds", "seeds must be >= 0")
         if self.workers < 1:
             bad("workers", "must be >= 1")
+        if self.update_reference and (self.pdf is not None or not self.report):
+            bad("update_reference", "writes the reference report: drop --pdf and --no-report")
+        self._episode_defaults(scenario)
         if self.backend not in ("process", "ray"):
             bad("backend", "choose from process, ray")
         if self.address and self.backend != "ray":
@@ -147,10 +165,6 @@ class SweepConfig:
             bad("episode_length", "must be in (0, 86400] s")
         if not 0 <= self.warmup < self.episode_length:
             bad("warmup", f"must be in [0, episode length {self.episode_length})")
-        try:
-            scenario = load_scenario(self.scenario)
-        except ValueError as e:
-            bad("scenario", str(e))
         if self.ring_length and not scenario.ring:
             bad("ring_length", f"{self.scenario} is not a ring")
         try:
@@ -166,6 +180,15 @@ class SweepConfig:
         except ValueError as e:
             bad("values", str(e))
 
+    def _episode_defaults(self, scenario: Scenario) -> None:
+        """Fill in the episode length and warm-up the options leave open: the scenario's,
+        else the sweep's own (150 s, 30 s)."""
+        if self.episode_length is None:
+            length = scenario.episode_length or SWEEP_EPISODE_LENGTH
+            object.__setattr__(self, "episode_length", length)
+        warmup = scenario.default_warmup(self.warmup, SWEEP_WARMUP, self.episode_length)
+        object.__setattr__(self, "warmup", warmup)
+
     def axis_values(self) -> tuple:
         """The swept values: numbers for penetration and density, names for weather."""
         if not self.values:
@@ -175,14 +198,17 @@ class SweepConfig:
     @property
     def results(self) -> Path:
         """Folder of records.jsonl."""
-        return self.out or Path("results") / self.axis
+        return self.out or RESULTS / self.axis
 
     @property
     def report_pdf(self) -> Path | None:
-        """Where the PDF goes, or None without a report: beside the results when ``out`` is
-        given (a sweep into another folder leaves the committed reports alone)."""
-        default = (self.out if self.out else Path("reports")) / f"{self.axis}.pdf"
-        return (self.pdf or default) if self.report else None
+        """Where the PDF goes, or None without a report: beside the results, or over the
+        committed reference with ``update_reference``."""
+        if not self.report:
+            return None
+        if self.update_reference:
+            return reference(f"reports/{self.axis}.pdf")
+        return self.pdf or self.results / f"{self.axis}.pdf"
 
     def cell_checkpoint(self, policy: str) -> Path | None:
         """The checkpoint option of ``policy``'s cells (None: the policy's default)."""
@@ -306,6 +332,7 @@ def trace_path(cell: Cell, sweep: SweepConfig) -> Path | None:
     return sweep.results / TRACE_DIR / f"{cell.policy}-{sweep.axis}-{value}-seed{cell.seed}.npz"
 
 
+FD_LABEL = "fundamental diagram (all-human cells of the traffic figures)"
 FD_PER_LANE = (12.0, 20.0, 28.0, 36.0, 44.0, 52.0, 60.0)
 """Densities of the fundamental diagram's all-human cells [veh/km/lane]."""
 
@@ -337,14 +364,15 @@ def _run_cell(cell: Cell, sweep: SweepConfig, queue: mp.Queue) -> None:
     queue.put(episode_record(cell, sweep))
 
 
-def run_sweep(sweep: SweepConfig, progress: bool = True) -> Path:
-    """Run the missing cells of ``sweep``; returns the records file."""
+def run_sweep(sweep: SweepConfig, progress: bool = True, label: str = "") -> Path:
+    """Run the missing cells of ``sweep`` (``label``: its progress bar's, default the axis);
+    returns the records file."""
     records_path = sweep.results / "records.jsonl"
     with exclusive_folder(sweep.results):  # a second run into the folder stops here
         todo = _missing(sweep, _records_of_this_code(records_path))  # failed ones: again
-        _run(todo, sweep, records_path, progress)
+        _run(todo, sweep, records_path, progress, label or f"{sweep.axis} sweep")
     if sweep.traffic:
-        run_sweep(fd_sweep(sweep), progress)
+        run_sweep(fd_sweep(sweep), progress, FD_LABEL)
     return records_path
 
 
@@ -353,13 +381,17 @@ def run_cells(todo: list[Cell], sweep: SweepConfig, progress: bool = True) -> Pa
     backend of ``sweep``, into its records file; returns that file."""
     records_path = sweep.results / "records.jsonl"
     with exclusive_folder(sweep.results):
-        _run(todo, sweep, records_path, progress)
+        _run(todo, sweep, records_path, progress, f"{sweep.axis} cells")
     return records_path
 
 
-def _run(todo: list[Cell], sweep: SweepConfig, records_path: Path, progress: bool) -> None:
-    bar = tqdm(total=len(todo), desc=f"{sweep.axis} sweep", unit="episode",
-               disable=not progress)  # fmt: skip
+def _run(todo: list[Cell], sweep: SweepConfig, records_path: Path, progress: bool,
+         label: str) -> None:  # fmt: skip
+    if not todo:  # a resumed run with nothing left: say so instead of an empty bar
+        if progress:
+            print(f"{label}: every cell is already recorded in {records_path}", file=sys.stderr)
+        return
+    bar = tqdm(total=len(todo), desc=label, unit="episode", disable=not progress)
     if sweep.backend == "ray":
         _run_ray(todo, sweep, records_path, bar)
     else:

@@ -19,8 +19,9 @@ seeds, and tests on paired seeds whether the tuned setting is within noise of, o
 than, the best grid point there (by the same criterion, the fleet's mean speed).
 
 Cells run through the sweep machinery (parallel, resumable: a re-run skips recorded cells)
-into ``OUT/<scenario>/``; the choice goes atomically to ``agents/checkpoints/acc_lc_tuned.json``
-after every family, with the table it was made from.
+into ``OUT/<scenario>/``; the choice goes atomically to ``OUT/acc_lc_tuned.json`` after every
+family, with the table it was made from (``--update-reference``: over the shipped
+``agents/checkpoints/acc_lc_tuned.json``, which ``acc-lc-tuned`` drives with).
 """
 
 from __future__ import annotations
@@ -41,6 +42,7 @@ from agents.rules.tuned import TUNED_FIELDS, TUNED_FILE
 from analysis.stats import paired_difference
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
 from mixed_traffic.experiments.sweep import SweepConfig, run_sweep
+from mixed_traffic.paths import RESULTS
 from mixed_traffic.provenance import (
     atomic_write,
     current_code_key,
@@ -83,10 +85,13 @@ class TuneConfig:
     """Time before flow metrics are recorded [s]."""
     workers: int = 2
     """Parallel worker processes."""
-    out: Path = Path("results/tune-acc-lc")
+    out: Path = RESULTS / "tune-acc-lc"
     """Folder of the cells' records, one subfolder per scenario."""
-    file: Path = TUNED_FILE
-    """Where the choice goes (JSON)."""
+    file: Path | None = None
+    """Where the choice goes (JSON; default: acc_lc_tuned.json in ``out``)."""
+    update_reference: bool = False
+    """Write the choice over the shipped agents/checkpoints/acc_lc_tuned.json, the parameters
+    acc-lc-tuned drives with."""
     choose_only: bool = False
     """Choose from the records already in ``out`` without running cells."""
     verify: bool = False
@@ -102,6 +107,11 @@ class TuneConfig:
                 raise ValueError(f"--{name.replace('_', '-')}: give at least one value")
         for p in self.grid():  # each grid point must be a valid ACC-LC
             parse_policy(p)
+        if self.update_reference and self.file is not None:
+            raise ValueError("--update-reference writes the shipped file: drop --file")
+        if self.file is None:
+            file = TUNED_FILE if self.update_reference else self.out / TUNED_FILE.name
+            object.__setattr__(self, "file", file)
         known = sorted({load_scenario(n).family for n in list_scenarios()})
         for f in self.families:
             if f not in known:

@@ -14,6 +14,7 @@ import tomllib
 from functools import cache
 from pathlib import Path
 
+from mixed_traffic.config import DEFAULT_EPISODE_LENGTH
 from mixed_traffic.paths import SCENARIOS_DIR
 from mixed_traffic.world.network import build_network
 from mixed_traffic.world.scenario import Route, Scenario
@@ -115,9 +116,28 @@ def _load_folder(name: str, folder: Path) -> Scenario:
         ring=bool(spec.get("ring", False)),
         inflow=bool(spec.get("inflow", False)),
         density=float(spec.get("density", 120.0)),
+        episode_length=_seconds(spec, "episode_length", spec_path, zero=False),
+        warmup=_seconds(spec, "warmup", spec_path, zero=True),
     )
+    length = scenario.episode_length or DEFAULT_EPISODE_LENGTH
+    if scenario.warmup is not None and scenario.warmup >= length:
+        raise ValueError(f"{spec_path}: warmup={scenario.warmup} s must be shorter than the "
+                         f"episode ({length} s)")  # fmt: skip
     _validate(scenario, spec_path)
     return scenario
+
+
+def _seconds(spec: dict, key: str, spec_path: Path, zero: bool) -> float | None:
+    """The spec's ``key`` [s], None when absent; ValueError unless it is in (0, 86400] s, or
+    [0, 86400] s where ``zero`` is allowed."""
+    if key not in spec:
+        return None
+    value = spec[key]
+    ok = not isinstance(value, bool) and isinstance(value, (int, float))
+    if not (ok and (value >= 0 if zero else value > 0) and value <= 86400):
+        bounds = "[0, 86400]" if zero else "(0, 86400]"
+        raise ValueError(f"{spec_path}: {key}={value!r} must be a time in {bounds} s")
+    return float(value)
 
 
 def _validate(scenario: Scenario, source: Path) -> None:

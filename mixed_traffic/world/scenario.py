@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
-from mixed_traffic.config import JAM_DENSITY_PER_LANE, EnvConfig
+from mixed_traffic.config import DEFAULT_EPISODE_LENGTH, JAM_DENSITY_PER_LANE, EnvConfig
 from mixed_traffic.world.hdmap import CAR, HDMap, load_hdmap
 
 
@@ -65,6 +65,12 @@ class Scenario:
     """Close the main road into a ring with a virtual leader (see ``boundary``)."""
     density: float = 120.0
     """Default density [veh/km summed over ``lanes``], used when a config gives none."""
+    episode_length: float | None = None
+    """Default episode length [s], used when a config gives none (None: 120 s). A road whose
+    queue takes minutes to reach the measured segment sets a longer one."""
+    warmup: float | None = None
+    """Default warm-up before flow metrics count [s], used when a command gives none (None:
+    the command's own default)."""
     inflow: bool = False
     """An open road: vehicles enter at the density's inflow rate on a timetable, whether or not
     others left (``demand``), so a bottleneck downstream builds a queue; else each vehicle that
@@ -124,8 +130,18 @@ class Scenario:
             config = replace(config, density=self._ring_density(config))
         if config.density is None:
             config = replace(config, density=self.density)
+        if config.episode_length is None:
+            config = replace(config, episode_length=self.episode_length or DEFAULT_EPISODE_LENGTH)
         self.check_density(config.density)
         return config
+
+    def default_warmup(self, warmup: float | None, fallback: float, episode: float) -> float:
+        """``warmup`` [s] if given, else this scenario's where it is shorter than the
+        ``episode`` [s] (a shortened episode, e.g. for training, keeps no warm-up that would
+        fill it), else the caller's ``fallback``."""
+        if warmup is not None:
+            return warmup
+        return self.warmup if self.warmup is not None and self.warmup < episode else fallback
 
     def _configure_own(self, config: EnvConfig) -> EnvConfig:
         """A .sumocfg's own vehicles set the traffic: no density; its step length and end."""
@@ -134,7 +150,8 @@ class Scenario:
                 f"density={config.density} veh/km does not apply to {self.name}: a .sumocfg "
                 "drives its own vehicles (scale their flows in its route files instead)"
             )
-        length = config.episode_length if self.end is None else min(config.episode_length, self.end)
+        length = config.episode_length or DEFAULT_EPISODE_LENGTH
+        length = length if self.end is None else min(length, self.end)
         vehicle = config.vehicle
         if self.av_size is not None:  # AVs the size of the file's type they derive from
             vehicle = replace(vehicle, length=self.av_size[0], width=self.av_size[1])
