@@ -1,9 +1,12 @@
 """The benchmark report: the table of tasks x controllers (``scores.json`` of
 ``python -m mixed_traffic.benchmark``), its figures, the PPO training curves, a PDF and the
-README's table (no SUMO, no torch).
+table of docs/benchmark.md (no SUMO, no torch).
 
-Figures: the score per task and controller with 95 % t-intervals over seeds, the fleet speed
-std, and each PPO run's held-out evaluation over training time.
+The score (signed) has a Student t-interval over seeds; the speed std as a share of all-human
+traffic's (non-negative) the log-scale t-interval of :func:`analysis.results.nonneg_mean_ci`,
+which stays >= 0 (:data:`CI_NOTE`). Figures: the score per task and controller with its 95 %
+t-interval over seeds, the fleet speed std, and each PPO run's held-out evaluation over
+training time.
 """
 
 from __future__ import annotations
@@ -23,11 +26,15 @@ from analysis.pdf import figure, grid, make_styles, para, write_pdf
 from analysis.style import order_policies, policy_palette
 from mixed_traffic.provenance import atomic_write
 
-#: The README's table sits between these lines.
-README_BEGIN = "<!-- benchmark-table: begin (written by python -m mixed_traffic.benchmark) -->"
-README_END = "<!-- benchmark-table: end -->"
+#: The table of a markdown page (docs/benchmark.md) sits between these lines.
+TABLE_BEGIN = "<!-- benchmark-table: begin (written by python -m mixed_traffic.benchmark) -->"
+TABLE_END = "<!-- benchmark-table: end -->"
 COLUMNS = (("mean_speed", "mean speed [m/s]"), ("speed_std", "speed std [m/s]"),
            ("fuel", "fuel [l/100 km]"), ("dt_tf", "DT-TF [s]"))  # fmt: skip
+CI_NOTE = ("95 % intervals over seeds: the score, which can be negative, mean ± Student t "
+           "half-width; speed std / all human, a ratio >= 0, mean [low, high] of the log-scale "
+           "(delta-method) t-interval mean·exp(±t·se/mean), which stays >= 0.")  # fmt: skip
+"""The table's note on its intervals."""
 
 
 def _fmt(value: Any, digits: int = 2) -> str:
@@ -38,12 +45,17 @@ def _ci(mean: float, half: float) -> str:
     return f"{_fmt(mean)} ± {_fmt(half)}"
 
 
+def _interval(mean: float, lo: float, hi: float) -> str:
+    return f"{_fmt(mean)} [{_fmt(lo)}, {_fmt(hi)}]"
+
+
 def table_rows(rows: Sequence[dict[str, Any]]) -> list[list[str]]:
     """Header + one row per task and controller."""
     head = ["task", "controller", "score [95 % CI]", *(c[1] for c in COLUMNS),
             "speed std / all human [95 % CI]", "terminal events"]  # fmt: skip
     body = [[r["task"], r["policy"], _ci(r["score"], r["score_half_width"]),
-             *(_fmt(r[c]) for c, _ in COLUMNS), _ci(r["std_ratio"], r["std_ratio_half_width"]),
+             *(_fmt(r[c]) for c, _ in COLUMNS),
+             _interval(r["std_ratio"], r["std_ratio_lo"], r["std_ratio_hi"]),
              str(r["terminal_events"])] for r in rows]  # fmt: skip
     return [head, *body]
 
@@ -109,15 +121,15 @@ def read_curves(folders: Sequence[Path]) -> dict[str, pd.DataFrame]:
     return {f.name: pd.read_csv(f / "curves.csv") for f in folders if (f / "curves.csv").is_file()}
 
 
-def update_readme(readme: Path, table: str) -> bool:
-    """Replace the text between the README's markers by ``table``; False if it has none."""
-    text = readme.read_text()
-    pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)
+def update_table(page: Path, table: str) -> None:
+    """Replace the text between the markdown ``page``'s markers by ``table``; ValueError
+    naming the page when it has none."""
+    text = page.read_text()
+    pattern = re.compile(re.escape(TABLE_BEGIN) + ".*?" + re.escape(TABLE_END), re.S)
     if not pattern.search(text):
-        return False
-    new = pattern.sub(lambda _: f"{README_BEGIN}\n{table}\n{README_END}", text)
-    atomic_write(readme, lambda f: f.write(new.encode()))
-    return True
+        raise ValueError(f"{page} has no table markers ({TABLE_BEGIN} ... {TABLE_END})")
+    new = pattern.sub(lambda _: f"{TABLE_BEGIN}\n{table}\n{TABLE_END}", text)
+    atomic_write(page, lambda f: f.write(new.encode()))
 
 
 def build(rows: Sequence[dict[str, Any]], runs: Sequence[Path], out_pdf: Path,
@@ -127,7 +139,8 @@ def build(rows: Sequence[dict[str, Any]], runs: Sequence[Path], out_pdf: Path,
     styles = make_styles()
     story: list[Any] = [para("mixed_traffic benchmark", styles["title"])]
     story += [para(n, styles["body"]) for n in notes]
-    story += [Spacer(1, 4), grid(table_rows(rows), styles), Spacer(1, 6)]
+    story += [Spacer(1, 4), grid(table_rows(rows), styles), para(CI_NOTE, styles["small"]),
+              Spacer(1, 6)]  # fmt: skip
     png = plot_scores(rows, out_pdf.with_name(f"{out_pdf.stem}-scores.png"))
     story.append(figure(png, "Score (bars: mean over seeds, whiskers: 95 % t-interval) and fleet "
                         "speed std of each controller on each task's held-out configs.", styles))  # fmt: skip

@@ -1,9 +1,10 @@
-"""seaborn figures of sweep results with 95 % t confidence intervals across seeds.
+"""seaborn figures of sweep results with 95 % confidence intervals across seeds.
 
 Figures are drawn on ``matplotlib.figure.Figure`` with the Agg canvas (no pyplot, no GUI
 backend, nothing global switched). Each ``plot_*`` function saves one PNG atomically and returns
 its path, or returns ``None`` when the data lacks the dimension the figure needs. Error bars are
-the same t-intervals as the tables (:func:`analysis.results.summarise`).
+the same intervals as the tables (:func:`analysis.results.summarise`): log-scale t-intervals,
+asymmetric and never below 0, for non-negative metrics; Student t for signed ones.
 """
 
 from __future__ import annotations
@@ -60,6 +61,21 @@ def new_figure(
     return fig, list(axes)
 
 
+def _ci_note(metrics: Iterable[str]) -> str:
+    """Footnote naming the error bars' interval: '95 % CI across seeds (log-scale t)' for
+    non-negative metrics, Student t for signed ones (as short as the x label leaves room for)."""
+    kinds = {"log-scale t" if METRICS[m].nonnegative else "Student t" for m in metrics}
+    return f"95 % CI across seeds ({' / '.join(sorted(kinds))})"
+
+
+def _yerr(stats: pd.DataFrame, metric: str) -> np.ndarray:
+    """Error bars of ``stats``' rows, shape (2, rows): mean - lo and hi - mean [metric unit]
+    (asymmetric for a non-negative metric's log-scale interval); 0 without an interval."""
+    mean = stats[f"{metric}_mean"].to_numpy(float)
+    lo, hi = stats[f"{metric}_lo"].to_numpy(float), stats[f"{metric}_hi"].to_numpy(float)
+    return np.nan_to_num(np.stack([mean - lo, hi - mean]))
+
+
 def _errorbar_lines(
     ax: Axes, stats: pd.DataFrame, x: str, metric: str, x_scale: float = 1.0, jitter: float = 0.0
 ) -> None:
@@ -72,11 +88,10 @@ def _errorbar_lines(
         s = s[s[f"{metric}_n"] > 0]
         if s.empty:
             continue
-        ci = s[f"{metric}_ci"].fillna(0.0)
         ax.errorbar(
             s[x] * x_scale + off,
             s[f"{metric}_mean"],
-            yerr=ci,
+            yerr=_yerr(s, metric),
             color=palette[policy],
             marker="o",
             markersize=5,
@@ -103,7 +118,7 @@ def plot_penetration(
         return None
     ax.set_title(f"{METRICS[metric].label} vs penetration\n{describe_condition(cond)}", fontsize=10)
     ax.legend(title="policy", frameon=True)
-    fig.text(0.99, 0.0, "error bars: 95 % t-CI across seeds", ha="right", va="bottom", fontsize=7)
+    fig.text(0.99, 0.0, _ci_note([metric]), ha="right", va="bottom", fontsize=7)
     return save_figure(fig, Path(out_dir) / f"{name}{metric}_vs_penetration.png")
 
 
@@ -142,7 +157,7 @@ def plot_smoothing(
     handles, labels = drawn[0].get_legend_handles_labels()
     fig.legend(handles, labels, title="policy", loc="outside right center")
     fig.suptitle(f"Traffic smoothing vs penetration — {describe_condition(cond)}", fontsize=10)
-    fig.text(0.99, 0.0, "error bars: 95 % t-CI across seeds", ha="right", va="bottom", fontsize=7)
+    fig.text(0.99, 0.0, _ci_note(metrics), ha="right", va="bottom", fontsize=7)
     return save_figure(fig, Path(out_dir) / f"{name}smoothing_vs_penetration.png")
 
 
@@ -168,14 +183,12 @@ def _penetration_panel(ax: Axes, sub: pd.DataFrame, metric: str, legend_ref: boo
         return False
     _errorbar_lines(ax, stats, "penetration", metric, x_scale=100.0, jitter=1.0)
     if has_ref:
-        m, h = ref[f"{metric}_mean"].iloc[0], ref[f"{metric}_ci"].iloc[0]
+        m, lo, hi = (ref[f"{metric}_{c}"].iloc[0] for c in ("mean", "lo", "hi"))
         ax.axhline(m, color=REFERENCE_COLOR, linestyle="--", linewidth=1.3,
                    label="0 % (all human)" if legend_ref else None)  # fmt: skip
-        if h == h:
-            ax.axhspan(m - h, m + h, color=REFERENCE_COLOR, alpha=0.10, linewidth=0)
-        ax.errorbar(
-            [0], [m], yerr=[0 if h != h else h], color=REFERENCE_COLOR, marker="s", capsize=4
-        )
+        if lo == lo:
+            ax.axhspan(lo, hi, color=REFERENCE_COLOR, alpha=0.10, linewidth=0)
+        ax.errorbar([0], [m], yerr=_yerr(ref, metric), color=REFERENCE_COLOR, marker="s", capsize=4)
     ticks = sorted(
         {0.0, *(stats["penetration"] * 100).round(6)}
         if has_ref
@@ -249,7 +262,7 @@ def _bars(ax: Axes, stats: pd.DataFrame, metric: str, hue: str | None = None) ->
     groups = [None] if hue is None else list(dict.fromkeys(stats[hue]))
     width = 0.8 / len(policies)
     for i, policy in enumerate(policies):
-        xs, ys, es = [], [], []
+        xs, ys, es = [], [], np.zeros((2, 0))
         for j, g in enumerate(groups):
             s = stats[stats["policy"] == policy]
             if hue is not None:
@@ -258,7 +271,7 @@ def _bars(ax: Axes, stats: pd.DataFrame, metric: str, hue: str | None = None) ->
                 continue
             xs.append(j + (i - (len(policies) - 1) / 2) * width)
             ys.append(s[f"{metric}_mean"].iloc[0])
-            es.append(np.nan_to_num(s[f"{metric}_ci"].iloc[0]))
+            es = np.hstack([es, _yerr(s.iloc[:1], metric)])
         ax.bar(xs, ys, width=width * 0.95, yerr=es, capsize=3, color=palette[policy], label=policy)
     ax.set_xticks(range(len(groups)))
     ax.set_xticklabels([] if hue is None else [str(g) for g in groups])

@@ -32,7 +32,7 @@ from analysis import tables as tbl
 from analysis import traffic_figures as tf
 from analysis.pdf import PAGE_WIDTH, figure, frame_rows, grid, make_styles, para, write_pdf
 from analysis.results import load_results
-from analysis.style import fmt_density, fmt_penetration
+from analysis.style import CI_METHODS, fmt_density, fmt_penetration
 from mixed_traffic.schema import FD_DIR, METRICS, SMOOTHING
 
 _ERROR_CHARS = 300
@@ -174,7 +174,7 @@ def build_report(
     story += [Paragraph(escape(t), styles["bullet"], bulletText="•") for t in items]
     story.append(
         para(
-            "Means over seeds with 95 % t confidence intervals (mean ± half-width). A difference "
+            f"Means over seeds with {CI_METHODS} A difference "
             "between two policies, or between the lowest and the highest value of a sweep axis, is "
             "only called out when the 95 % t-interval of the mean per-seed difference excludes 0 "
             "(paired t-test on the seeds both groups ran; the seed fixes the demand and the human "
@@ -220,7 +220,7 @@ def build_report(
         story.append(para("Figures", styles["h1"]))
         for key, path in made.items():
             story.append(
-                figure(path, _FIGURE_CAPTIONS[key] + " Error bars: 95 % t-CI across seeds.", styles)
+                figure(path, f"{_FIGURE_CAPTIONS[key]} Error bars: 95 % CI across seeds.", styles)
             )
             story.append(Spacer(1, 8))
 

@@ -1,8 +1,10 @@
-"""Load episode records into a tidy table and summarise them with t confidence intervals.
+"""Load episode records into a tidy table and summarise them with 95 % confidence intervals.
 
 Reads result files only (``records.jsonl``, optionally ``records.parquet``); never imports SUMO
 or torch. One row per episode; columns are the cell keys, the provenance fields and one column
-per metric key of :data:`mixed_traffic.schema.METRICS`. The t critical values come from
+per metric key of :data:`mixed_traffic.schema.METRICS`. Intervals: Student t for signed
+quantities (:func:`mean_ci`), log-scale (delta-method) t for non-negative ones
+(:func:`nonneg_mean_ci`, never below 0); the t critical values come from
 :func:`analysis.stats.t_quantile_975` (scipy), also importable from here.
 """
 
@@ -19,7 +21,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from analysis.stats import t_quantile_975
+from analysis.stats import log_interval, t_quantile_975
 from mixed_traffic.schema import CELL_KEYS, METRICS
 
 JSONL_NAME = "records.jsonl"
@@ -53,13 +55,19 @@ class ResultsError(ValueError):
     """A results directory or file that cannot be read as episode records."""
 
 
-def mean_ci(values: Iterable[float]) -> tuple[float, float, int]:
-    """Mean, 95 % t-interval half-width and count of the finite ``values``.
-
-    The half-width is NaN when fewer than two finite values exist (no interval from one seed).
-    """
+def _finite(values: Iterable[float]) -> np.ndarray:
+    """The finite values (None, NaN and inf dropped) as a float array of shape (n,)."""
     arr = np.asarray([v for v in values if v is not None], dtype=float)
-    arr = arr[np.isfinite(arr)]
+    return arr[np.isfinite(arr)]
+
+
+def mean_ci(values: Iterable[float]) -> tuple[float, float, int]:
+    """Mean, 95 % Student t-interval half-width and count of the finite ``values``.
+
+    The interval of a signed quantity. The half-width is NaN when fewer than two finite values
+    exist (no interval from one seed).
+    """
+    arr = _finite(values)
     n = int(arr.size)
     if n == 0:
         return math.nan, math.nan, 0
@@ -68,6 +76,33 @@ def mean_ci(values: Iterable[float]) -> tuple[float, float, int]:
         return mean, math.nan, n
     half = t_quantile_975(n - 1) * float(arr.std(ddof=1)) / math.sqrt(n)
     return mean, half, n
+
+
+def nonneg_mean_ci(values: Iterable[float]) -> tuple[float, float, float, int]:
+    """Mean, 95 % interval ``(lo, hi)`` and count of the finite ``values`` of a non-negative
+    quantity (same unit as the values).
+
+    The interval is the log-scale (delta-method) t-interval of :func:`analysis.stats.log_interval`:
+    it stays >= 0 where the t-interval of :func:`mean_ci` may cross 0 (few seeds, large spread).
+    Should a value be negative (the quantity is not non-negative after all) the t-interval is
+    returned. ``lo`` and ``hi`` are NaN with fewer than two finite values.
+    """
+    arr = _finite(values)
+    mean, half, n = mean_ci(arr)
+    if n and arr.min() < 0:
+        return mean, mean - half, mean + half, n
+    lo, hi = log_interval(mean, half)
+    return mean, lo, hi, n
+
+
+def metric_ci(key: str, values: Iterable[float]) -> tuple[float, float, float, int]:
+    """Mean, 95 % interval ``(lo, hi)`` and count of the values of metric ``key``: the
+    log-scale interval of :func:`nonneg_mean_ci` for a non-negative metric (schema
+    ``Metric.nonnegative``), else the Student t-interval of :func:`mean_ci`."""
+    if METRICS[key].nonnegative:
+        return nonneg_mean_ci(values)
+    mean, half, n = mean_ci(values)
+    return mean, mean - half, mean + half, n
 
 
 def _flatten(record: dict[str, Any]) -> dict[str, Any]:
@@ -233,11 +268,12 @@ def to_parquet(df: pd.DataFrame, path: str | os.PathLike[str]) -> Path:
 def summarise(
     df: pd.DataFrame, by: Sequence[str], metrics: Sequence[str] | None = None
 ) -> pd.DataFrame:
-    """Mean and 95 % t confidence interval across seeds of each metric, per group.
+    """Mean and 95 % confidence interval across seeds of each metric, per group.
 
     Only successful episodes enter the statistics. Returns one row per group with the ``by``
-    columns, ``n_ok``, ``n_failed`` and for each metric ``{m}_mean``, ``{m}_ci`` (half-width,
-    NaN with fewer than two values), ``{m}_lo``, ``{m}_hi`` and ``{m}_n``.
+    columns, ``n_ok``, ``n_failed`` and for each metric ``{m}_mean``, ``{m}_lo``, ``{m}_hi``
+    (the interval of :func:`metric_ci`: log-scale for a non-negative metric, so never below 0,
+    Student t for a signed one; NaN with fewer than two values) and ``{m}_n``.
     """
     by = list(by)
     metrics = list(metrics) if metrics is not None else list(METRIC_KEYS)
@@ -254,12 +290,8 @@ def summarise(
         row["n_failed"] = int((~is_ok).sum())
         group = group[is_ok]
         for m in metrics:
-            mean, half, n = mean_ci(group[m].tolist()) if m in group else (math.nan, math.nan, 0)
-            row[f"{m}_mean"] = mean
-            row[f"{m}_ci"] = half
-            row[f"{m}_lo"] = mean - half
-            row[f"{m}_hi"] = mean + half
-            row[f"{m}_n"] = n
+            values = group[m].tolist() if m in group else []
+            row[f"{m}_mean"], row[f"{m}_lo"], row[f"{m}_hi"], row[f"{m}_n"] = metric_ci(m, values)
         rows.append(row)
     return pd.DataFrame(rows)
 

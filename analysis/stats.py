@@ -1,6 +1,8 @@
 """Two-sided 95 % Student t statistics across seeds (scipy only; no SUMO, no torch).
 
 - :func:`t_quantile_975`: the critical value t_{0.975, df} of the 95 % t-intervals
+- :func:`log_interval`: the 95 % log-scale (delta-method) t-interval of a non-negative mean,
+  which never crosses 0 (the levels of non-negative metrics; signed ones keep the t-interval)
 - :func:`paired_difference`: the difference of one metric between two groups of episodes that
   differ in one factor (policy, or a sweep axis value), paired by seed when the seeds are shared
   (paired t-test), else Welch's t-test.
@@ -34,6 +36,24 @@ def t_quantile_975(df: float) -> float:
     if not df >= 1:
         raise ValueError(f"degrees of freedom must be >= 1, got {df}")
     return float(_st.t.ppf(1.0 - ALPHA / 2, df))
+
+
+def log_interval(mean: float, half: float) -> tuple[float, float]:
+    """95 % log-scale (delta-method) t-interval ``(lo, hi)`` of the mean of non-negative values.
+
+    ``half`` is the half-width t_{0.975, n-1} s / sqrt(n) of the Student t-interval (sample sd
+    s of n values). By the delta method log(mean) has standard error s / (sqrt(n) mean), so the
+    t-interval of log(mean) maps back to ``(mean / exp(half / mean), mean * exp(half / mean))``:
+    it contains the mean, stays above 0, is skewed upward like the mean of a non-negative
+    quantity, and tends to ``(mean - half, mean + half)`` as ``half / mean`` goes to 0 (for
+    non-negative values ``half / mean`` is at most t_{0.975, n-1}). A zero mean (all values 0)
+    gives [0, 0]; a NaN ``half`` (fewer than two values) gives NaN bounds. Units: those of
+    ``mean``.
+    """
+    if mean == 0:
+        return mean - half, mean + half  # all values 0: half is 0 (or NaN from one value)
+    factor = math.exp(half / mean)
+    return mean / factor, mean * factor
 
 
 @dataclass(frozen=True)
@@ -144,4 +164,11 @@ def paired_difference(a: pd.Series, b: pd.Series) -> Difference:
     return _welch(a.to_numpy(), b.to_numpy())
 
 
-__all__ = ["ALPHA", "MIN_PAIRS", "Difference", "paired_difference", "t_quantile_975"]
+__all__ = [
+    "ALPHA",
+    "MIN_PAIRS",
+    "Difference",
+    "log_interval",
+    "paired_difference",
+    "t_quantile_975",
+]

@@ -1,8 +1,9 @@
 """PDF reports of the paper's comparison studies (``python -m mixed_traffic.study``), in the
 style of its tables: macroscopic (AvgDT-A, AvgAT-C, AvgDI-C), microscopic (MinTTC-A … AvgDEC-C)
-and AvgR / AvgIT, each mean ± 95 % t-CI over seeds, then every method's paired difference
-to the reference policy (the same training pipeline and budget as the others), the methods'
-training lineage and, for trained methods, their learning curves.
+and AvgR / AvgIT, each mean and 95 % CI over seeds (log-scale t-interval for non-negative
+metrics, Student t for AvgR), then every method's paired difference to the reference policy
+(the same training pipeline and budget as the others), the methods' training lineage and, for
+trained methods, their learning curves.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from analysis.pdf import figure, frame_rows, grid, make_styles, para, write_pdf
 from analysis.report import failed_rows
 from analysis.results import load_results, ok_rows
 from analysis.stats import paired_difference
-from analysis.style import describe_condition, fmt_mean_ci, fmt_num, order_policies
+from analysis.style import CI_METHODS, describe_condition, fmt_mean_ci, fmt_num, order_policies
 from mixed_traffic.schema import MACRO, METRICS, MICRO
 
 PAIRED_METRICS = (*MACRO, *MICRO, "avg_r")
@@ -150,7 +151,9 @@ def build_study_report(results_dir: Path, out_pdf: Path, study: str, reference: 
     story.append(para("Findings", styles["h1"]))
     story += [Paragraph(t, styles["bullet"], bulletText="•") for t in verdicts(df, reference)]
     story.append(para("Results tables", styles["h1"]))
-    story.append(para(f"{describe_condition(cond)}; mean ± 95 % t-CI over seeds.", styles["small"]))
+    story.append(
+        para(f"{describe_condition(cond)}; means over seeds. {CI_METHODS}", styles["small"])
+    )
     for table in (tbl.macro_table(df), tbl.micro_table(df),
                   tbl.metric_table(df, ("avg_r", "avg_it"),
                                    title="Reward and inference time")):  # fmt: skip

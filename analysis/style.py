@@ -20,6 +20,14 @@ POLICY_COLORS: dict[str, str] = {
 _EXTRA_COLORS = ("#8c564b", "#e377c2", "#bcbd22", "#17becf")
 REFERENCE_COLOR = "#333333"
 """Colour of the 0 % all-human reference."""
+CI_METHODS = (
+    "95 % confidence intervals: for metrics that cannot be negative (times, delays, speeds, "
+    "speed spreads, fuel, shares, counts) a log-scale (delta-method) t-interval of the mean, "
+    "mean·exp(±t·se/mean) with se the standard error, printed 'mean [low, high]', which stays "
+    ">= 0; Student t (mean ± half-width) for signed quantities (AvgR, wave speed) and for "
+    "paired differences."
+)
+"""The reports' note on which interval is used where."""
 
 
 def order_policies(policies: Iterable[Any]) -> list[str]:
@@ -70,6 +78,26 @@ def fmt_mean_ci(mean: Any, ci: Any) -> str:
     if is_missing(ci):
         return fmt_num(mean, d)
     return f"{fmt_num(mean, d)} ± {fmt_num(ci, d)}"
+
+
+def fmt_interval(mean: Any, lo: Any, hi: Any) -> str:
+    """'2.47 [2.01, 3.03]': a mean and its (asymmetric) 95 % interval, all with the mean's
+    decimals; the mean alone without an interval."""
+    if is_missing(mean):
+        return "n/a"
+    d = decimals_for(float(mean))
+    if is_missing(lo) or is_missing(hi):
+        return fmt_num(mean, d)
+    return f"{fmt_num(mean, d)} [{fmt_num(lo, d)}, {fmt_num(hi, d)}]"
+
+
+def fmt_level(key: str, mean: Any, lo: Any, hi: Any) -> str:
+    """Metric ``key``'s mean with its 95 % interval ``(lo, hi)`` as summarise gives them:
+    '2.47 [2.01, 3.03]' for a non-negative metric (log-scale interval, asymmetric),
+    '0.41 ± 0.02' for a signed one (Student t-interval, symmetric)."""
+    if METRICS[key].nonnegative:
+        return fmt_interval(mean, lo, hi)
+    return fmt_mean_ci(mean, (hi - lo) / 2)
 
 
 def fmt_count(x: Any) -> str:

@@ -1,6 +1,7 @@
 """Tables shaped like the paper's macroscopic and microscopic tables, with safety counts beside.
 
-Table builders return *numeric* DataFrames (``{m}_mean``/``{m}_ci`` columns plus safety counts)
+Table builders return *numeric* DataFrames (``{m}_mean``/``{m}_lo``/``{m}_hi`` columns: the mean
+and its 95 % interval from :func:`analysis.results.summarise`, plus safety counts)
 with ``attrs`` describing them (``title``, ``metrics``, ``condition``); :func:`format_table`
 turns one into display strings and :func:`to_text` into markdown or plain text.
 """
@@ -21,7 +22,7 @@ from analysis.results import (
 from analysis.style import (
     describe_condition,
     fmt_count,
-    fmt_mean_ci,
+    fmt_level,
     fmt_num,
     fmt_penetration,
     order_policies,
@@ -93,7 +94,7 @@ def metric_table(
     condition: dict[str, Any] | None = None,
     title: str = "",
 ) -> pd.DataFrame:
-    """Mean ± 95 % CI of ``metrics`` per group (rows), with the safety counts beside them.
+    """Mean and 95 % CI of ``metrics`` per group (rows), with the safety counts beside them.
 
     ``condition`` restricts the rows first (e.g. one density and penetration). Policies are
     ordered as in :data:`mixed_traffic.schema.POLICIES`.
@@ -106,7 +107,7 @@ def metric_table(
         stats = summarise(sub, by, metrics)
         keep = [*by, "n_ok", "n_failed"]
         for m in metrics:
-            keep += [f"{m}_mean", f"{m}_ci"]
+            keep += [f"{m}_mean", f"{m}_lo", f"{m}_hi"]
         out = stats[keep].merge(safety_counts(sub, by), on=by, how="left")
         if "policy" in by:
             order = {p: i for i, p in enumerate(order_policies(out["policy"]))}
@@ -147,7 +148,7 @@ def cell_table(df: pd.DataFrame, metrics: Sequence[str] = CELL_METRICS) -> pd.Da
 
 def smoothing_table(df: pd.DataFrame, metrics: Sequence[str] = SMOOTHING) -> pd.DataFrame:
     """Traffic smoothing per sweep cell across seeds: DT-TF, the speed spread, fuel and the
-    speed spread ahead of / behind the AVs, mean ± 95 % CI (no safety columns: they are in the
+    speed spread ahead of / behind the AVs, mean and 95 % CI (no safety columns: they are in the
     per-cell table). Empty when no episode measured any of ``metrics`` beyond those of the
     per-cell table (records from before these measures)."""
     ok = df[df["status"] == "ok"]
@@ -181,7 +182,9 @@ _COND_HEADER = {"density": "density (veh/km)", "penetration": "AV share", "weath
 
 
 def format_table(table: pd.DataFrame, drop_constant: bool = True) -> pd.DataFrame:
-    """Display strings: group columns, 'n', metric columns 'mean ± CI' with labelled headers, safety.
+    """Display strings: group columns, 'n', metric columns 'mean [lo, hi]' (non-negative metrics)
+    or 'mean ± half-width' (signed ones, :func:`analysis.style.fmt_level`) with labelled
+    headers, safety.
 
     With ``drop_constant`` the group columns (other than policy) that take one value are dropped
     (they belong in the caption). Tables grouped by more than the policy (per-cell) show the
@@ -212,7 +215,9 @@ def format_table(table: pd.DataFrame, drop_constant: bool = True) -> pd.DataFram
         if "failed" in table.columns:
             cols["failed"] = [fmt_count(v) for v in table["failed"]]
     for m in metrics:
-        cols[label(m)] = [fmt_mean_ci(a, b) for a, b in zip(table[f"{m}_mean"], table[f"{m}_ci"])]
+        cols[label(m)] = [
+            fmt_level(m, *v) for v in zip(table[f"{m}_mean"], table[f"{m}_lo"], table[f"{m}_hi"])
+        ]
     safety = [*SAFETY_COLUMNS]
     if "terminal_collision" in table.columns and not metrics:
         safety = [

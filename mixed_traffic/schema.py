@@ -26,6 +26,9 @@ class Metric:
     description: str
     better: str = ""
     """'lower', 'higher' or '' (no preference)."""
+    nonnegative: bool = True
+    """Never below 0 by construction (times, speeds, spreads, shares, counts): its 95 % interval is
+    the log-scale one of :func:`analysis.results.nonneg_mean_ci`, else the Student t one."""
 
 
 METRICS: dict[str, Metric] = {
@@ -41,7 +44,7 @@ METRICS: dict[str, Metric] = {
         Metric("avg_jerk_a", "AvgJERK-A", "m/s³", "mean |a_t - a_(t-1)| / dt of AVs", "lower"),
         Metric("avg_dec_c", "AvgDEC-C", "m/s", "mean speed drop of C within 1 s after an AV brakes or changes lane", "lower"),
         Metric("pt_rt", "PT-RT", "%", "share of AV time with TTC < 4 s", "lower"),
-        Metric("avg_r", "AvgR", "-", "mean reward per AV action", "higher"),
+        Metric("avg_r", "AvgR", "-", "mean reward per AV action", "higher", nonnegative=False),
         Metric("avg_it", "AvgIT", "ms", "mean policy inference time per decision", "lower"),
         Metric("sm_share", "SM", "%", "share of AUTO's decisions the safety module changed", "lower"),
         Metric("measured_density", "density", "veh/km", "measured density in the measurement segment after warm-up"),
@@ -52,7 +55,7 @@ METRICS: dict[str, Metric] = {
         Metric("speed_std_ahead", "speed std ahead", "m/s", "speed std of the vehicles within av_window (200 m) ahead of each AV in its lane (half a ring at most), pooled over the steps after warm-up, mean over AVs weighted by samples", "lower"),
         Metric("speed_std_behind", "speed std behind", "m/s", "speed std of the vehicles within av_window (200 m) behind each AV in its lane (half a ring at most); below speed std ahead: the AVs leave a calmer wake", "lower"),
         Metric("flow", "flow", "veh/h/lane", "Edie's flow per lane in the measurement segment after warm-up"),
-        Metric("wave_speed", "wave speed", "km/h", "propagation speed of speed disturbances (stop-and-go waves travel upstream, < 0); empty without waves"),
+        Metric("wave_speed", "wave speed", "km/h", "speed of the stop-and-go waves in the measurement segment after warm-up, from the lag of the best cross-correlation of speed series 30-70 m apart; waves travel upstream (< 0) at 5-42 km/h; empty (no waves) when the speed patterns move downstream with the vehicles, faster than any wave could, inconsistently, or not at all", nonnegative=False),
         Metric("av_trips", "AV trips", "trips", "AV trips that ended (arrived or terminated)"),
         Metric("route_completion", "completion", "%", "share of ended AV trips that reached their destination", "higher"),
         Metric("collisions", "collisions", "count", "collisions (any vehicles)", "lower"),

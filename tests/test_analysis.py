@@ -16,11 +16,19 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from matplotlib.container import ErrorbarContainer
 
-from analysis import figures, findings, tables
+from analysis import benchmark_report, figures, findings, tables
 from analysis.report import build_report
-from analysis.results import load_results, mean_ci, summarise, to_parquet
-from analysis.style import fmt_mean_ci, fmt_num
+from analysis.results import (
+    load_results,
+    mean_ci,
+    nonneg_mean_ci,
+    records_to_frame,
+    summarise,
+    to_parquet,
+)
+from analysis.style import fmt_interval, fmt_mean_ci, fmt_num
 from mixed_traffic.schema import CELL_KEYS, MACRO, METRICS
 
 REPO = Path(__file__).resolve().parents[1]
@@ -238,9 +246,82 @@ def test_summarise_groups(results):
     vals = df[(df["policy"] == "auto") & (df["penetration"] == 0.2)]["dt_tf"]
     assert row["n_ok"] == 3 and row["dt_tf_n"] == 3
     assert row["dt_tf_mean"] == pytest.approx(vals.mean())
-    assert row["dt_tf_ci"] == pytest.approx(4.3027 * vals.std(ddof=1) / math.sqrt(3), rel=1e-4)
+    # DT-TF is a time (>= 0): the log-scale interval mean * exp(-+t s / (sqrt(n) mean))
+    rel = 4.3027 * vals.std(ddof=1) / (math.sqrt(3) * vals.mean())
+    assert row["dt_tf_lo"] == pytest.approx(vals.mean() * math.exp(-rel), rel=1e-4)
+    assert row["dt_tf_hi"] == pytest.approx(vals.mean() * math.exp(rel), rel=1e-4)
     fail = s[(s["policy"] == "auto") & (s["penetration"] == 0.6)].iloc[0]
     assert fail["n_failed"] == 1 and fail["n_ok"] == 3
+
+
+SPREAD = [0.3, 2.5, 5.0]  # speed std over 3 seeds whose t-interval reaches below 0 m/s
+
+
+def _spread_frame() -> pd.DataFrame:
+    """auto at 20 % (speed std ``SPREAD``) and 100 %, all human at 0 % with a wide spread too;
+    wave speed (signed) beside: one row per seed."""
+    cells = [("auto", 0.2, SPREAD), ("auto", 1.0, [0.4, 0.5, 0.6]), ("idm", 0.0, [0.2, 3.0, 4.0])]
+    records = [
+        {"cell": {"policy": policy, "scenario": "straight", "density": 120.0, "penetration": pen,
+                  "weather": "normal", "seed": seed},
+         "status": "ok", "code": "c0de",
+         "metrics": {"speed_std": v, "wave_speed": (-10.0, 1.0, 12.0)[seed]}}
+        for policy, pen, values in cells for seed, v in enumerate(values)
+    ]  # fmt: skip
+    return records_to_frame(records)
+
+
+def test_summarise_intervals_of_nonnegative_metrics_stay_above_zero():
+    s = summarise(_spread_frame(), ["policy", "penetration"], ["speed_std", "wave_speed"])
+    row = s[(s["policy"] == "auto") & (s["penetration"] == 0.2)].iloc[0]
+    assert 0 < row["speed_std_lo"] < row["speed_std_mean"] < row["speed_std_hi"]
+    assert (s["speed_std_lo"] >= 0).all()
+    mean, half, _ = mean_ci([-10.0, 1.0, 12.0])  # signed: the symmetric t-interval, below 0
+    assert row["wave_speed_lo"] == pytest.approx(mean - half) and row["wave_speed_lo"] < 0
+    assert row["wave_speed_hi"] == pytest.approx(mean + half)
+
+
+def test_error_bars_of_nonnegative_metrics_stay_above_zero():
+    df = _spread_frame()
+    _, (ax, bars) = figures.new_figure(6, 3, ncols=2)
+    assert figures._penetration_panel(ax, df, "speed_std")
+    figures._bars(bars, summarise(df, ["policy"], ["speed_std"]), "speed_std")
+    lows = [
+        seg[:, 1].min()
+        for a in (ax, bars)
+        for c in a.containers
+        if isinstance(c, ErrorbarContainer)
+        for lines in c.lines[2]
+        for seg in lines.get_segments()
+    ]
+    assert len(lows) == 2 + 1 + 2 and min(lows) > 0  # 2 line points, the 0 % point, 2 bars
+    assert min(lows) < 0.3  # asymmetric: the whisker still reaches down towards 0
+    band = [p for p in ax.patches if p.get_alpha() == 0.10]  # the 0 % reference band
+    assert len(band) == 1 and band[0].get_y() > 0
+
+
+def test_tables_print_the_asymmetric_interval():
+    df = _spread_frame()
+    shown = tables.format_table(tables.metric_table(df, ["speed_std", "wave_speed"],
+                                                    by=["policy", "penetration"]))  # fmt: skip
+    _, lo, hi, _ = nonneg_mean_ci(SPREAD)
+    cell = shown[(shown["policy"] == "auto") & (shown["AV share"] == "20 %")].iloc[0]
+    assert cell["speed std (m/s)"] == f"2.60 [{lo:.2f}, {hi:.2f}]" == "2.60 [0.27, 24.59]"
+    mean, half, _ = mean_ci([-10.0, 1.0, 12.0])
+    assert cell["wave speed (km/h)"] == f"{mean:.2f} ± {half:.2f}"  # signed: symmetric
+    assert fmt_interval(2.47, 2.01, 3.031) == "2.47 [2.01, 3.03]"
+    assert fmt_interval(2.47, math.nan, math.nan) == "2.47" and fmt_interval(None, 1, 2) == "n/a"
+
+
+def test_benchmark_table_prints_the_ratio_interval():
+    row = {"task": "ring-v2", "policy": "idm", "score": -0.08, "score_half_width": 0.04,
+           "mean_speed": 2.2, "speed_std": 0.5, "fuel": 41.0, "dt_tf": math.nan,
+           "std_ratio": 0.22, "std_ratio_lo": 0.05, "std_ratio_hi": 0.97,
+           "terminal_events": 0}  # fmt: skip
+    head, body = benchmark_report.table_rows([row])
+    assert body[2] == "-0.08 ± 0.04" and body[head.index("speed std / all human [95 % CI]")] == (
+        "0.22 [0.05, 0.97]"
+    )
 
 
 # ---------------------------------------------------------------- tables, figures, findings
@@ -258,7 +339,7 @@ def test_tables(results):
     for col in tables.SAFETY_COLUMNS:
         assert col in macro.columns
     text = tables.to_text(tables.micro_table(df), "markdown")
-    assert "MinTTC-A (s)" in text and "collisions" in text and " ± " in text
+    assert "MinTTC-A (s)" in text and "collisions" in text and " [" in text
     cells = tables.cell_table(df)
     assert len(cells) == 2 * 3 + 1 + 1  # + the 0 % reference + the failed-only cell
     assert "AV share" in tables.to_text(cells, "text")
@@ -373,6 +454,7 @@ def test_report_pdf_contains_labels_and_numbers(results, tmp_path):
     for prov in ("abc1234", "0b0b39a57b8a", "1.28.0", "FatalTraCIError"):
         assert prov in text, prov
     assert "Welch's t-test" in " ".join(text.split())  # the wording rule is stated
+    assert "log-scale (delta-method) t-interval" in " ".join(text.split())  # and the intervals'
     with pytest.warns(UserWarning):
         df = load_results(d)
     sel = df[(df["policy"] == "auto") & (df["penetration"] == 0.2)]

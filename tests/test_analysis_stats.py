@@ -20,8 +20,9 @@ import pytest
 from scipy import stats as st
 
 from analysis import findings
-from analysis.results import mean_ci, records_to_frame
-from analysis.stats import Difference, paired_difference, t_quantile_975
+from analysis.results import mean_ci, metric_ci, nonneg_mean_ci, records_to_frame
+from analysis.stats import Difference, log_interval, paired_difference, t_quantile_975
+from mixed_traffic.schema import METRICS
 
 REPO = Path(__file__).resolve().parents[1]
 A = [10.0, 12.0, 14.0]
@@ -54,6 +55,48 @@ def test_mean_ci_uses_exact_quantile():
     mean, half, n = mean_ci(A)
     assert (mean, n) == (12.0, 3)
     assert half == pytest.approx(T2 * 2.0 / math.sqrt(3), rel=1e-12)
+
+
+# ---------------------------------------------------------------- intervals of non-negative means
+
+SPREAD = [0.3, 2.5, 5.0]  # a speed std over 3 seeds whose t-interval reaches below 0
+
+
+def test_log_interval_stays_above_zero_where_the_t_interval_crosses_it():
+    mean, half, _ = mean_ci(SPREAD)
+    assert mean - half < 0  # the impossible interval of issue 59
+    m, lo, hi, n = nonneg_mean_ci(SPREAD)
+    assert (m, n) == (mean, 3) and 0 < lo < m < hi
+    # mean * exp(-+t s / (sqrt(n) mean)), s the sample sd
+    s = math.sqrt(sum((v - mean) ** 2 for v in SPREAD) / 2)
+    assert lo == pytest.approx(mean * math.exp(-T2 * s / (math.sqrt(3) * mean)), rel=1e-12)
+    assert hi == pytest.approx(mean * math.exp(T2 * s / (math.sqrt(3) * mean)), rel=1e-12)
+    assert (lo, hi) == log_interval(mean, half)
+
+
+def test_log_interval_is_the_t_interval_for_tight_samples():
+    mean, half, _ = mean_ci([100.0, 100.1, 99.9])
+    _, lo, hi, _ = nonneg_mean_ci([100.0, 100.1, 99.9])
+    assert lo == pytest.approx(mean - half, abs=1e-3) and hi == pytest.approx(mean + half, abs=1e-3)
+    assert hi - mean > mean - lo  # still skewed upward, by O(half^2 / mean)
+
+
+def test_log_interval_edge_cases():
+    assert nonneg_mean_ci([0.0, 0.0, 0.0]) == (0.0, 0.0, 0.0, 3)  # no spread, no interval width
+    m, lo, hi, n = nonneg_mean_ci([7.0, None, math.nan])
+    assert (m, n) == (7.0, 1) and math.isnan(lo) and math.isnan(hi)  # no interval from one seed
+    assert all(math.isnan(v) for v in nonneg_mean_ci([])[:3])
+    mean, half, _ = mean_ci([1.0, -1.0, 3.0])  # not non-negative after all: the t-interval
+    assert nonneg_mean_ci([1.0, -1.0, 3.0]) == (mean, mean - half, mean + half, 3)
+
+
+def test_signed_metrics_keep_the_t_interval():
+    assert not METRICS["wave_speed"].nonnegative and not METRICS["avg_r"].nonnegative
+    for key in ("speed_std", "fuel", "dt_tf", "avg_dt_a", "avg_at_c", "route_completion"):
+        assert METRICS[key].nonnegative, key
+    mean, half, n = mean_ci(SPREAD)
+    assert metric_ci("wave_speed", SPREAD) == (mean, mean - half, mean + half, n)
+    assert metric_ci("speed_std", SPREAD) == nonneg_mean_ci(SPREAD)
 
 
 # ---------------------------------------------------------------- paired difference

@@ -9,26 +9,35 @@ from pathlib import Path
 import pytest
 from pypdf import PdfReader
 
-from analysis.benchmark_report import README_BEGIN, README_END
+from analysis.benchmark_report import TABLE_BEGIN, TABLE_END
+from mixed_traffic import paths
 from mixed_traffic.benchmark import table
 from mixed_traffic.benchmark.score import uniform_flow_speed
 from mixed_traffic.provenance import read_records
 
 
-def test_the_table_scores_a_task_and_a_rerun_runs_nothing(tmp_path: Path, capsys) -> None:
+def test_the_table_scores_a_task_and_a_rerun_runs_nothing(
+    tmp_path: Path, capsys, monkeypatch
+) -> None:
     out = tmp_path / "records.jsonl"
-    readme = tmp_path / "README.md"
-    readme.write_text(f"# x\n{README_BEGIN}\nold\n{README_END}\nafter\n")
-    report = tmp_path / "reports" / "benchmark.pdf"
     argv = ["--tasks", "ring", "--policies", "follower-stopper", "--seeds", "0", "1",
-            "--episode-length", "20", "--out", str(out), "--report", str(report),
-            "--readme", str(readme), "--runs", str(tmp_path / "no-runs")]  # fmt: skip
+            "--episode-length", "20", "--out", str(out), "--runs", str(tmp_path / "no-runs")]  # fmt: skip
     assert table.main(argv) == 0
-    text = readme.read_text()
-    assert "old" not in text and "| ring-v2 | follower-stopper |" in text and "after" in text
-    pdf = "".join(p.extract_text() for p in PdfReader(report).pages)
+    assert "| ring-v2 | follower-stopper |" in (tmp_path / "table.md").read_text()
+    pdf = "".join(p.extract_text() for p in PdfReader(tmp_path / "benchmark.pdf").pages)
     assert "ring-v2" in pdf and "follower-stopper" in pdf
-    assert (tmp_path / "reports" / "benchmark-scores.png").is_file()
+    assert (tmp_path / "benchmark-scores.png").is_file()
+    # --update-reference: the page's table and the reference report, in a checkout of our own
+    checkout = tmp_path / "checkout"
+    (checkout / "docs").mkdir(parents=True)
+    (checkout / "reports").mkdir()
+    page = checkout / "docs" / "benchmark.md"
+    page.write_text(f"# x\n{TABLE_BEGIN}\nold\n{TABLE_END}\nafter\n")
+    monkeypatch.setattr(paths, "REPO_ROOT", checkout)
+    assert table.main([*argv, "--update-reference"]) == 0  # resumes: no episode runs again
+    text = page.read_text()
+    assert "old" not in text and "| ring-v2 | follower-stopper |" in text and "after" in text
+    assert (checkout / "reports" / "benchmark.pdf").is_file()
     records = read_records(out)
     assert len(records) == 2 * 2 * 2  # eval configs x (idm, follower-stopper) x seeds
     rows = json.loads((tmp_path / "scores.json").read_text())

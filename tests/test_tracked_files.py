@@ -30,13 +30,13 @@ def _git(cwd: Path, *args: str) -> str:
     return run.stdout
 
 
-@pytest.fixture(scope="module")
-def clone(tmp_path_factory: pytest.TempPathFactory) -> Path:
+@pytest.fixture
+def clone(tmp_path: Path) -> Path:
     """A fresh repository holding the checkout's files as they are now (committed or not)."""
     if not (REPO_ROOT / ".git").exists():
         pytest.fail(f"{REPO_ROOT} is not a git checkout: this test needs one")
     listed = _git(REPO_ROOT, "ls-files", "-z", "--cached", "--others", "--exclude-standard")
-    root = tmp_path_factory.mktemp("clone")
+    root = tmp_path / "clone"
     for name in filter(None, listed.split("\0")):
         if (REPO_ROOT / name).is_file():  # a file deleted but not yet staged is gone
             (root / name).parent.mkdir(parents=True, exist_ok=True)

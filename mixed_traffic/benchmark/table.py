@@ -4,7 +4,9 @@
     python -m mixed_traffic.benchmark --tasks ring-v2 --policies idm follower-stopper
 
 Each episode (task, eval config, policy, seed) runs through the one episode runner and is
-appended atomically to ``out`` as it ends, tagged ``benchmark``; a re-run skips the episodes
+appended atomically to ``out`` as it ends, tagged ``benchmark``; the scores, the table
+(``table.md``) and the report go beside it (``--update-reference``: the table into
+docs/benchmark.md and the report over reports/benchmark.pdf); a re-run skips the episodes
 the same code already recorded (also after kill -9). ``idm`` (all human) is always run: it is
 the score's 0. The score of a policy on a seed is the mean over the task's eval configs of
 ``(v - v_human) / (v_ref - v_human)`` on its metric (the fleet's mean speed), with ``v_ref``
@@ -26,13 +28,14 @@ from typing import Any
 
 import numpy as np
 
-from analysis.benchmark_report import build, markdown, update_readme
-from analysis.results import mean_ci
+from analysis.benchmark_report import TABLE_BEGIN, build, markdown, update_table
+from analysis.results import mean_ci, nonneg_mean_ci
 from mixed_traffic.benchmark import TASKS, Task, get_task, task_config
 from mixed_traffic.benchmark.score import free_flow_speed, normalised, uniform_flow_speed
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
 from mixed_traffic.experiments.runner import check_policy, run_episode
 from mixed_traffic.experiments.safety_matrix import terminal_events
+from mixed_traffic.paths import RESULTS, reference
 from mixed_traffic.provenance import (
     atomic_write,
     check_writable,
@@ -43,8 +46,10 @@ from mixed_traffic.provenance import (
     write_record_atomic,
 )
 
-#: Where ``python -m mixed_traffic.benchmark.ppo`` keeps its runs.
+#: The committed PPO runs, whose training curves the report shows.
 PPO_RUNS = Path(__file__).resolve().parents[2] / "agents" / "checkpoints" / "ppo"
+#: The committed references that ``--update-reference`` rewrites (relative to the checkout).
+REPORT, TABLE_DOC = "reports/benchmark.pdf", "docs/benchmark.md"
 
 #: Columns next to the score: record metrics averaged over eval configs and seeds.
 COLUMNS = ("mean_speed", "speed_std", "fuel", "dt_tf")
@@ -65,15 +70,17 @@ class BenchmarkConfig:
     """Simulated time per episode [s]; 0 = each task's horizon."""
     workers: int = 2
     """Parallel worker processes."""
-    out: Path = Path("results/benchmark/records.jsonl")
-    """Records (one JSON line per episode); the scores go next to it as ``scores.json``."""
-    report: Path = Path("reports/benchmark.pdf")
-    """The PDF report (its PNGs beside it)."""
-    readme: Path = Path("README.md")
-    """README whose table between the benchmark markers is replaced (left alone without them)."""
+    out: Path = RESULTS / "benchmark" / "records.jsonl"
+    """Records (one JSON line per episode); the scores go next to it as ``scores.json``, the
+    table as ``table.md``."""
+    report: Path | None = None
+    """The PDF report, its PNGs beside it (default: benchmark.pdf beside the records)."""
+    update_reference: bool = False
+    """Write the committed references: the table into docs/benchmark.md (between its markers)
+    and the report over reports/benchmark.pdf."""
     runs: tuple[Path, ...] = ()
-    """PPO run folders whose training curves the report shows (default: every folder of
-    agents/checkpoints/ppo)."""
+    """PPO run folders whose training curves the report shows (default: the committed runs,
+    every folder of agents/checkpoints/ppo)."""
 
     def __post_init__(self) -> None:
         names = tuple(get_task(t).name for t in self.tasks) or tuple(TASKS)
@@ -85,6 +92,15 @@ class BenchmarkConfig:
         if self.episode_length < 0 or self.workers < 1:
             raise ValueError("--episode-length must be >= 0 and --workers >= 1")
         check_writable(self.out)
+        if self.update_reference and self.report is not None:
+            raise ValueError("--update-reference writes the reference report: drop --report")
+        if self.update_reference and TABLE_BEGIN not in reference(TABLE_DOC).read_text():
+            raise ValueError(f"--update-reference: {TABLE_DOC} has lost its table markers")
+        if self.report is None:
+            pdf = (
+                reference(REPORT) if self.update_reference else self.out.with_name("benchmark.pdf")
+            )
+            object.__setattr__(self, "report", pdf)
         if not self.runs:
             object.__setattr__(
                 self, "runs", tuple(sorted(p for p in PPO_RUNS.glob("*") if p.is_dir()))
@@ -167,7 +183,7 @@ def _metric(record: dict[str, Any], name: str) -> float:
 def scores(cfg: BenchmarkConfig, records: dict[tuple, dict[str, Any]]) -> list[dict[str, Any]]:
     """One row per task and controller: score (mean, 95 % half-width, seeds), the columns'
     means, the speed std as a share of all-human traffic's on the same seed and config (mean,
-    95 % half-width) and the terminal events."""
+    95 % log-scale interval, which stays >= 0) and the terminal events."""
     rows = []
     L = cfg.episode_length
     for name in cfg.tasks:
@@ -185,11 +201,11 @@ def scores(cfg: BenchmarkConfig, records: dict[tuple, dict[str, Any]]) -> list[d
             score, half, seeds = mean_ci(per_seed)
             cols = {c: mean_ci([_metric(records[_key(name, i, p, s, L)], c)
                                 for i in range(n) for s in cfg.seeds])[0] for c in COLUMNS}  # fmt: skip
-            ratio, ratio_half, _ = mean_ci([np.mean([std[i, p, s] / std[i, "idm", s]
+            ratio, ratio_lo, ratio_hi, _ = nonneg_mean_ci([np.mean([std[i, p, s] / std[i, "idm", s]
                                                      for i in range(n)]) for s in cfg.seeds])  # fmt: skip
             rows.append({"task": name, "policy": p, "score": score,
                          "score_half_width": half, "seeds": seeds, **cols,
-                         "std_ratio": ratio, "std_ratio_half_width": ratio_half,
+                         "std_ratio": ratio, "std_ratio_lo": ratio_lo, "std_ratio_hi": ratio_hi,
                          "terminal_events": events[p], "references": refs})  # fmt: skip
     return rows
 
@@ -215,8 +231,10 @@ def main(argv: list[str] | None = None) -> int:
     atomic_write(cfg.out.with_name("scores.json"), lambda f: f.write(text))
     table = markdown(rows)
     build(rows, cfg.runs, cfg.report, notes=[_provenance(cfg)])
-    if cfg.readme.is_file() and update_readme(cfg.readme, table):
-        print(f"updated the table in {cfg.readme}", file=sys.stderr)
+    atomic_write(cfg.out.with_name("table.md"), lambda f: f.write(f"{table}\n".encode()))
+    if cfg.update_reference:
+        update_table(reference(TABLE_DOC), table)
+        print(f"updated the table in {TABLE_DOC}", file=sys.stderr)
     print(table)
     print(f"report: {cfg.report}", file=sys.stderr)
     return 0

@@ -48,9 +48,13 @@ CONFIG_OPTIONS = [
 
 
 # --------------------------------------------------------------------------- output
-def _fmt(value: Any) -> str:
+#: How a metric without a value reads (the others: "-").
+MISSING = {"wave_speed": "no waves"}
+
+
+def _fmt(value: Any, missing: str = "-") -> str:
     if value is None:
-        return "-"
+        return missing
     if isinstance(value, float):
         return f"{value:.3g}" if abs(value) < 1000 else f"{value:.0f}"
     return str(value)
@@ -58,7 +62,8 @@ def _fmt(value: Any) -> str:
 
 def metrics_table(records: list[dict[str, Any]]) -> str:
     """Plain-text table: one row per metric measured in any record, one column per seed + mean."""
-    keys = [k for k in METRICS if any(r["metrics"].get(k) is not None for r in records)]
+    keys = [k for k in METRICS
+            if k in MISSING or any(r["metrics"].get(k) is not None for r in records)]  # fmt: skip
     seeds = [f"seed {r['seed']}" for r in records]
     head = ["metric", "unit", *seeds, "mean"]
     rows = []
@@ -66,7 +71,8 @@ def metrics_table(records: list[dict[str, Any]]) -> str:
         vals = [r["metrics"].get(k) for r in records]
         nums = [v for v in vals if isinstance(v, (int, float))]
         mean = float(np.mean(nums)) if nums else None
-        rows.append([METRICS[k].label, METRICS[k].unit, *map(_fmt, vals), _fmt(mean)])
+        shown = [_fmt(v, MISSING.get(k, "-")) for v in (*vals, mean)]
+        rows.append([METRICS[k].label, METRICS[k].unit, *shown])
     rings = [r.get("ring_length") for r in records]  # drawn per seed from a range
     if any(v is not None for v in rings):
         nums = [v for v in rings if v is not None]
