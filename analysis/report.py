@@ -4,7 +4,7 @@ Contents: title; findings; configuration and provenance; the macroscopic, micros
 per-cell tables with safety counts beside them; the figures; the safety counts by policy; the
 failed episodes with their errors. Built from result files alone (no SUMO, no torch).
 
-python -m mixed_traffic.report RESULTS_DIR [--out reports/NAME.pdf] [--title TITLE]
+python -m mixed_traffic.report RESULTS_DIR [--out FILE.pdf] [--title TITLE]
 (``python -m analysis.report`` is the same command.)
 """
 
@@ -289,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--out",
         type=Path,
         default=None,
-        help="output PDF (default: reports/<RESULTS_DIR name>.pdf); figures are saved beside it",
+        help="output PDF (default: RESULTS_DIR/<its name>.pdf); figures are saved beside it",
     )
     parser.add_argument(
         "--title", default=None, help="report title (default: from the folder name)"
@@ -304,7 +304,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     results_dir: Path = args.results_dir
     if not results_dir.exists():
         parser.error(f"results directory {str(results_dir)!r} does not exist")
-    out = args.out or Path("reports") / f"{results_dir.resolve().name}.pdf"
+    out = args.out or results_dir / f"{results_dir.resolve().name}.pdf"
     if out.suffix.lower() != ".pdf":
         parser.error(f"--out {str(out)!r} must end in .pdf")
     with warnings.catch_warnings(record=True) as caught:

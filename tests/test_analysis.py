@@ -481,6 +481,8 @@ def test_report_cli(results, tmp_path):
     proc = _cli(str(d), "--out", str(out), "--title", "CLI report")
     assert proc.returncode == 0, proc.stderr
     assert out.exists() and str(out) in proc.stdout
+    assert _cli(str(d)).returncode == 0  # by default beside the results, never in reports/
+    assert (d / f"{d.name}.pdf").is_file()
 
 
 def test_report_cli_errors(tmp_path):

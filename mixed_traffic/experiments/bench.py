@@ -210,7 +210,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument(
         "--densities", type=float, nargs="+", default=list(DENSITIES), metavar="K",
-        help="densities [veh/km] (default: 60 120 180)",
+        help="densities [veh/km, all lanes] (default: 60 120 180)",
     )  # fmt: skip
     p.add_argument(
         "--penetrations", type=float, nargs="+", default=list(PENETRATIONS), metavar="P",

@@ -48,7 +48,7 @@ class CompareConfig:
     scenarios: tuple[str, ...] = TRAIN_CELLS
     """Train-split scenarios (held-out eval variants are refused)."""
     density: float | None = None
-    """Traffic density [veh/km] (default: each scenario's, 120 veh/km unless its spec gives
+    """Traffic density [veh/km, all lanes] (default: each scenario's, 120 veh/km unless its spec gives
     one)."""
     penetrations: tuple[float, ...] = (0.2, 1.0)
     """AV penetrations [0-1]."""

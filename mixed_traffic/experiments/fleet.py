@@ -69,7 +69,7 @@ class FleetConfig:
     scenarios: tuple[str, ...] = ()
     """Train-split scenarios to sample ('' = all; a family is drawn first, then its variant)."""
     densities: tuple[float, ...] = (60.0, 120.0, 180.0, 0.0)
-    """Densities sampled per episode [veh/km]; 0 = the scenario's default; infeasible skipped."""
+    """Densities sampled per episode [veh/km, all lanes]; 0 = the scenario's default; infeasible skipped."""
     penetrations: tuple[float, ...] = (0.05, 0.5, 1.0)
     """AV shares sampled per episode [0-1] (0.05 on a 22-car ring is one AV)."""
     weathers: tuple[str, ...] = WEATHERS

@@ -81,7 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), metavar="NAME",
                    help=f"scenarios (default: {' '.join(SCENARIOS)})")  # fmt: skip
     p.add_argument("--densities", type=int, nargs="+", default=list(DENSITIES), metavar="K",
-                   help="densities [veh/km] (default: 60 120 180)")  # fmt: skip
+                   help="densities [veh/km, all lanes] (default: 60 120 180)")  # fmt: skip
     p.add_argument("--penetrations", type=float, nargs="+", default=list(PENETRATIONS),
                    metavar="P", help="AV penetrations [0-1] (default: 0.2 0.5 1.0)")  # fmt: skip
     p.add_argument("--seconds", type=float, default=120.0,

@@ -62,7 +62,7 @@ class StudyConfig:
     scenario: str = "straight-eval"
     """Held-out evaluation scenario (name or .net.xml/.sumocfg path)."""
     at_density: float | None = None
-    """Traffic density [veh/km] (default: the scenario's)."""
+    """Traffic density [veh/km, all lanes] (default: the scenario's)."""
     at_penetration: float = 0.2
     """AV penetration [0-1]."""
     seeds: tuple[int, ...] = (0, 1, 2, 3, 4)

@@ -72,7 +72,7 @@ class SweepConfig:
     scenario: str = "straight"
     """Scenario name or .net.xml/.sumocfg path (see ``python -m mixed_traffic.scenario --list``)."""
     at_density: float | None = None
-    """Density for the penetration and weather sweeps [veh/km] (default: the scenario's, 120
+    """Density for the penetration and weather sweeps [veh/km, all lanes] (default: the scenario's, 120
     veh/km unless its spec gives one)."""
     at_penetration: float = 0.2
     """AV penetration for the density and weather sweeps [0-1]."""
