@@ -20,8 +20,7 @@ BENCHMARK = ["mixed_traffic.benchmark", "--tasks", "ring-v2", "--policies", "fol
              "--seeds", "0", "--episode-length", "10", "--workers", "1"]  # fmt: skip
 SWEEP = ["mixed_traffic.sweep", "--penetration", "--values", "1.0", "--policies", "acc-lc",
          "--at-density", "60",
-         "--seeds", "0", "--episode-length", "60", "--warmup", "5", "--no-traffic",
-         "--workers", "1"]  # fmt: skip
+         "--seeds", "0", "--episode-length", "60", "--warmup", "5", "--workers", "1"]  # fmt: skip
 
 
 def _git(cwd: Path, *args: str) -> str:

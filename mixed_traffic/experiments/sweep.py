@@ -349,7 +349,7 @@ def fd_sweep(sweep: SweepConfig) -> SweepConfig:
         sweep, axis="density", values=values, policies=("idm",), at_penetration=0.0,
         seeds=sweep.seeds[:1], reference=False, episode_length=length,
         warmup=min(sweep.warmup, 30.0, length / 2), out=sweep.results / FD_DIR, report=False,
-        traffic=False, checkpoint=None,
+        update_reference=False, traffic=False, checkpoint=None,
     )  # fmt: skip
 
 
