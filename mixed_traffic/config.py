@@ -24,6 +24,8 @@ LANE_TERMS = ("offset", "waypoint")
 JAM_DENSITY_PER_LANE = 1000.0 / 7.0
 #: Episode length where neither the config nor the scenario's spec gives one [s].
 DEFAULT_EPISODE_LENGTH = 120.0
+#: Most copies of a scenario in one simulation (``EnvConfig.copies``).
+MAX_COPIES = 1024
 #: Circumferences a ring scenario may be scaled to [m] (``EnvConfig.ring_length``).
 RING_LENGTH_RANGE = (150.0, 400.0)
 
@@ -341,6 +343,10 @@ class EnvConfig:
     """Weather preset: normal | rain | fog | night (sensor noise and misdetection)."""
     seed: int = 0
     """Root seed for SUMO, demand, sensor noise, numpy and torch."""
+    copies: int = 1
+    """Independent copies of the scenario in one simulation [count], each with its own demand
+    draw, agents, reference speeds and metrics (batched worlds: one step serves them all).
+    Ring, straight, highway, wave-highway, merge and bottleneck scenarios only."""
     episode_length: float | None = None
     """Simulated time per episode [s]; reaching it truncates. None = the scenario's (120 s
     unless its spec gives one: wave-highway's queue needs 420 s)."""
@@ -391,6 +397,7 @@ class EnvConfig:
         _check_choice(self, "second_instance", SECOND_INSTANCE)
         if not isinstance(self.seed, int) or isinstance(self.seed, bool) or self.seed < 0:
             raise ValueError(f"EnvConfig.seed={self.seed!r} must be an integer >= 0")
+        _check_range(self, "copies", 1, MAX_COPIES, integer=True)
         _check_range(self, "step_length", 0.01, 1.0)
         if self.episode_length is not None:
             self._check_episode_length()

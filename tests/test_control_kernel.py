@@ -145,12 +145,12 @@ def test_edie_add_kernel_equals_numpy(monkeypatch) -> None:
     fail)."""
     add, seen = space_time.SpaceTimeField.add, Counter()
 
-    def both(self, t, s, v):
+    def both(self, t, s, v, copy_of=None):
         ref = copy.deepcopy(self)
         monkeypatch.setattr(compiled, "ENABLED", False)
-        add(ref, t, s, v)
+        add(ref, t, s, v, copy_of)
         monkeypatch.setattr(compiled, "ENABLED", True)
-        add(self, t, s, v)
+        add(self, t, s, v, copy_of)
         same_bits(vars(self), vars(ref))
         if self._steps:
             inside = s[~np.isnan(s)]

@@ -76,9 +76,11 @@ def test_traffic_terms_kernel_equals_numpy(monkeypatch, scenario: str, penetrati
             assert x.dtype == y.dtype and np.array_equal(x.view(np.int64), y.view(np.int64)), name
         return out
 
-    def both(cfg, hd, snap, rows, routes, route_len, ring, desired=0.0):
+    def both(cfg, hd, snap, rows, routes, route_len, ring, desired):
         other = (replace(cfg, followers=1), hd, snap, rows, routes, route_len, ring)
-        run_both(*other, 0.0 if desired > 0 else 20.0)
+        # the other kind of reference, and one that differs by lane (as copies' rings do)
+        run_both(*other, np.zeros_like(desired) if desired.any() else np.full_like(desired, 20.0))
+        run_both(*other, np.linspace(0.0, 25.0, len(desired)))
         ties = replace(snap, lane_pos=np.round(snap.lane_pos / 5.0) * 5.0)
         run_both(replace(cfg, followers=2), hd, ties, rows, routes, route_len, ring, desired)
         out = run_both(cfg, hd, snap, rows, routes, route_len, ring, desired)

@@ -64,7 +64,7 @@ def test_hand_computed_summary() -> None:
     assert s["avg_r"] == pytest.approx(0.75)
     assert s["route_completion"] == pytest.approx(50.0)
     assert s["terminal_collision"] == 1.0 and s["av_trips"] == 2.0
-    assert m.rear_vehicles == {"hv_0"}
+    assert m.rear_vehicles() == {"hv_0"}
 
 
 def test_driving_time_per_km() -> None:

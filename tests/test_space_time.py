@@ -73,5 +73,5 @@ def test_flow_and_speed_spread_by_hand() -> None:
     assert field.speed_std() == pytest.approx(5.0)  # samples 10 and 20, equally many
     # Edie: distance (10 + 20) m/s x 1.1 s over 200 lane-m x 1.1 s -> 0.15 veh/s per lane
     assert field.flow() == pytest.approx(3600.0 * 30.0 / 200.0)
-    assert field.time.sum() == pytest.approx(2 * 1.1)
-    assert field.distance.shape[1] == 10
+    assert field.time().sum() == pytest.approx(2 * 1.1)
+    assert field.distance().shape[1] == 10

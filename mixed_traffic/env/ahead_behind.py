@@ -25,7 +25,7 @@ a step costs one sort of the vehicles and one batch of searches over (AVs × rea
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from itertools import repeat
 
 import numpy as np
@@ -185,9 +185,12 @@ class AheadBehind:
             self._sums = grown
         return out
 
-    def summary(self) -> dict[str, float | None]:
-        """``speed_std_ahead`` and ``speed_std_behind`` [m/s] (None without samples)."""
+    def summary(self, keep: Callable[[str], bool] | None = None) -> dict[str, float | None]:
+        """``speed_std_ahead`` and ``speed_std_behind`` [m/s] (None without samples), over the
+        AVs whose id ``keep`` accepts (default: all)."""
         s = self._sums[: len(self._slot)]
+        if keep is not None:
+            s = s[[k for vid, k in self._slot.items() if keep(vid)]]
         return {
             "speed_std_ahead": pooled_std_mean(s[:, 0, 0], s[:, 0, 1], s[:, 0, 2]),
             "speed_std_behind": pooled_std_mean(s[:, 1, 0], s[:, 1, 1], s[:, 1, 2]),

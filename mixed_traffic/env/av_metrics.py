@@ -5,7 +5,7 @@ OFF-A, VEL-A, JERK-A, DEC-C, PT-RT, AvgR and the terminal events; DI-C comes fro
 
 from __future__ import annotations
 
-from collections import defaultdict
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import repeat
 
@@ -60,22 +60,36 @@ class AVStep:
     """the same C's speed at the previous step [m/s], nan if C changed"""
     reward: np.ndarray
     """reward of the step"""
+    copy: np.ndarray | None = None
+    """int copy of the scenario each AV drives in (None: one copy)"""
+
+
+SUMS = ("steps", "speed", "jerk", "risk_steps", "follow_steps", "offset", "reward")
+"""The per-step sums of ``AVMetrics``, per copy."""
 
 
 @dataclass
 class AVMetrics:
-    """Accumulates DT-A, AT-C, MinTTC-A, OFF-A, VEL-A, JERK-A, DEC-C, PT-RT, AvgR and events."""
+    """Accumulates DT-A, AT-C, MinTTC-A, OFF-A, VEL-A, JERK-A, DEC-C, PT-RT, AvgR and events,
+    per copy of the scenario (``copies``; ``copy_of``: the copy of a vehicle id)."""
 
     dt: float
     rear_speed_drop: float = 0.1
+    copies: int = 1
+    copy_of: Callable[[str], int] = lambda vid: 0
     _trips: _LiveTrips = field(default_factory=lambda: _LiveTrips())
-    _ended: list[_Trip] = field(default_factory=list)
-    _sums: dict[str, float] = field(default_factory=lambda: defaultdict(float))
+    _ended: list[tuple[str, _Trip]] = field(default_factory=list)
+    _sums: dict[str, np.ndarray] = field(default_factory=dict)
     _rear_seen: set[str] = field(default_factory=set)
     _dec_events: list[list] = field(default_factory=list)
-    _dec_drops: list[float] = field(default_factory=list)
-    events: dict[str, int] = field(default_factory=lambda: dict.fromkeys(TERMINAL_REASONS, 0))
-    arrived: int = 0
+    _dec_drops: list[tuple[int, float]] = field(default_factory=list)
+    events: dict[str, np.ndarray] = field(default_factory=dict)
+    arrived: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def __post_init__(self) -> None:
+        self._sums = {k: np.zeros(self.copies) for k in SUMS}
+        self.events = {k: np.zeros(self.copies, np.int64) for k in TERMINAL_REASONS}
+        self.arrived = np.zeros(self.copies, np.int64)
 
     def step(self, s: AVStep, time: float, speeds: dict[str, float]) -> None:
         """Add one step. ``speeds`` maps every vehicle id in the network to its speed [m/s]."""
@@ -87,14 +101,15 @@ class AVMetrics:
         affected = np.nan_to_num(s.rear_prev_speed - s.rear_speed, nan=0.0) > self.rear_speed_drop
         self._trips.add(s.ids, dt, np.asarray(s.speed, np.float64), np.asarray(s.ttc, np.float64),
                         affected)  # fmt: skip
-        sums = self._sums
-        sums["steps"] += n
-        sums["speed"] += float(s.speed.sum())
-        sums["jerk"] += float(np.abs(s.accel - s.prev_accel).sum()) / dt
-        sums["risk_steps"] += float(((s.ttc > 0) & (s.ttc < TTC_RISK)).sum())
-        sums["follow_steps"] += float(s.following.sum())
-        sums["offset"] += float(np.abs(s.lateral[s.following]).sum())
-        sums["reward"] += float(s.reward.sum())
+        sums, c = self._sums, s.copy
+        sums["steps"] += self._by_copy(np.ones(n), c)
+        sums["speed"] += self._by_copy(s.speed, c)
+        sums["jerk"] += self._by_copy(np.abs(s.accel - s.prev_accel), c) / dt
+        sums["risk_steps"] += self._by_copy((s.ttc > 0) & (s.ttc < TTC_RISK), c)
+        sums["follow_steps"] += self._by_copy(s.following, c)
+        sums["offset"] += self._by_copy(np.where(s.following, np.abs(s.lateral), 0.0), c,
+                                        s.following)  # fmt: skip
+        sums["reward"] += self._by_copy(s.reward, c)
         self._rear_seen.update(r for r in s.rear_ids if r)
         trigger = (s.accel < BRAKE_THRESHOLD) | s.lane_changed
         for i in np.flatnonzero(trigger):
@@ -103,6 +118,15 @@ class AVMetrics:
                 self._dec_events.append([s.rear_ids[i], time, v0, v0])
         self._advance_dec(time, speeds)
 
+    def _by_copy(self, x: np.ndarray, copy: np.ndarray | None,
+                 among: np.ndarray | None = None) -> np.ndarray:  # fmt: skip
+        """(C,) Σ ``x`` (over the rows ``among`` marks) by copy; one copy: numpy's sum of
+        those rows, as without copies."""
+        x = np.asarray(x, np.float64)
+        if self.copies == 1:
+            return np.array([(x if among is None else x[among]).sum()])
+        return np.bincount(copy, x, minlength=self.copies)
+
     def _advance_dec(self, time: float, speeds: dict[str, float]) -> None:
         keep = []
         for ev in self._dec_events:
@@ -110,33 +134,36 @@ class AVMetrics:
             if rid in speeds:
                 ev[3] = min(vmin, speeds[rid])
             if time - t0 >= DEC_WINDOW - 1e-9 or rid not in speeds:
-                self._dec_drops.append(max(0.0, v0 - ev[3]))
+                self._dec_drops.append((self.copy_of(rid), max(0.0, v0 - ev[3])))
             else:
                 keep.append(ev)
         self._dec_events = keep
 
     def end_trip(self, vid: str, reason: str) -> None:
         """An AV left: ``reason`` is 'arrived' or one of TERMINAL_REASONS."""
+        c = self.copy_of(vid)
         if reason == "arrived":
-            self.arrived += 1
+            self.arrived[c] += 1
         elif reason in self.events:
-            self.events[reason] += 1
+            self.events[reason][c] += 1
         trip = self._trips.pop(vid)
         if trip is not None:
-            self._ended.append(trip)
+            self._ended.append((vid, trip))
 
-    @property
-    def rear_vehicles(self) -> set[str]:
-        """Every conventional vehicle that was C at some step (for DI-C)."""
-        return set(self._rear_seen)
+    def rear_vehicles(self, copy: int = 0) -> set[str]:
+        """Every conventional vehicle of copy ``copy`` that was C at some step (for DI-C)."""
+        return {r for r in self._rear_seen if self.copy_of(r) == copy}
 
-    def summary(self) -> dict[str, float]:
-        """Metric values keyed as in ``schema.METRICS`` (nan where nothing was observed)."""
-        trips = [*self._ended, *self._trips.trips()]
+    def summary(self, copy: int = 0) -> dict[str, float]:
+        """Copy ``copy``'s metric values keyed as in ``schema.METRICS`` (nan where nothing
+        was observed)."""
+        trips = [t for vid, t in (*self._ended, *self._trips.items()) if self.copy_of(vid) == copy]
         driven = [t for t in trips if t.distance > 50.0]  # DT-A needs a meaningful distance
-        s = self._sums
+        s = {k: float(v[copy]) for k, v in self._sums.items()}
         steps = max(s["steps"], 1.0)
-        ended = self.arrived + sum(self.events.values())
+        arrived = int(self.arrived[copy])
+        ended = arrived + sum(int(v[copy]) for v in self.events.values())
+        drops = [d for c, d in self._dec_drops if c == copy]
         out = {
             "avg_dt_a": _mean([t.time / (t.distance / 1000.0) for t in driven]),
             "avg_at_c": _mean([t.affected_time for t in trips]),
@@ -144,13 +171,13 @@ class AVMetrics:
             "avg_off_a": s["offset"] / s["follow_steps"] if s["follow_steps"] else float("nan"),
             "avg_vel_a": s["speed"] / steps if s["steps"] else float("nan"),
             "avg_jerk_a": s["jerk"] / steps if s["steps"] else float("nan"),
-            "avg_dec_c": _mean(self._dec_drops),
+            "avg_dec_c": _mean(drops),
             "pt_rt": 100.0 * s["risk_steps"] / steps if s["steps"] else float("nan"),
             "avg_r": s["reward"] / steps if s["steps"] else float("nan"),
             "av_trips": float(ended),
-            "route_completion": 100.0 * self.arrived / ended if ended else float("nan"),
+            "route_completion": 100.0 * arrived / ended if ended else float("nan"),
         }
-        out.update({f"terminal_{k}": float(v) for k, v in self.events.items()})
+        out.update({f"terminal_{k}": float(v[copy]) for k, v in self.events.items()})
         return out
 
 
@@ -213,8 +240,9 @@ class _LiveTrips:
         self._free.append(k)
         return trip
 
-    def trips(self) -> list[_Trip]:
-        return [self._trip(k) for k in self._slot.values()]
+    def items(self) -> list[tuple[str, _Trip]]:
+        """(AV id, its running trip), in the order the trips started."""
+        return [(vid, self._trip(k)) for vid, k in self._slot.items()]
 
 
 def _mean(values: list[float]) -> float:

@@ -167,15 +167,16 @@ def front_view(vehicle, distance, features, speed, length, k, r, lane):
 
 
 @njit
-def edie_add(dist, time, row, s, v, dt, dx):
+def edie_add(dist, time, row, s, v, dt, dx, copy, width, last):
     """Add the vehicles inside the segment to time row ``row`` of the Edie grid in place.
 
     Args:
-        dist, time: (T, X) distance driven [m] and time spent [s] per cell.
-        row: the step's time bin; s: (N,) position along the segment [m], NaN outside;
-        v: (N,) speed [m/s]; dt: step [s]; dx: cell length [m].
+        dist, time: (T, C·width) distance driven [m] and time spent [s] per cell, copy c's
+            cells from column c·width.
+        row: the step's time bin; s: (N,) position along its copy's segment [m], NaN outside;
+        v: (N,) speed [m/s]; dt: step [s]; dx: cell length [m]; copy: (N,) int64 each
+        vehicle's copy; width: columns per copy; last: (C,) int64 each copy's last column.
     """
-    last = dist.shape[1] - 1
     for n in range(len(s)):
         x = s[n]
         if x != x:  # outside the segment
@@ -183,7 +184,8 @@ def edie_add(dist, time, row, s, v, dt, dx):
         q = x // dx
         # numpy's float -> int64 cast on x86 gives INT64_MIN for NaN/out of range: clipped to 0
         col = np.int64(q) if q >= -9.2e18 and q < 9.2e18 else np.int64(0)
-        col = min(max(col, 0), last)
+        c = copy[n]
+        col = min(max(col, 0), last[c]) + c * width
         dist[row, col] += v[n] * dt
         time[row, col] += dt
 
@@ -206,4 +208,5 @@ def warm() -> None:
     physical(r, np.zeros((1, 3, 2)), 1.0, 3.0, 6.0)
     i = np.zeros((1, 3, 2), np.int64)
     front_view(i, np.zeros((1, 3, 2)), np.zeros((1, 3, 2, 6)), f, f, r, r, 0)
-    edie_add(np.zeros((1, 1)), np.zeros((1, 1)), 0, f, f, 0.1, 10.0)
+    one = np.zeros(1, np.int64)
+    edie_add(np.zeros((1, 1)), np.zeros((1, 1)), 0, f, f, 0.1, 10.0, one, 1, one)

@@ -46,7 +46,7 @@ Definitions (all positions are the front bumper, as in the snapshot):
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 
@@ -120,49 +120,63 @@ class FlowRecorder:
 
     Args:
         hdmap: the network (edge lengths, lane speed limits).
-        measurement: consecutive edge ids of the measurement segment, upstream first.
+        measurement: consecutive edge ids of the measurement segment, upstream first; or one
+            such segment per copy of the scenario (``EnvConfig.copies``), each measured apart.
         dt: step length [s].
         warmup: simulated time before which density and speed are not averaged [s].
+        copy_of: the copy of a vehicle id (default: one copy).
     """
 
     def __init__(
-        self, hdmap: HDMap, measurement: Sequence[str], dt: float, warmup: float = 0.0,
-        trace_every: int = 0, av_window: float | None = None,
+        self, hdmap: HDMap, measurement: Sequence[str] | Sequence[Sequence[str]], dt: float,
+        warmup: float = 0.0, trace_every: int = 0, av_window: float | None = None,
+        copy_of: Callable[[str], int] | None = None,
     ) -> None:  # fmt: skip
-        if not measurement:
+        segments = [measurement] if isinstance(measurement[0], str) else list(measurement)
+        if not all(segments):
             raise ValueError("FlowRecorder needs at least one measurement edge")
         if dt <= 0 or warmup < 0:
             raise ValueError(f"FlowRecorder: dt={dt} must be > 0 and warmup={warmup} >= 0")
         self.dt = float(dt)
         self.warmup = float(warmup)
-        rows = [hdmap.edge_of(e) for e in measurement]
+        self.copies = len(segments)
+        self.copy_of = copy_of or (lambda vid: 0)
         n_edges = len(hdmap.edge_ids)
         # lookup tables indexed by snapshot edge row; row -1 (junction) hits the extra last slot
         self._offset = np.full(n_edges + 1, np.nan)
-        offsets = np.concatenate([[0.0], np.cumsum(hdmap.edge_length[rows])[:-1]])
-        self._offset[rows] = offsets
-        self.length = float(hdmap.edge_length[rows].sum())
-        """Segment length [m]."""
-        lane_metres = float((hdmap.edge_length[rows] * hdmap.edge_car_lanes[rows]).sum())
-        self.field = SpaceTimeField(self.length, lane_metres, self.dt, self.warmup, trace_every)
+        self._first = np.zeros(n_edges + 1, np.bool_)
+        self._last = np.zeros(n_edges + 1, np.bool_)
+        self._edge_copy = np.zeros(n_edges + 1, np.int64)
+        lengths, lane_metres = [], []
+        for c, segment in enumerate(segments):
+            rows = [hdmap.edge_of(e) for e in segment]
+            self._offset[rows] = np.concatenate([[0.0], np.cumsum(hdmap.edge_length[rows])[:-1]])
+            self._first[rows[0]], self._last[rows[-1]], self._edge_copy[rows] = True, True, c
+            lengths.append(float(hdmap.edge_length[rows].sum()))
+            lane_metres.append(float((hdmap.edge_length[rows] * hdmap.edge_car_lanes[rows]).sum()))
+        self.lengths = np.array(lengths)
+        """(C,) each copy's segment length [m]."""
+        self.length = lengths[0]
+        """Segment length [m] (copy 0's)."""
+        self.field = SpaceTimeField(self.lengths, np.array(lane_metres), self.dt, self.warmup,
+                                    trace_every)  # fmt: skip
         """Edie's sums on a space-time grid over the segment (flow, speed spread, waves)."""
-        self._first_edge, self._last_edge = rows[0], rows[-1]
         # lane speed limit by snapshot lane row; row -1 (unknown) -> NaN
         self._lane_speed = np.append(hdmap.lane_speed.astype(np.float64), np.nan)
         self._slot: dict[str, int] = {}
         self._ids: list[str] = []
         self._cap = 0
         self._alloc(256)
-        self._density_sum = 0.0
+        self._density_sum = np.zeros(self.copies)
         self._density_steps = 0
-        self._speed_sum = 0.0
-        self._speed_samples = 0
-        self._fuel_sum = 0.0  # Σ fuel rate [ml/s] over the samples with fuel read
-        self._fuel_speed_sum = 0.0  # Σ speed [m/s] over the same samples
+        self._speed_sum = np.zeros(self.copies)
+        self._speed_samples = np.zeros(self.copies, np.int64)
+        self._fuel_sum = np.zeros(self.copies)  # Σ fuel rate [ml/s] over the samples with fuel
+        self._fuel_speed_sum = np.zeros(self.copies)  # Σ speed [m/s] over the same samples
         self.around = AheadBehind(hdmap, av_window) if av_window is not None else None
         """speed_std_ahead / speed_std_behind (None: not measured)."""
-        self.collisions = 0
-        self.teleports = 0
+        self.collisions = np.zeros(self.copies, np.int64)
+        self.teleports = np.zeros(self.copies, np.int64)
         self.steps = 0
 
     # ------------------------------------------------------------------ storage
@@ -175,6 +189,7 @@ class FlowRecorder:
             setattr(self, name, new)
 
         grow("_state", np.int8, UNSEEN)
+        grow("_copy", np.int64, 0)
         grow("_t_entry", np.float64, np.nan)
         grow("_t_exit", np.float64, np.nan)
         grow("_t_last", np.float64, np.nan)
@@ -209,8 +224,10 @@ class FlowRecorder:
         """Account for one step's snapshot (call once per step, after ``backend.step()``)."""
         t = snap.time
         self.steps += 1
-        self.collisions += len(snap.collisions)
-        self.teleports += len(snap.teleports)
+        for c in (self.copy_of(col.collider) for col in snap.collisions):
+            self.collisions[c] += 1
+        for c in map(self.copy_of, snap.teleports):
+            self.teleports[c] += 1
         self._finish_gone(snap)
         if snap.n == 0:
             if t >= self.warmup:
@@ -220,19 +237,27 @@ class FlowRecorder:
         step = self._step_compiled if compiled.enabled() else self._step_reference
         s, inside = step(snap, slot)
         v = snap.speed
-        self.field.add(t, s, v)
+        copy = self._edge_copy[snap.edge]  # a vehicle inside is on an edge of its copy
+        self.field.add(t, s, v, copy)
         if t >= self.warmup:
-            n_in = int(inside.sum())
-            self._density_sum += density_per_km(n_in, self.length)
+            n_in = self._by_copy(inside, copy, np.ones_like(v)).astype(np.int64)
+            self._density_sum += density_per_km(n_in, self.lengths)
             self._density_steps += 1
-            v_sum = float(v[inside].sum())  # numpy's pairwise sum, in both paths
+            v_sum = self._by_copy(inside, copy, v)
             self._speed_sum += v_sum
             self._speed_samples += n_in
             if snap.fuel is not None:
-                self._fuel_sum += float(snap.fuel[inside].sum())
+                self._fuel_sum += self._by_copy(inside, copy, snap.fuel)
                 self._fuel_speed_sum += v_sum
             if self.around is not None:
                 self.around.update(snap, inside)
+
+    def _by_copy(self, inside: np.ndarray, copy: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """(C,) Σ ``x`` over the vehicles ``inside`` their segment, by copy (one copy: numpy's
+        pairwise sum, as ever)."""
+        if self.copies == 1:
+            return np.array([x[inside].sum()], np.float64)
+        return np.bincount(copy[inside], x[inside], minlength=self.copies)
 
     def _step_reference(
         self, snap: TrafficSnapshot, slot: np.ndarray
@@ -243,6 +268,7 @@ class FlowRecorder:
         t, dt = snap.time, self.dt
         s = self._offset[snap.edge] + snap.lane_pos  # NaN outside the segment
         inside = ~np.isnan(s)
+        self._copy[slot[inside]] = self._edge_copy[snap.edge[inside]]
         outside = ~inside & (snap.edge >= 0)
         v = snap.speed
         # free-flow time of the distance driven this step: v·dt / v_limit(lane)
@@ -256,7 +282,7 @@ class FlowRecorder:
         st = np.where((st == UNSEEN) & outside, UPSTREAM, st)
         st = np.where((st == UNSEEN) & inside, INSIDE_UNKNOWN, st)
         # entries from upstream
-        on_first = snap.edge == self._first_edge
+        on_first = self._first[snap.edge]
         enter = (st == UPSTREAM) & inside
         good = enter & on_first
         if good.any():
@@ -271,9 +297,8 @@ class FlowRecorder:
         if leave.any():
             crossed = leave & (st == INSIDE) & self._on_last_edge[slot]
             c = slot[crossed]
-            self._t_exit[c] = exit_time(
-                self._t_in[c], self._s_last[c], self._v_last[c], self.length, np.full(len(c), t)
-            )
+            self._t_exit[c] = exit_time(self._t_in[c], self._s_last[c], self._v_last[c],
+                                        self.lengths[self._copy[c]], np.full(len(c), t))  # fmt: skip
             st = np.where(crossed, CROSSED, np.where(leave, LEFT, st))
         # inside: accumulate and remember the last observation
         now_in = inside & ((st == INSIDE) | (st == INSIDE_UNKNOWN))
@@ -284,7 +309,7 @@ class FlowRecorder:
         self._t_in[i] = t
         self._s_last[i] = s[now_in]
         self._v_last[i] = v[now_in]
-        self._on_last_edge[i] = snap.edge[now_in] == self._last_edge
+        self._on_last_edge[i] = self._last[snap.edge[now_in]]
         self._t_last[slot] = t
         self._state[slot] = st
 
@@ -296,8 +321,8 @@ class FlowRecorder:
         """``_step_reference`` as one compiled kernel (:func:`.metrics_kernel.flow_step`)."""
         return metrics_kernel.flow_step(
             slot, snap.edge, snap.lane, snap.lane_pos, snap.speed, snap.time, self.dt,
-            self._offset, self._lane_speed, self._first_edge, self._last_edge, self.length,
-            self._state, self._t_entry, self._t_exit, self._t_last, self._s_last, self._v_last,
+            self._offset, self._lane_speed, self._first, self._last, self._edge_copy,
+            self.lengths, self._copy, self._state, self._t_entry, self._t_exit, self._t_last, self._s_last, self._v_last,
             self._on_last_edge, self._seg_time, self._seg_free, self._seg_dist, self._t_in,
             self._trip_time, self._trip_free,
         )  # fmt: skip
@@ -307,8 +332,8 @@ class FlowRecorder:
         if snap.arrived:
             slot = np.array([self._slot[v] for v in snap.arrived if v in self._slot], np.int64)
             if compiled.enabled():
-                metrics_kernel.flow_gone(slot, snap.time, self.length, self._state, self._t_exit,
-                                         self._t_in, self._s_last, self._v_last,
+                metrics_kernel.flow_gone(slot, snap.time, self.lengths, self._copy, self._state,
+                                         self._t_exit, self._t_in, self._s_last, self._v_last,
                                          self._on_last_edge)  # fmt: skip
             else:
                 self._gone_reference(slot, snap.time)
@@ -324,21 +349,22 @@ class FlowRecorder:
         st = self._state[slot]
         crossed = (st == INSIDE) & self._on_last_edge[slot]
         c = slot[crossed]
-        self._t_exit[c] = exit_time(
-            self._t_in[c], self._s_last[c], self._v_last[c], self.length, np.full(len(c), t)
-        )
+        self._t_exit[c] = exit_time(self._t_in[c], self._s_last[c], self._v_last[c],
+                                    self.lengths[self._copy[c]], np.full(len(c), t))  # fmt: skip
         self._state[c] = CROSSED
         rest = slot[~crossed & ((st == INSIDE) | (st == INSIDE_UNKNOWN))]
         self._state[rest] = LEFT
 
     # ------------------------------------------------------------------ per-vehicle results
-    def _crossed_slots(self) -> np.ndarray:
+    def _crossed_slots(self, copy: int | None = None) -> np.ndarray:
         n = len(self._ids)
-        return np.flatnonzero(self._state[:n] == CROSSED)
+        crossed = self._state[:n] == CROSSED
+        return np.flatnonzero(crossed if copy is None else crossed & (self._copy[:n] == copy))
 
-    def vehicle_travel_times(self) -> dict[str, float]:
-        """Vehicle id -> travel time across the whole segment [s], for vehicles that crossed it."""
-        c = self._crossed_slots()
+    def vehicle_travel_times(self, copy: int | None = None) -> dict[str, float]:
+        """Vehicle id -> travel time across the whole segment [s], for vehicles that crossed it
+        (``copy``: those of one copy)."""
+        c = self._crossed_slots(copy)
         tt = self._t_exit[c] - self._t_entry[c]
         return {self._ids[k]: float(x) for k, x in zip(c.tolist(), tt.tolist())}
 
@@ -395,39 +421,51 @@ class FlowRecorder:
             # free-flow pace [s/m] to the full segment length
             dist = self._seg_dist[kk]
             pace = np.divide(f, dist, out=np.full(len(kk), np.nan), where=dist > 0)
-            f = np.where(crossed, self.length * pace, f)
+            f = np.where(crossed, self.lengths[self._copy[kk]] * pace, f)
         actual[ok], free[ok] = a, f
         return actual, free
 
     # ------------------------------------------------------------------ summary
-    def summary(self) -> dict[str, float | int | None]:
-        """Flow metrics keyed by ``schema.METRICS`` keys (None where nothing was measured)."""
-        tt = np.array(list(self.vehicle_travel_times().values()), dtype=np.float64)
+    def summary(self, copy: int = 0) -> dict[str, float | int | None]:
+        """Flow metrics of copy ``copy`` keyed by ``schema.METRICS`` keys (None where nothing
+        was measured)."""
+        tt = np.array(list(self.vehicle_travel_times(copy).values()), dtype=np.float64)
+        samples = int(self._speed_samples[copy])
+        keep = None if self.copies == 1 else (lambda vid: self.copy_of(vid) == copy)
         return {
             "dt_tf": _mean_or_none(tt),
             "measured_density": (
-                self._density_sum / self._density_steps if self._density_steps else None
+                float(self._density_sum[copy]) / self._density_steps
+                if self._density_steps
+                else None
             ),
-            "mean_speed": self._speed_sum / self._speed_samples if self._speed_samples else None,
+            "mean_speed": float(self._speed_sum[copy]) / samples if samples else None,
             "vehicles_crossed": len(tt),
-            "speed_std": self.field.speed_std(),
-            "fuel": self._fuel_per_100km(),
-            **(self.around.summary() if self.around is not None else {}),
-            "flow": self.field.flow(),
-            "wave_speed": self.field.wave_speed(),
-            "collisions": self.collisions,
-            "teleports": self.teleports,
+            "speed_std": self.field.speed_std(copy),
+            "fuel": self._fuel_per_100km(copy),
+            **(self.around.summary(keep) if self.around is not None else {}),
+            "flow": self.field.flow(copy),
+            "wave_speed": self.field.wave_speed(copy),
+            "collisions": int(self.collisions[copy]),
+            "teleports": int(self.teleports[copy]),
         }
 
-    def _fuel_per_100km(self) -> float | None:
+    def _fuel_per_100km(self, copy: int) -> float | None:
         """Σ fuel rate / Σ speed over the samples [ml/m], x 100 = l/100 km; None without any."""
-        return 100.0 * self._fuel_sum / self._fuel_speed_sum if self._fuel_speed_sum > 0 else None
+        fuel, speed = float(self._fuel_sum[copy]), float(self._fuel_speed_sum[copy])
+        return 100.0 * fuel / speed if speed > 0 else None
 
-    def diagnostics(self) -> dict[str, float | int | None]:
-        """Extra flow figures not in the metric catalogue (delay indices, free-flow time)."""
-        ids = self._ids
+    def diagnostics(self, copy: int | None = None) -> dict[str, float | int | None]:
+        """Extra flow figures not in the metric catalogue (delay indices, free-flow time), of
+        one ``copy`` or, None, of every vehicle."""
+        n = len(self._ids)
+        ids = (
+            self._ids
+            if copy is None
+            else [self._ids[k] for k in range(n) if self.copy_of(self._ids[k]) == copy]
+        )
         di = self.delay_index(ids)
-        crossed = [self._ids[k] for k in self._crossed_slots().tolist()]
+        crossed = [self._ids[k] for k in self._crossed_slots(copy).tolist()]
         return {
             "delay_index_mean": _mean_or_none(di),
             "delay_index_crossed_mean": _mean_or_none(self.delay_index(crossed)),

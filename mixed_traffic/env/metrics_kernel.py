@@ -47,20 +47,23 @@ def _exit_time(t_last, s_last, v_last, length, t_next):
 
 @njit
 def flow_step(
-    slot, edge, lane, lane_pos, speed, t, dt, offset, lane_speed, first_edge, last_edge, length,
-    state, t_entry, t_exit, t_last, s_last, v_last, on_last_edge, seg_time, seg_free, seg_dist,
-    t_in, trip_time, trip_free,
+    slot, edge, lane, lane_pos, speed, t, dt, offset, lane_speed, is_first, is_last, edge_copy,
+    lengths, slot_copy, state, t_entry, t_exit, t_last, s_last, v_last, on_last_edge, seg_time,
+    seg_free, seg_dist, t_in, trip_time, trip_free,
 ):  # fmt: skip
     """One step of ``FlowRecorder.update`` after the slots: updates the per-slot arrays in
-    place and returns (N,) the position along the segment [m] (NaN outside) and (N,) bool
-    inside it.
+    place and returns (N,) the position along its copy's segment [m] (NaN outside) and (N,)
+    bool inside it.
 
-    Args (N vehicles, E edges, L lanes, S slots): ``slot`` (N,) int64 distinct slots; the
-    snapshot's ``edge`` and ``lane`` (N,) rows (-1 none), ``lane_pos`` [m] and ``speed``
-    [m/s]; ``t`` the time [s], ``dt`` the step [s]; ``offset`` (E + 1,) start of each edge
-    along the segment [m] (NaN off it, the last entry for row -1); ``lane_speed`` (L + 1,)
-    [m/s] (NaN last); ``first_edge`` / ``last_edge`` rows; ``length`` the segment's [m]; the
-    recorder's (S,) arrays ``state`` (int8), ``t_entry`` .. ``trip_free`` (float64, bool).
+    Args (N vehicles, E edges, L lanes, S slots, C copies): ``slot`` (N,) int64 distinct
+    slots; the snapshot's ``edge`` and ``lane`` (N,) rows (-1 none), ``lane_pos`` [m] and
+    ``speed`` [m/s]; ``t`` the time [s], ``dt`` the step [s]; ``offset`` (E + 1,) start of
+    each edge along its copy's segment [m] (NaN off it, the last entry for row -1);
+    ``lane_speed`` (L + 1,) [m/s] (NaN last); ``is_first`` / ``is_last`` (E + 1,) bool the
+    segments' first and last edges; ``edge_copy`` (E + 1,) int64 each edge's copy;
+    ``lengths`` (C,) the segments' [m]; the recorder's (S,) arrays ``slot_copy`` (int64, set
+    when a vehicle is first inside), ``state`` (int8), ``t_entry`` .. ``trip_free`` (float64,
+    bool).
     """
     n = len(slot)
     s_out = np.empty(n)
@@ -75,8 +78,11 @@ def flow_step(
         free = v * dt / vlim if vlim > 0 else 0.0
         trip_time[k] += dt
         trip_free[k] += free
-        st = _crossing(state[k], inside, outside, e == first_edge, k, t, s, v, t_entry, t_exit,
-                       t_last, t_in, s_last, v_last, on_last_edge, length)  # fmt: skip
+        if inside:
+            slot_copy[k] = edge_copy[e]
+        st = _crossing(state[k], inside, outside, is_first[e if e >= 0 else len(is_first) - 1],
+                       k, t, s, v, t_entry, t_exit, t_last, t_in, s_last, v_last, on_last_edge,
+                       lengths[slot_copy[k]])  # fmt: skip
         if inside and _in(st):
             seg_time[k] += dt
             seg_free[k] += free
@@ -84,7 +90,7 @@ def flow_step(
             t_in[k] = t
             s_last[k] = s
             v_last[k] = v
-            on_last_edge[k] = e == last_edge
+            on_last_edge[k] = is_last[e]
         t_last[k] = t
         state[k] = st
         s_out[i], inside_out[i] = s, inside
@@ -114,15 +120,16 @@ def _crossing(st, inside, outside, on_first, k, t, s, v, t_entry, t_exit, t_last
 
 
 @njit
-def flow_gone(slot, t, length, state, t_exit, t_in, s_last, v_last, on_last_edge):
+def flow_gone(slot, t, lengths, slot_copy, state, t_exit, t_in, s_last, v_last, on_last_edge):
     """``FlowRecorder._finish_gone`` for the (G,) int64 slots of the vehicles that arrived at
-    time ``t`` [s]: the ones inside on the last edge crossed (exit time), the others inside
-    left; the (S,) arrays are updated in place."""
+    time ``t`` [s]: the ones inside on the last edge crossed (exit time; ``lengths`` (C,) the
+    segments' [m], ``slot_copy`` (S,) each slot's copy), the others inside left; the (S,)
+    arrays are updated in place."""
     for i in range(len(slot)):
         k = slot[i]
         st = state[k]
         if st == INSIDE and on_last_edge[k]:
-            t_exit[k] = _exit_time(t_in[k], s_last[k], v_last[k], length, t)
+            t_exit[k] = _exit_time(t_in[k], s_last[k], v_last[k], lengths[slot_copy[k]], t)
             state[k] = CROSSED
         elif _in(st):
             state[k] = LEFT
@@ -234,11 +241,13 @@ def warm() -> None:
     i64, i32, f64 = np.int64, np.int32, np.float64
     one, slot, no = np.zeros(1), np.zeros(1, i64), np.zeros(1, np.bool_)
     lane, edge = np.zeros(1, i32), np.zeros(1, i32)
-    flow_step(slot, edge, lane, one, one, 1.0, 0.1, np.zeros(2), np.ones(2), 0, 0, 1.0,
-              np.zeros(1, np.int8), one.copy(), one.copy(), one.copy(), one.copy(), one.copy(),
-              no, one.copy(), one.copy(), one.copy(), one.copy(), one.copy(), one.copy())  # fmt: skip
-    flow_gone(slot, 1.0, 1.0, np.zeros(1, np.int8), one.copy(), one.copy(), one.copy(),
-              one.copy(), no)  # fmt: skip
+    two_no, two_i64 = np.zeros(2, np.bool_), np.zeros(2, i64)
+    flow_step(slot, edge, lane, one, one, 1.0, 0.1, np.zeros(2), np.ones(2), two_no, two_no,
+              two_i64, np.ones(1), slot.copy(), np.zeros(1, np.int8), one.copy(), one.copy(),
+              one.copy(), one.copy(), one.copy(), no, one.copy(), one.copy(), one.copy(),
+              one.copy(), one.copy(), one.copy())  # fmt: skip
+    flow_gone(slot, 1.0, np.ones(1), slot.copy(), np.zeros(1, np.int8), one.copy(), one.copy(),
+              one.copy(), one.copy(), no)  # fmt: skip
     trips_add(slot, 0.1, one, one, no, one.copy(), one.copy(), one.copy(), one.copy())
     ahead_behind_step(lane, one, one, slot, slot, 10.0, np.ones((1, 2), i64), 1,
                       np.zeros((1, 2), i64), np.zeros((1, 2), f64), one, np.ones(2),

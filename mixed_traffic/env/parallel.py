@@ -57,6 +57,7 @@ import contextlib
 import shutil
 from collections.abc import Sequence
 from dataclasses import replace
+from functools import partial
 from itertools import compress
 from pathlib import Path
 from typing import Any, ClassVar
@@ -94,11 +95,11 @@ from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
 from mixed_traffic.sensing.perception import Perception
 from mixed_traffic.world.backend import SumoBackend
-from mixed_traffic.world.boundary import PeriodicBoundary, make_boundary
-from mixed_traffic.world.demand import av_count, make_demand, reference_speed, write_demand
+from mixed_traffic.world.boundary import PeriodicBoundary
+from mixed_traffic.world.copies import Boundaries, vehicle_copy
+from mixed_traffic.world.episode import Worlds
 from mixed_traffic.world.fleet_pool import FleetPool
 from mixed_traffic.world.registry import load_scenario
-from mixed_traffic.world.ring import episode_ring
 from mixed_traffic.world.scenario import sumo_args
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -148,10 +149,14 @@ class MixedTrafficEnv(ParallelEnv):
         self.warmup = self._bundled.default_warmup(warmup, 0.0, cfg.episode_length)
         checks.check_warmup(self.warmup, cfg.episode_length)
         checks.warn_coarse_step(cfg.step_length)
-        # ring_length: the episode's ring circumference [m] (None: no ring); the longest first
-        self.scenario, self.ring_length = episode_ring(self._bundled, cfg.ring_length, None)
-        self._desired = 0.0  # r8's reference speed [m/s] (a ring's uniform flow; 0 = limits)
-        self.possible_agents = [f"av_{i}" for i in range(av_count(self.scenario, cfg))]
+        self._worlds = Worlds(self._bundled, cfg)  # the copies, sized on the longest ring
+        self.scenario = self._worlds.sizing.views[0]  # what SUMO loads
+        # ring_lengths: each copy's ring circumference [m] (None: no ring); the longest first
+        self.ring_lengths = (self._worlds.longest_length,) * cfg.copies
+        self._desired = np.zeros(0)  # (L,) r8's reference speed by lane [m/s] (0 = limits)
+        self.possible_agents = [f"av_{i}" for i in range(len(self._worlds.agent_copy))]
+        self._agent_copy = self._worlds.agent_copy
+        self._vehicle_copy = partial(vehicle_copy, per_copy=self._worlds.per_copy)
         self._table = AgentTable(self.possible_agents)
         self._obs_space = observation_space(cfg)
         self._act_space = action_space()
@@ -166,7 +171,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._episode_rng = np.random.default_rng(cfg.seed)
         # per episode, set by reset()
         self._snap: TrafficSnapshot | None = None
-        self._boundary: PeriodicBoundary | FleetPool | None = None
+        self._boundary: PeriodicBoundary | FleetPool | Boundaries | None = None
         self._noise_rng: np.random.Generator | None = None
         self._flow: FlowRecorder | None = None
         self._av: AVMetrics | None = None
@@ -194,6 +199,12 @@ class MixedTrafficEnv(ParallelEnv):
         return self._table.agents
 
     @property
+    def ring_length(self) -> float | None:
+        """This episode's ring centre-line length [m] (copy 0's; ``ring_lengths``: each copy's);
+        None off a ring."""
+        return self.ring_lengths[0]
+
+    @property
     def sim_time(self) -> float:
         """Simulated time of the current episode [s] (0 before the first reset)."""
         return self._snap.time if self._snap is not None else 0.0
@@ -218,39 +229,36 @@ class MixedTrafficEnv(ParallelEnv):
         # ring seed as before
         words = np.random.SeedSequence(int(seed)).generate_state(5)
         demand_seed, sumo_seed, noise_seed, v2x_seed, ring_seed = words
-        ring, self.ring_length = episode_ring(
-            self._bundled, cfg.ring_length, np.random.default_rng(ring_seed)
-        )
-        if ring.net_file != self.scenario.net_file:  # a drawn ring length: another network
-            self.scenario = ring
+        episode = self._worlds.episode(cfg, int(demand_seed), np.random.default_rng(ring_seed))
+        self.ring_lengths = episode.ring_lengths
+        moved = episode.batch.net_file != self.scenario.net_file  # drawn ring lengths
+        self.scenario = episode.scenario
+        if moved:
             self._use_map()
-        demand = make_demand(self.scenario, cfg, np.random.default_rng(demand_seed))
-        self._desired = reference_speed(self.scenario, cfg, self.ring_length, demand)
+        self._desired = episode.desired[episode.batch.lane_copy]
         route_file = Path(self._tmp) / "demand.rou.xml"
-        sc = self.scenario
-        write_demand(
-            demand, cfg, route_file, self.sumo_drives_avs, sc.vtypes, sc.vclass, sc.verbatim
-        )
-        self._backend.start(sumo_args(self.scenario, cfg, route_file, seed=int(sumo_seed) % 2**31))
         fleet = self.possible_agents if cfg.fixed_fleet else None
-        self._boundary = make_boundary(self.scenario, demand, cfg.human, cfg.step_length, fleet)
+        self._boundary = self._worlds.start(episode, cfg, route_file, self.sumo_drives_avs, fleet)
+        self._backend.start(sumo_args(self.scenario, cfg, route_file, seed=int(sumo_seed) % 2**31))
         self._noise_rng = np.random.default_rng(noise_seed)
         self._controller.reset()
         self._builder.reset()
         self._extras.reset(np.random.default_rng(v2x_seed))
         every = max(1, round(TRACE_INTERVAL / cfg.step_length)) if self.trace else 0
-        self._flow = FlowRecorder(self.hdmap, self.scenario.measurement, cfg.step_length,
-                                  self.warmup, every, cfg.av_window)  # fmt: skip
-        self._av = AVMetrics(cfg.step_length, cfg.reward.rear_speed_drop)
+        self._flow = FlowRecorder(self.hdmap, [v.measurement for v in episode.batch.views],
+                                  cfg.step_length, self.warmup, every, cfg.av_window,
+                                  self._vehicle_copy)  # fmt: skip
+        self._av = AVMetrics(cfg.step_length, cfg.reward.rear_speed_drop, cfg.copies,
+                             self._vehicle_copy)  # fmt: skip
         self._table.reset(list(self.possible_agents) if cfg.fixed_fleet else [])
         self._batches.reset()
         self._memory = StepMemory()
         snap = self._advance()
-        self._backend.drop_pending(demand.placed_ids)
+        self._backend.drop_pending(episode.demand.placed_ids)
         obs = self._start_from(snap)
         if not self.agents and self.possible_agents and not self.sumo_drives_avs:
             obs = self._wait_for_an_agent(int(seed), bool((options or {}).get("allow_no_agents")))
-        return obs, {a: {} for a in self.agents}
+        return obs, {a: {"copy": int(self._agent_copy[self._table.slot[a]])} for a in self.agents}
 
     def _wait_for_an_agent(self, seed: int, allow_none: bool) -> dict[str, dict]:
         """Advance the simulation (nobody acts) until the first AV enters the network, for at
@@ -335,11 +343,12 @@ class MixedTrafficEnv(ParallelEnv):
         return obs, rew, term, trunc, infos
 
     def _summarise(self, infos: dict[str, dict]) -> None:
-        """The episode's metrics into every info (``"episode"``), where the env records them."""
+        """The episode's metrics into every info (``"episode"``: its copy's), where the env
+        records them."""
         if self.metrics:
-            summary = self.episode_metrics()
-            for info in infos.values():
-                info["episode"] = summary
+            summary = [self.episode_metrics(c) for c in range(self.config.copies)]
+            for a, info in infos.items():
+                info["episode"] = summary[self._vehicle_copy(a)]
 
     def _allowed(self, decision: np.ndarray) -> np.ndarray:
         """Decisions the masks of the last observations forbid, replaced (``allowed_decisions``)
@@ -425,7 +434,8 @@ class MixedTrafficEnv(ParallelEnv):
         """Per-AV metrics of this step (flow metrics are recorded in ``_advance``)."""
         if not self.metrics:
             return
-        sample = av_step(snap, rows, truth, self._table, self._memory, rewards, changed)
+        sample = av_step(snap, rows, truth, self._table, self._memory, rewards, changed,
+                         self._agent_copy[rows.slots])  # fmt: skip
         self._av.step(sample, snap.time, SpeedView(snap))
 
     def _remember(self, snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame) -> None:
@@ -459,9 +469,10 @@ class MixedTrafficEnv(ParallelEnv):
         ended = set() if cfg.fixed_fleet else set(done).intersection(agents)
         if dicts:
             out = api_dicts(agents, ended, truncate, obs, rewards, terms, events, self._replaced,
-                            lambda a: self._batches.last_obs(a) or self._empty_obs)  # fmt: skip
+                            lambda a: self._batches.last_obs(a) or self._empty_obs,
+                            self._copies(agents))  # fmt: skip
         else:
-            out = batch_step(agents, ended, truncate, rewards, events)
+            out = batch_step(agents, ended, truncate, rewards, events, self._copies(agents))
         self._forget(done)
         if not cfg.fixed_fleet:
             table.finished.update(done)
@@ -470,7 +481,7 @@ class MixedTrafficEnv(ParallelEnv):
         if new:
             new_obs = self._observe_new(snap, new, dicts)
             if dicts:
-                add_entered(out, new, new_obs, cfg.fixed_fleet)
+                add_entered(out, new, new_obs, cfg.fixed_fleet, self._copies(new))
             else:
                 out.entered.extend(new)
         if truncate:
@@ -480,6 +491,10 @@ class MixedTrafficEnv(ParallelEnv):
                 self._summarise(out[4])
         self._snap = snap
         return out
+
+    def _copies(self, agents: list[str]) -> np.ndarray:
+        """(A,) int32 the copy each agent drives in."""
+        return self._agent_copy[self._table.slots_of(agents)]
 
     def _forget(self, done: list[str]) -> None:
         """Free what finished agents hold (history slots; last observations, which are views
@@ -535,18 +550,20 @@ class MixedTrafficEnv(ParallelEnv):
         return self._batches.gather(agents, lambda a: self._batches.last_obs(a) or self._empty_obs)
 
     # ------------------------------------------------------------------ metrics, render, close
-    def episode_metrics(self) -> dict[str, float | None]:
-        """Every DESIGN §9 metric of the episode so far (keys of ``schema.METRICS``)."""
+    def episode_metrics(self, copy: int = 0) -> dict[str, float | None]:
+        """Every DESIGN §9 metric of the episode so far (keys of ``schema.METRICS``), of copy
+        ``copy`` (``EnvConfig.copies``: each copy is its own episode)."""
         out: dict[str, Any] = dict.fromkeys(METRICS)
-        out.update(self._recorder("episode_metrics").summary())
-        out.update(self._av.summary())
-        out["avg_di_c"] = self._flow.mean_delay_index(sorted(self._av.rear_vehicles))
+        out.update(self._recorder("episode_metrics").summary(copy))
+        out.update(self._av.summary(copy))
+        out["avg_di_c"] = self._flow.mean_delay_index(sorted(self._av.rear_vehicles(copy)))
         return out
 
-    def flow_diagnostics(self) -> dict[str, float | int | None]:
+    def flow_diagnostics(self, copy: int | None = None) -> dict[str, float | int | None]:
         """Flow figures of the episode beyond the metric catalogue (delay indices, free-flow
-        time, vehicles seen, steps; with a fleet pool, its trips and waits)."""
-        out = self._recorder("flow_diagnostics").diagnostics()
+        time, vehicles seen, steps; with a fleet pool, its trips and waits), of one ``copy``
+        or, None, of every vehicle."""
+        out = self._recorder("flow_diagnostics").diagnostics(copy)
         if isinstance(self._boundary, FleetPool):
             out.update(self._boundary.summary())
         return out

@@ -259,11 +259,11 @@ def total_reward(terms: Mapping[str, np.ndarray], cfg: RewardConfig) -> np.ndarr
 def agent_rewards(
     cfg: EnvConfig, hd: HDMap, memory: StepMemory, table: AgentTable, snap: TrafficSnapshot,
     rows: Rows, truth: PerceptionFrame, events: dict[str, str], ring: bool = False,
-    desired: float = 0.0, dicts: bool = True,
+    desired: np.ndarray | None = None, dicts: bool = True,
 ):  # fmt: skip
     """Reward, named terms and completed lane changes (bool per agent number) of every
-    agent that acted; ``ring``: the network is a ring (for r5, r6 and r8); ``desired``: r8's
-    reference speed [m/s] (0 = the lane limits); ``dicts`` False: the named terms only of
+    agent that acted; ``ring``: the network is a ring (for r5, r6 and r8); ``desired``: (L,)
+    r8's reference speed on each lane [m/s] (0 or None = the lane limits); ``dicts`` False: the named terms only of
     agents that left the network (the others' stay arrays, unbuilt)."""
     prev = memory
     rewards: dict[str, float] = {}

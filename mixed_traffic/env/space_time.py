@@ -52,32 +52,40 @@ wave's: a lag is resolved to a few tenths of a second, and is 2.6 s at the short
 
 
 class SpaceTimeField:
-    """Edie's sums on a (time × space) grid, plus speed moments, after a warm-up.
+    """Edie's sums on a (time × space) grid, plus speed moments, after a warm-up; one grid per
+    copy of the scenario (``EnvConfig.copies``), side by side in one array.
 
     Args:
-        length: segment length [m].
-        lane_metres: Σ over the segment's edges of length × lanes [m].
+        length: segment length [m], or (C,) each copy's.
+        lane_metres: Σ over the segment's edges of length × lanes [m], or (C,) each copy's.
         dt: simulation step [s].
         warmup: samples before this time [s] are not counted.
     """
 
-    def __init__(self, length: float, lane_metres: float, dt: float, warmup: float,
-                 trace_every: int = 0) -> None:  # fmt: skip
-        self.length, self.lane_metres, self.dt, self.warmup = length, lane_metres, dt, warmup
+    def __init__(self, length: float | np.ndarray, lane_metres: float | np.ndarray, dt: float,
+                 warmup: float, trace_every: int = 0) -> None:  # fmt: skip
+        self.lengths = np.atleast_1d(np.asarray(length, np.float64))
+        self.lane_metres = np.atleast_1d(np.asarray(lane_metres, np.float64))
+        self.length, self.dt, self.warmup = float(self.lengths[0]), dt, warmup
+        self.copies = len(self.lengths)
         self.trace_every = trace_every
-        """Keep every vehicle's (t, s, v) every this many steps (0: no traces)."""
+        """Keep every vehicle's (t, s, v) every this many steps (0: no traces; copy 0's)."""
         self._traces: list[np.ndarray] = []
-        self.n_x = max(1, math.ceil(length / DX))
-        self._dist = np.zeros((64, self.n_x))
-        self._time = np.zeros((64, self.n_x))
+        self.widths = np.maximum(1, np.ceil(self.lengths / DX)).astype(np.int64)
+        """(C,) cells along each copy's segment."""
+        self.n_x = int(self.widths.max())
+        self._last = self.widths - 1  # (C,) a copy's last column
+        self._dist = np.zeros((64, self.copies * self.n_x))
+        self._time = np.zeros((64, self.copies * self.n_x))
         self._t0: float | None = None  # start of the first bin (the first step after warm-up)
         self._n_bins = 0
-        self._moments = np.zeros(3)  # Σ 1, Σ v, Σ v² over (vehicle, step) samples
+        self._moments = np.zeros((self.copies, 3))  # Σ 1, Σ v, Σ v² over (vehicle, step) samples
         self._steps = 0
 
-    def add(self, t: float, s: np.ndarray, v: np.ndarray) -> None:
-        """One step ending at ``t`` [s]: vehicles at positions ``s`` [m] along the segment
-        (NaN outside it) driving at ``v`` [m/s], both (N,)."""
+    def add(self, t: float, s: np.ndarray, v: np.ndarray, copy: np.ndarray | None = None) -> None:
+        """One step ending at ``t`` [s]: vehicles at positions ``s`` [m] along their copy's
+        segment (NaN outside it) driving at ``v`` [m/s], in copies ``copy`` (all (N,); None:
+        copy 0)."""
         if t < self.warmup - 1e-9:
             return
         if self._t0 is None:
@@ -85,63 +93,78 @@ class SpaceTimeField:
         self._steps += 1
         row = int((t - self._t0 - 1e-9) // BIN_S)
         self._grow(row + 1)
-        if compiled.enabled() and _kernel_layout(s, v):
-            control_kernel.edie_add(self._dist, self._time, row, s, v, float(self.dt), DX)
+        copy = np.zeros(len(s), np.int64) if copy is None else copy
+        if compiled.enabled() and _kernel_layout(s, v, copy):
+            control_kernel.edie_add(self._dist, self._time, row, s, v, float(self.dt), DX, copy,
+                                    self.n_x, self._last)  # fmt: skip
             inside = ~np.isnan(s)
-            s, v = s[inside], v[inside]
+            s, v, copy = s[inside], v[inside], copy[inside]
         else:
             inside = ~np.isnan(s)
-            s, v = s[inside], v[inside]
-            col = np.clip((s // DX).astype(np.int64), 0, self.n_x - 1)
+            s, v, copy = s[inside], v[inside], copy[inside]
+            col = np.clip((s // DX).astype(np.int64), 0, self._last[copy]) + copy * self.n_x
             np.add.at(self._dist[row], col, v * self.dt)
             np.add.at(self._time[row], col, self.dt)
-        self._moments += (len(v), v.sum(), (v * v).sum())
+        if self.copies == 1:  # numpy's pairwise sums, as without copies
+            self._moments[0] += (len(v), v.sum(), (v * v).sum())
+        else:
+            for q, w in enumerate((np.ones_like(v), v, v * v)):
+                self._moments[:, q] += np.bincount(copy, w, minlength=self.copies)
         if self.trace_every and self._steps % self.trace_every == 1 % self.trace_every:
+            s, v = s[copy == 0], v[copy == 0]
             self._traces.append(np.stack([np.full(len(s), t), s, v], axis=1).astype(np.float32))
 
     def _grow(self, rows: int) -> None:
         if rows > len(self._dist):
             extra = max(rows, 2 * len(self._dist)) - len(self._dist)
-            self._dist = np.vstack([self._dist, np.zeros((extra, self.n_x))])
-            self._time = np.vstack([self._time, np.zeros((extra, self.n_x))])
+            self._dist = np.vstack([self._dist, np.zeros((extra, self._dist.shape[1]))])
+            self._time = np.vstack([self._time, np.zeros((extra, self._time.shape[1]))])
         self._n_bins = max(self._n_bins, rows)
 
-    @property
-    def distance(self) -> np.ndarray:
-        """(T, X) distance driven in each cell [m] (summed over vehicles and lanes)."""
-        return self._dist[: self._n_bins]
+    def _cells(self, copy: int) -> slice:
+        return slice(copy * self.n_x, copy * self.n_x + int(self.widths[copy]))
 
-    @property
-    def time(self) -> np.ndarray:
-        """(T, X) time spent in each cell [s] (summed over vehicles and lanes)."""
-        return self._time[: self._n_bins]
+    def distance(self, copy: int = 0) -> np.ndarray:
+        """(T, X) distance driven in each cell of copy ``copy`` [m] (summed over vehicles and
+        lanes)."""
+        return self._dist[: self._n_bins, self._cells(copy)]
+
+    def time(self, copy: int = 0) -> np.ndarray:
+        """(T, X) time spent in each cell of copy ``copy`` [s] (summed over vehicles and
+        lanes)."""
+        return self._time[: self._n_bins, self._cells(copy)]
 
     def traces(self) -> dict[str, np.ndarray]:
         """Arrays ``t`` [s], ``s`` [m along the segment] and ``v`` [m/s] of the traced samples."""
         rows = np.concatenate(self._traces) if self._traces else np.zeros((0, 3), np.float32)
         return {"t": rows[:, 0], "s": rows[:, 1], "v": rows[:, 2]}
 
-    def speed_std(self) -> float:
-        """Population standard deviation of the (vehicle, step) speed samples [m/s]."""
-        n, s1, s2 = self._moments
+    def speed_std(self, copy: int = 0) -> float:
+        """Population standard deviation of copy ``copy``'s (vehicle, step) speed samples [m/s]."""
+        n, s1, s2 = self._moments[copy]
         return math.sqrt(max(s2 / n - (s1 / n) ** 2, 0.0)) if n else math.nan
 
-    def flow(self) -> float:
-        """Edie's flow over the whole field [veh/h/lane]."""
-        area = self.lane_metres * self._steps * self.dt
-        return 3600.0 * float(self._dist.sum()) / area if area > 0 else math.nan
+    def flow(self, copy: int = 0) -> float:
+        """Edie's flow over copy ``copy``'s field [veh/h/lane]."""
+        area = self.lane_metres[copy] * self._steps * self.dt
+        # every allocated row (zeros beyond the last bin): numpy's pairwise sum as ever
+        driven = float(self._dist[:, self._cells(copy)].sum())
+        return 3600.0 * driven / area if area > 0 else math.nan
 
-    def wave_speed(self) -> float:
-        """Speed of the stop-and-go waves along the segment [km/h], < 0 upstream; NaN without
-        waves (see ``wave_speed``)."""
-        return wave_speed(self.distance, self.time, DX, BIN_S)
+    def wave_speed(self, copy: int = 0) -> float:
+        """Speed of the stop-and-go waves along copy ``copy``'s segment [km/h], < 0 upstream;
+        NaN without waves (see ``wave_speed``)."""
+        return wave_speed(self.distance(copy), self.time(copy), DX, BIN_S)
 
 
-def _kernel_layout(s: np.ndarray, v: np.ndarray) -> bool:
-    """``s`` and ``v`` are C-contiguous float64 arrays, the one specialisation of
-    ``control_kernel.edie_add`` (the env's)."""
+def _kernel_layout(s: np.ndarray, v: np.ndarray, copy: np.ndarray) -> bool:
+    """``s`` and ``v`` are C-contiguous float64 arrays and ``copy`` int64, the one
+    specialisation of ``control_kernel.edie_add`` (the env's)."""
     f = np.float64
-    return all(isinstance(x, np.ndarray) and x.dtype == f and x.flags.c_contiguous for x in (s, v))
+    arrays = ((s, f), (v, f), (copy, np.int64))
+    return all(
+        isinstance(x, np.ndarray) and x.dtype == d and x.flags.c_contiguous for x, d in arrays
+    )
 
 
 def smoothed_speed(dist: np.ndarray, time: np.ndarray, window: tuple[int, int]) -> np.ndarray:

@@ -28,33 +28,36 @@ class BatchStep(NamedTuple):
     """(A,) 'arrived', a terminal reason, or ''."""
     entered: list[str]
     """Agents that entered the network this step (they act from the next step on)."""
+    copy: np.ndarray
+    """(A,) int32 the copy of the scenario each agent drives in (``EnvConfig.copies``)."""
 
 
 def batch_step(agents: list[str], ended: set[str], truncate: bool, rewards: dict[str, float],
-               events: dict[str, str]) -> BatchStep:  # fmt: skip
+               events: dict[str, str], copy: np.ndarray) -> BatchStep:  # fmt: skip
     """The ``BatchStep`` of ``agents`` (``ended``: whose trips ended; ``truncate``: the time
-    limit was reached)."""
+    limit was reached; ``copy`` (A,): their copies)."""
     n = len(agents)
     return BatchStep(
         agents, np.fromiter(map(rewards.get, agents, repeat(0.0)), np.float64, n),
         np.fromiter(map(ended.__contains__, agents), bool, n),
         np.fromiter((truncate and a not in ended for a in agents), bool, n),
-        list(map(events.get, agents, repeat(""))), [],
+        list(map(events.get, agents, repeat(""))), [], copy,
     )  # fmt: skip
 
 
 def api_dicts(agents: list[str], ended: set[str], truncate: bool, obs: dict, rewards: dict,
-              terms: dict, events: dict, replaced: set[str],
-              last_obs: Callable[[str], dict]) -> Dicts:  # fmt: skip
+              terms: dict, events: dict, replaced: set[str], last_obs: Callable[[str], dict],
+              copy: np.ndarray) -> Dicts:  # fmt: skip
     """The PettingZoo dicts of the agents that acted, filled by C-level maps and patched where
     an event happened (``replaced``: agents whose decision the mask forbade; ``last_obs``: the
-    observation of an agent not observed this step)."""
+    observation of an agent not observed this step; ``copy`` (A,): their copies)."""
     terminated = dict.fromkeys(agents, False)
     terminated.update(dict.fromkeys(ended, True))
     truncated = dict.fromkeys(agents, truncate)
     truncated.update(dict.fromkeys(ended, False))
-    infos = {a: {"reward_terms": t if t is not None else {}, "event": e}
-             for a, t, e in zip(agents, map(terms.get, agents), map(events.get, agents, repeat("")))}  # fmt: skip
+    infos = {a: {"reward_terms": t if t is not None else {}, "event": e, "copy": c}
+             for a, t, e, c in zip(agents, map(terms.get, agents),
+                                   map(events.get, agents, repeat("")), copy.tolist())}  # fmt: skip
     for a in replaced.intersection(infos):
         infos[a]["decision_replaced"] = True
     obs_out = dict(zip(agents, map(obs.get, agents)))
@@ -64,11 +67,14 @@ def api_dicts(agents: list[str], ended: set[str], truncate: bool, obs: dict, rew
     return obs_out, rew_out, terminated, truncated, infos
 
 
-def add_entered(out: Dicts, new: list[str], new_obs: dict[str, dict], fixed_fleet: bool) -> None:
-    """Add the agents that entered (``new``, their observations) to a step's dicts."""
+def add_entered(out: Dicts, new: list[str], new_obs: dict[str, dict], fixed_fleet: bool,
+                copy: np.ndarray) -> None:  # fmt: skip
+    """Add the agents that entered (``new``, their observations, ``copy`` (A,) their copies) to
+    a step's dicts."""
     obs_out, rew_out, terminated, truncated, infos = out
-    for a in new:
+    for a, c in zip(new, copy.tolist()):
         if a not in obs_out or fixed_fleet:
             obs_out[a], rew_out[a] = new_obs[a], rew_out.get(a, 0.0)
             terminated[a], truncated[a] = False, False
-            infos.setdefault(a, {"reward_terms": {}, "event": ""})["event"] = "entered"
+            info = infos.setdefault(a, {"reward_terms": {}, "event": "", "copy": c})
+            info["event"] = "entered"

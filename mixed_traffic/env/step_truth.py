@@ -16,9 +16,11 @@ from mixed_traffic.world.snapshot import TrafficSnapshot
 
 
 def av_step(snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame, table: AgentTable,
-            prev: StepMemory, rewards: dict[str, float], changed: np.ndarray) -> AVStep:  # fmt: skip
+            prev: StepMemory, rewards: dict[str, float], changed: np.ndarray,
+            copy: np.ndarray | None = None) -> AVStep:  # fmt: skip
     """The AV metrics' sample of the live agents ``rows`` after a step (``prev``: the memory
-    of the step before; ``changed`` (N,) completed lane changes by agent number)."""
+    of the step before; ``changed`` (N,) completed lane changes by agent number; ``copy``
+    (A,) the agents' copies)."""
     ids, r, n = rows.ids, rows.r, len(rows.ids)
     front = FrontView(snap, truth, np.arange(len(r)), r)
     rear_ids, rear_speed = rear_conventional(snap, truth)
@@ -35,7 +37,7 @@ def av_step(snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame, table: Ag
         ttc=np.where(front.exists, ttc(front.gap, front.closing), np.inf),
         rear_ids=rear_ids, rear_speed=np.nan_to_num(rear_speed),
         rear_prev_speed=np.where(same, take_or_nan(prev.rear_speed, pi), np.nan),
-        reward=np.fromiter(map(rewards.get, ids, repeat(0.0)), np.float64, n),
+        reward=np.fromiter(map(rewards.get, ids, repeat(0.0)), np.float64, n), copy=copy,
     )  # fmt: skip
 
 

@@ -37,21 +37,22 @@ TRAFFIC_TERMS = ("r5_local_speed", "r6_follower_comfort", "r8_uniform_flow")
 
 def traffic_terms(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray,
                   routes: np.ndarray, route_len: np.ndarray, ring: bool,
-                  desired: float = 0.0) -> dict[str, np.ndarray]:  # fmt: skip
+                  desired: np.ndarray | None = None) -> dict[str, np.ndarray]:  # fmt: skip
     """r5, r6 and r8 (each (A,) float64) of the agents at snapshot ``rows`` (A,), whose routes
     are ``routes`` (A, W) edge rows of ``route_len`` (A,) edges; ``ring``: the network is a
-    ring (r5 then counts every vehicle); ``desired``: r8's reference speed [m/s] (0 = each
-    vehicle's lane limit). One compiled kernel (:mod:`.traffic_terms_kernel`) when kernels
+    ring (r5 then counts every vehicle); ``desired``: (L,) r8's reference speed on each lane
+    [m/s] (0 or None = the lane's limit: a ring's copies each have their own uniform flow). One compiled kernel (:mod:`.traffic_terms_kernel`) when kernels
     are enabled (``mixed_traffic.compiled``), else the numpy stages: equal bit for bit."""
     if len(rows) == 0:
         return {name: np.zeros(0) for name in TRAFFIC_TERMS}
     terms = _compiled if compiled.enabled() else _reference
+    desired = np.zeros(len(hd.lane_ids)) if desired is None else desired
     return terms(cfg, hd, snap, rows, routes, route_len, ring, desired)
 
 
 def _compiled(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray,
               routes: np.ndarray, route_len: np.ndarray, ring: bool,
-              desired: float) -> dict[str, np.ndarray]:  # fmt: skip
+              desired: np.ndarray) -> dict[str, np.ndarray]:  # fmt: skip
     """:func:`_reference` as one compiled kernel (:mod:`.traffic_terms_kernel`)."""
     t = map_tables(hd)
     i64 = np.int64  # one specialisation, whatever integer arrays the caller has
@@ -61,14 +62,14 @@ def _compiled(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.ndar
         hd.edge_length, hd.lane_speed, t.anchor_edge, t.anchor_offset, t.junction_keys,
         t.junction_len, int(t.n_edges), float(t.key_stride), float(t.key_shift), bool(ring),
         float(cfg.local_upstream), float(cfg.local_downstream), int(cfg.followers),
-        float(cfg.acc_threshold), float(desired),
+        float(cfg.acc_threshold), np.asarray(desired, np.float64),
     )  # fmt: skip
     return dict(zip(TRAFFIC_TERMS, out))
 
 
 def _reference(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.ndarray,
                routes: np.ndarray, route_len: np.ndarray, ring: bool,
-               desired: float) -> dict[str, np.ndarray]:  # fmt: skip
+               desired: np.ndarray) -> dict[str, np.ndarray]:  # fmt: skip
     """The numpy stages (the kernel's reference): :func:`traffic_terms` of A >= 1 agents."""
     A = len(rows)
     frame = route_frame(hd, snap, rows, routes, route_len)
@@ -80,6 +81,7 @@ def _reference(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.nda
         behind = -pairs.distance
     a, v = pairs.agent, pairs.vehicle
     limit = np.maximum(hd.lane_speed[snap.lane[v]], 0.1)
+    want = desired[snap.lane[v]]
     ratio = snap.speed[v] / limit
     n = np.bincount(a, minlength=A)
     own_lane = np.maximum(snap.lane[rows].astype(np.int64), 0)
@@ -92,9 +94,7 @@ def _reference(cfg: RewardConfig, hd: HDMap, snap: TrafficSnapshot, rows: np.nda
         "r6_follower_comfort": _follower_comfort(
             cfg, snap, a[follower], v[follower], behind[follower], A
         ),
-        "r8_uniform_flow": uniform_flow_reward(
-            ratio, desired / limit if desired > 0 else 1.0, a, n
-        ),
+        "r8_uniform_flow": uniform_flow_reward(ratio, np.where(want > 0, want / limit, 1.0), a, n),
     }
 
 

@@ -31,7 +31,7 @@ def terms(
     (L,) [m/s]; ``route_traffic.map_tables``'s anchors (L,), junction table (K,), ``n_edges``,
     ``key_stride`` and ``key_shift`` [m]; ``ring``: pair every vehicle once on the loop;
     ``upstream`` / ``downstream`` the window [m]; ``followers`` [count] and ``acc_threshold``
-    [m/s^2] of r6; ``desired`` r8's reference speed [m/s] (0 = the lane limits).
+    [m/s^2] of r6; ``desired`` (L,) r8's reference speed on each lane [m/s] (0 = its limit).
     """
     A, W = routes.shape
     edge, pos, ratio, target = _vehicles(lane, lane_pos, speed, anchor_edge, anchor_offset,
@@ -78,7 +78,7 @@ def _vehicles(lane, lane_pos, speed, anchor_edge, anchor_offset, lane_speed, des
         if edge[v] >= 0:
             limit = np.maximum(lane_speed[ln], 0.1)
             ratio[v] = speed[v] / limit
-            target[v] = desired / limit if desired > 0 else 1.0
+            target[v] = desired[ln] / limit if desired[ln] > 0 else 1.0
     return edge, pos, ratio, target
 
 
@@ -283,4 +283,4 @@ def warm() -> None:
     one = np.zeros(1)
     terms(np.zeros(1, i64), np.full((1, 1), -1, i64), np.zeros(1, i64), np.full(1, -1, i32),
           one, one, one, np.zeros(1, np.int16), np.zeros(1, i32), one, one, np.zeros(1, i64),
-          one, np.zeros(0, i64), np.zeros(0), 1, 1.0, 0.0, False, 1.0, 1.0, 1, 1.0, 0.0)  # fmt: skip
+          one, np.zeros(0, i64), np.zeros(0), 1, 1.0, 0.0, False, 1.0, 1.0, 1, 1.0, one)  # fmt: skip

@@ -50,9 +50,12 @@ class PeriodicBoundary:
     _next: int = 0
     _held: set[str] = field(default_factory=set)
 
-    def step(self, snap: TrafficSnapshot, backend: SumoBackend) -> None:
-        """After a step: replace vehicles that arrived or collided, and hold the exit heads."""
-        self.replace(backend, snap.left)
+    def step(
+        self, snap: TrafficSnapshot, backend: SumoBackend, left: list[str] | None = None
+    ) -> None:
+        """After a step: replace vehicles that arrived or collided (``left``: those of this
+        road, default all that left), and hold the exit heads."""
+        self.replace(backend, snap.left if left is None else left)
         if self.virtual_leader and self.exit_edge:
             self._hold_heads(snap, backend)
 
@@ -71,8 +74,9 @@ class PeriodicBoundary:
                 continue
             q = self.queue[self._next]
             self._next += 1
-            backend.add_vehicle(q.vid, self.route_ids[q.route], "av" if q.is_av else "hv",
-                                "base", "free", "last", self.destinations[q.route])  # fmt: skip
+            vtype = q.vtype or ("av" if q.is_av else "hv")
+            backend.add_vehicle(q.vid, self.route_ids[q.route], vtype, "base", "free", "last",
+                                self.destinations[q.route])  # fmt: skip
 
     def _hold_heads(self, snap: TrafficSnapshot, backend: SumoBackend) -> None:
         hd = self.hdmap
@@ -115,12 +119,15 @@ class PeriodicBoundary:
         human: HumanConfig,
         dt: float,
         fixed_fleet: bool,
+        first_route: int = 0,
     ) -> PeriodicBoundary:
+        """The boundary of ``scenario``'s road, whose routes are ``r<first_route>`` on in the
+        route file."""
         hd = scenario.hdmap
         main = scenario.routes[0]
         return cls(
             hdmap=hd,
-            route_ids=[f"r{i}" for i in range(len(scenario.routes))],
+            route_ids=[f"r{first_route + i}" for i in range(len(scenario.routes))],
             destinations=[r.destination for r in scenario.routes],
             entry_edges=[r.entry for r in scenario.routes],
             exit_edge=main.edges[-1] if main.edges else "",
@@ -139,10 +146,17 @@ class PeriodicBoundary:
 
 
 def make_boundary(
-    scenario: Scenario, demand: Demand, human: HumanConfig, dt: float, fleet: list[str] | None
+    scenario: Scenario,
+    demand: Demand,
+    human: HumanConfig,
+    dt: float,
+    fleet: list[str] | None,
+    first_route: int = 0,
 ) -> PeriodicBoundary | FleetPool:
     """What brings vehicles in during an episode: the fixed ``fleet`` (agent ids) driving a
-    user's AV trips in turn, else the periodic boundary (``fleet`` None: no fixed fleet)."""
+    user's AV trips in turn, else the periodic boundary (``fleet`` None: no fixed fleet;
+    ``first_route``: the route file's index of the scenario's first route)."""
     if fleet is not None and scenario.own_vehicles:
         return FleetPool.for_trips(fleet, demand.fleet_trips, demand.routes, scenario.begin)
-    return PeriodicBoundary.for_demand(scenario, demand, human, dt, fleet is not None)
+    return PeriodicBoundary.for_demand(scenario, demand, human, dt, fleet is not None,
+                                       first_route)  # fmt: skip

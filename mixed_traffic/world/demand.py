@@ -70,6 +70,8 @@ class QueuedVehicle:
     vid: str
     route: int
     is_av: bool
+    vtype: str | None = None
+    """Its vType id; None = the env's types (a human's drawn from the population)."""
 
 
 @dataclass(frozen=True)
