@@ -68,12 +68,16 @@ def _noise_note(d: Difference, metric: str) -> str:
 
 
 def by_seed(rows: pd.DataFrame, metric: str) -> pd.Series:
-    """Finite values of ``metric`` in ``rows`` (episodes of one condition), indexed by seed.
+    """Finite values of ``metric`` in ``rows`` (episodes of one condition), indexed by seed, or
+    by (seed, copy) where batches of copies ran (copy i of a seed pairs with copy i).
 
     Returns a float Series of shape (n,) in the metric's unit; NaN/inf values are dropped.
     """
     values = pd.to_numeric(rows[metric], errors="coerce").astype(float)
-    s = pd.Series(values.to_numpy(), index=pd.Index(rows["seed"], name="seed"), name=metric)
+    copies = rows["copy"] if "copy" in rows else pd.Series(0, index=rows.index)
+    labels = (pd.Index(rows["seed"], name="seed") if not (copies.fillna(0) > 0).any()
+              else pd.Index(list(zip(rows["seed"], copies)), name="seed"))  # fmt: skip
+    s = pd.Series(values.to_numpy(), index=labels, name=metric)
     return s[np.isfinite(s.to_numpy())]
 
 

@@ -48,7 +48,8 @@ INFO_COLUMNS = (
 METRIC_KEYS = tuple(METRICS)
 COLUMNS = (*CELL_KEYS, *INFO_COLUMNS, *METRIC_KEYS)
 #: The condition of a cell without its seed: episodes of one group differ only by seed.
-CONDITION_KEYS = tuple(k for k in CELL_KEYS if k != "seed")
+CONDITION_KEYS = tuple(k for k in CELL_KEYS if k not in ("seed", "copy"))
+"""What an episode was run under: its cell without the replicate (seed, copy)."""
 
 
 class ResultsError(ValueError):
@@ -113,6 +114,7 @@ def _flatten(record: dict[str, Any]) -> dict[str, Any]:
     row: dict[str, Any] = {k: cell.get(k) for k in CELL_KEYS}
     if row["seed"] is None:
         row["seed"] = record.get("seed")
+    row["copy"] = row["copy"] or 0  # records before batched worlds: one copy
     # a record without its status or code hash cannot be trusted as an ok episode
     row["status"] = record.get("status") if "code" in record else None
     row["status"] = row["status"] or "invalid"
@@ -182,6 +184,7 @@ def _normalise(df: pd.DataFrame) -> pd.DataFrame:
     ):
         df[col] = pd.to_numeric(df[col], errors="coerce").astype(float)
     df["seed"] = pd.to_numeric(df["seed"], errors="coerce").astype("Int64")
+    df["copy"] = pd.to_numeric(df["copy"], errors="coerce").fillna(0).astype("Int64")
     # records before the detection-range axis ran at the nominal ranges
     df["detection_range"] = pd.to_numeric(df["detection_range"], errors="coerce").fillna(1.0)
     df["status"] = df["status"].fillna("invalid").astype(str)

@@ -84,7 +84,10 @@ SAFETY = (
     "route_completion",
 )
 TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
-CELL_KEYS = ("policy", "scenario", "density", "penetration", "weather", "detection_range", "seed")
+CELL_KEYS = ("policy", "scenario", "density", "penetration", "weather", "detection_range", "seed",
+             "copy")  # fmt: skip
+"""What makes an episode's record its own: the condition, the seed and, in a batch of copies of
+the scenario (``EnvConfig.copies``), its copy (0 without copies)."""
 #: Subfolders of a sweep's results folder: the extra all-human cells of the fundamental diagram,
 #: and the trajectories (``.npz``) of its representative cells.
 FD_DIR = "fd"

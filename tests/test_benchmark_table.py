@@ -50,11 +50,11 @@ def test_the_table_scores_a_task_and_a_rerun_runs_nothing(
     refs = [uniform_flow_speed(c, c.ring_length[0]) for c in table.TASKS["ring-v2"].eval]
     assert by["idm"]["references"] == pytest.approx(refs)
     human = [
-        recs[("ring-v2", i, "idm", s, 20.0)]["metrics"]["mean_speed"]
+        recs[("ring-v2", i, "idm", s, 20.0, 0, 1)]["metrics"]["mean_speed"]
         for i in (0, 1)
         for s in (0, 1)
     ]
-    fs = [recs[("ring-v2", i, "follower-stopper", s, 20.0)]["metrics"]["mean_speed"]
+    fs = [recs[("ring-v2", i, "follower-stopper", s, 20.0, 0, 1)]["metrics"]["mean_speed"]
           for i in (0, 1) for s in (0, 1)]  # fmt: skip
     expected = [
         ((fs[2 * i + s] - human[2 * i + s]) / (refs[i] - human[2 * i + s]))

@@ -32,7 +32,8 @@ def test_cli_json_record(tmp_path: Path) -> None:
     assert rec["config"]["scenario"] == "straight" and rec["config"]["density"] == 60.0
     assert rec["config"]["penetration"] == 0.0 and rec["seed"] == 0
     assert rec["cell"] == {"policy": "idm", "scenario": "straight", "density": 60.0,
-                           "penetration": 0.0, "weather": "normal", "detection_range": 1.0, "seed": 0}  # fmt: skip
+                           "penetration": 0.0, "weather": "normal", "detection_range": 1.0, "seed": 0,
+                           "copy": 0}  # fmt: skip
     assert rec["sumo_version"].startswith("1.28")
     assert rec["git_revision"] and rec["git_revision"] != "unknown"
     m = rec["metrics"]

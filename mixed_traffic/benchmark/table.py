@@ -33,7 +33,7 @@ from analysis.results import mean_ci, nonneg_mean_ci
 from mixed_traffic.benchmark import TASKS, Task, get_task, task_config
 from mixed_traffic.benchmark.score import free_flow_speed, normalised, uniform_flow_speed
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
-from mixed_traffic.experiments.runner import check_policy, run_episode
+from mixed_traffic.experiments.runner import check_policy, run_copies
 from mixed_traffic.experiments.safety_matrix import terminal_events
 from mixed_traffic.paths import RESULTS, reference
 from mixed_traffic.provenance import (
@@ -66,6 +66,9 @@ class BenchmarkConfig:
     """Controllers scored (``idm``, all human, always runs as the score's 0)."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Root seeds, one episode per eval config each."""
+    copies: int = 1
+    """Copies of each eval config in one simulation (batched worlds): each copy is a replicate
+    of its own, next to the seeds (a seed's copy i pairs with the same copy of the others)."""
     episode_length: float = 0.0
     """Simulated time per episode [s]; 0 = each task's horizon."""
     workers: int = 2
@@ -89,8 +92,8 @@ class BenchmarkConfig:
         object.__setattr__(self, "policies", policies)
         if not self.seeds or any(s < 0 for s in self.seeds):
             raise ValueError(f"--seeds={list(self.seeds)}: give seeds >= 0")
-        if self.episode_length < 0 or self.workers < 1:
-            raise ValueError("--episode-length must be >= 0 and --workers >= 1")
+        if self.episode_length < 0 or self.workers < 1 or self.copies < 1:
+            raise ValueError("--episode-length must be >= 0, --workers and --copies >= 1")
         check_writable(self.out)
         if self.update_reference and self.report is not None:
             raise ValueError("--update-reference writes the reference report: drop --report")
@@ -107,29 +110,37 @@ class BenchmarkConfig:
             )
 
 
-def _key(task: str, index: int, policy: str, seed: int, length: float) -> tuple:
-    return (task, index, policy, seed, length)
+def _key(task: str, index: int, policy: str, seed: int, length: float, copy: int = 0,
+         copies: int = 1) -> tuple:  # fmt: skip
+    return (task, index, policy, seed, length, copy, copies)
 
 
 def jobs(cfg: BenchmarkConfig) -> list[tuple]:
-    """Every (task, eval index, policy, seed, episode length) of the table."""
+    """Every (task, eval index, policy, seed, episode length, copy 0, copies) of the table:
+    one simulation each."""
     out = []
     for name in cfg.tasks:
         for index in range(len(TASKS[name].eval)):
-            out += [_key(name, index, p, s, cfg.episode_length)
+            out += [_key(name, index, p, s, cfg.episode_length, 0, cfg.copies)
                     for p in cfg.policies for s in cfg.seeds]  # fmt: skip
     return out
 
 
-def run_job(job: tuple) -> dict[str, Any]:
-    """The record of one episode, tagged with its job."""
-    name, index, policy, seed, length = job
+def _copies_of(job: tuple) -> list[tuple]:
+    """The keys of a job's records, one per copy."""
+    return [(*job[:5], c, job[6]) for c in range(job[6])]
+
+
+def run_job(job: tuple) -> list[dict[str, Any]]:
+    """The records of one simulation (one per copy), each tagged with its key."""
+    name, index, policy, seed, length, _, copies = job
     extra = {"episode_length": length} if length else {}
-    config = task_config(name, "eval", index, seed=seed, **extra)
-    record = run_episode(config, policy, TASKS[name].warmup)
-    record["benchmark"] = {"task": name, "index": index, "policy": policy, "seed": seed,
-                           "episode_length": length}  # fmt: skip
-    return record
+    config = task_config(name, "eval", index, seed=seed, copies=copies, **extra)
+    records = run_copies(config, policy, TASKS[name].warmup)
+    for c, record in enumerate(records):
+        record["benchmark"] = {"task": name, "index": index, "policy": policy, "seed": seed,
+                               "episode_length": length, "copy": c, "copies": copies}  # fmt: skip
+    return records
 
 
 def _current(record: dict[str, Any], digests: dict[str, str]) -> bool:
@@ -149,22 +160,24 @@ def _done(cfg: BenchmarkConfig) -> dict[tuple, dict[str, Any]]:
     for r in read_records(cfg.out):
         b = r.get("benchmark")
         if b and _current(r, digests):
-            found[_key(b["task"], b["index"], b["policy"], b["seed"], b["episode_length"])] = r
+            found[_key(b["task"], b["index"], b["policy"], b["seed"], b["episode_length"],
+                       b.get("copy", 0), b.get("copies", 1))] = r  # fmt: skip
     return found
 
 
 def run_table(cfg: BenchmarkConfig, progress: bool = True) -> dict[tuple, dict[str, Any]]:
     """Run the missing episodes (``workers`` at a time); every job's record."""
     done = _done(cfg)
-    todo = [j for j in jobs(cfg) if j not in done]
+    todo = [j for j in jobs(cfg) if not all(k in done for k in _copies_of(j))]
     with ProcessPoolExecutor(max_workers=cfg.workers) as pool:
-        for k, (job, record) in enumerate(zip(todo, pool.map(run_job, todo)), 1):
-            write_record_atomic(cfg.out, record)
-            done[job] = record
+        for k, (job, records) in enumerate(zip(todo, pool.map(run_job, todo)), 1):
+            for key, record in zip(_copies_of(job), records):
+                write_record_atomic(cfg.out, record)
+                done[key] = record
             if progress:
                 print(f"  [{k}/{len(todo)}] {job[0]} eval {job[1]}, {job[2]}, seed {job[3]}: "
-                      f"{record['status']}", file=sys.stderr)  # fmt: skip
-    return {j: done[j] for j in jobs(cfg)}
+                      f"{records[0]['status']}", file=sys.stderr)  # fmt: skip
+    return {key: done[key] for j in jobs(cfg) for key in _copies_of(j)}
 
 
 def _terminal(record: dict[str, Any]) -> int:
@@ -181,30 +194,36 @@ def _metric(record: dict[str, Any], name: str) -> float:
 
 
 def scores(cfg: BenchmarkConfig, records: dict[tuple, dict[str, Any]]) -> list[dict[str, Any]]:
-    """One row per task and controller: score (mean, 95 % half-width, seeds), the columns'
-    means, the speed std as a share of all-human traffic's on the same seed and config (mean,
-    95 % log-scale interval, which stays >= 0) and the terminal events."""
+    """One row per task and controller: score (mean, 95 % half-width, replicates: seeds, or
+    (seed, copy) pairs), the columns' means, the speed std as a share of all-human traffic's on
+    the same replicate and config (mean, 95 % log-scale interval, which stays >= 0) and the
+    terminal events."""
     rows = []
-    L = cfg.episode_length
+    reps = [(s, c) for s in cfg.seeds for c in range(cfg.copies)]
     for name in cfg.tasks:
         task, n = TASKS[name], len(TASKS[name].eval)
-        value = {(i, p, s): _metric(records[_key(name, i, p, s, L)], task.metric)
-                 for i in range(n) for p in cfg.policies for s in cfg.seeds}  # fmt: skip
-        std = {(i, p, s): _metric(records[_key(name, i, p, s, L)], "speed_std")
-               for i in range(n) for p in cfg.policies for s in cfg.seeds}  # fmt: skip
-        events = {p: sum(_terminal(records[_key(name, i, p, s, L)]) for i in range(n)
-                         for s in cfg.seeds) for p in cfg.policies}  # fmt: skip
+
+        def rec(i: int, p: str, r: tuple[int, int], name: str = name) -> dict[str, Any]:
+            return records[_key(name, i, p, r[0], cfg.episode_length, r[1], cfg.copies)]
+
+        value = {(i, p, r): _metric(rec(i, p, r), task.metric)
+                 for i in range(n) for p in cfg.policies for r in reps}  # fmt: skip
+        std = {(i, p, r): _metric(rec(i, p, r), "speed_std")
+               for i in range(n) for p in cfg.policies for r in reps}  # fmt: skip
+        events = {p: sum(_terminal(rec(i, p, r)) for i in range(n) for r in reps)
+                  for p in cfg.policies}  # fmt: skip
         refs = [_reference(task, i) for i in range(n)]
         for p in cfg.policies:
-            per_seed = [np.mean([normalised(value[i, p, s], value[i, "idm", s], refs[i])
-                                 for i in range(n)]) for s in cfg.seeds]  # fmt: skip
-            score, half, seeds = mean_ci(per_seed)
-            cols = {c: mean_ci([_metric(records[_key(name, i, p, s, L)], c)
-                                for i in range(n) for s in cfg.seeds])[0] for c in COLUMNS}  # fmt: skip
-            ratio, ratio_lo, ratio_hi, _ = nonneg_mean_ci([np.mean([std[i, p, s] / std[i, "idm", s]
-                                                     for i in range(n)]) for s in cfg.seeds])  # fmt: skip
+            per_rep = [np.mean([normalised(value[i, p, r], value[i, "idm", r], refs[i])
+                                for i in range(n)]) for r in reps]  # fmt: skip
+            score, half, count = mean_ci(per_rep)
+            cols = {c: mean_ci([_metric(rec(i, p, r), c) for i in range(n) for r in reps])[0]
+                    for c in COLUMNS}  # fmt: skip
+            ratio, ratio_lo, ratio_hi, _ = nonneg_mean_ci(
+                [np.mean([std[i, p, r] / std[i, "idm", r] for i in range(n)]) for r in reps]
+            )
             rows.append({"task": name, "policy": p, "score": score,
-                         "score_half_width": half, "seeds": seeds, **cols,
+                         "score_half_width": half, "seeds": count, **cols,
                          "std_ratio": ratio, "std_ratio_lo": ratio_lo, "std_ratio_hi": ratio_hi,
                          "terminal_events": events[p], "references": refs})  # fmt: skip
     return rows

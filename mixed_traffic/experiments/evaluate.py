@@ -32,7 +32,7 @@ from mixed_traffic.experiments.runner import (
     DEFAULT_WARMUP,
     cell_of,
     check_checkpoint,
-    run_episode,
+    run_copies,
     validate,
 )
 from mixed_traffic.provenance import check_writable, record_meta, write_record_atomic
@@ -43,7 +43,7 @@ DEFAULT_OUT = Path("results/evaluate/records.jsonl")
 #: EnvConfig fields exposed as options, in help order.
 CONFIG_OPTIONS = [
     "scenario", "density", "ring_length", "ring_vehicles", "penetration", "weather",
-    "episode_length", "step_length", "lateral_resolution", "backend", "v2x",
+    "episode_length", "step_length", "lateral_resolution", "backend", "v2x", "copies",
 ]  # fmt: skip
 
 
@@ -64,7 +64,8 @@ def metrics_table(records: list[dict[str, Any]]) -> str:
     """Plain-text table: one row per metric measured in any record, one column per seed + mean."""
     keys = [k for k in METRICS
             if k in MISSING or any(r["metrics"].get(k) is not None for r in records)]  # fmt: skip
-    seeds = [f"seed {r['seed']}" for r in records]
+    seeds = [f"seed {r['seed']}" + (f"/{r['cell']['copy']}" if r["config"].get("copies", 1) > 1
+                                     else "") for r in records]  # fmt: skip
     head = ["metric", "unit", *seeds, "mean"]
     rows = []
     for k in keys:
@@ -158,20 +159,16 @@ def main(argv: list[str] | None = None) -> int:
         try:
             extra = {"checkpoint": args.checkpoint, "gif": args.gif if cfg is configs[0] else None,
                      "progress": args.progress and len(configs) == 1 and sys.stderr.isatty()}  # fmt: skip
-            record = run_episode(cfg, args.policy, warmup, **extra)
+            batch = run_copies(cfg, args.policy, warmup, **extra)
         except (SumoError, ValueError) as e:  # e.g. SUMO failed, or a bad checkpoint
             print(f"error: seed {cfg.seed}: {e}", file=sys.stderr)
             failed += 1
-            record = {
-                "cell": cell_of(cfg, args.policy),
-                "status": "failed",
-                "error": str(e),
-                **record_meta(cfg),
-                "metrics": {},
-            }
-        write_record_atomic(args.out, record)
-        if record["status"] == "ok":
-            records.append(record)
+            batch = [{"cell": {**cell_of(cfg, args.policy), "copy": c}, "status": "failed",
+                      "error": str(e), **record_meta(cfg), "metrics": {}}
+                     for c in range(cfg.copies)]  # fmt: skip
+        for record in batch:
+            write_record_atomic(args.out, record)
+        records += [r for r in batch if r["status"] == "ok"]
     if records:
         table = metrics_table(records)
         header = (

@@ -30,6 +30,7 @@ from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.paths import cache_dir
 from mixed_traffic.provenance import atomic_write, file_digest, json_safe, record_meta
 from mixed_traffic.schema import CELL_KEYS, METRICS
+from mixed_traffic.world.copies import check_copies
 from mixed_traffic.world.registry import load_scenario
 
 DEFAULT_WARMUP = 30.0
@@ -48,12 +49,13 @@ def validate(
     config: EnvConfig, warmup: float | None, policy: str | None = None
 ) -> tuple[EnvConfig, float]:
     """Everything an episode needs checked before any work starts: the policy name, the
-    scenario, the density against its jam density and the warm-up. Raises ``ValueError``.
+    scenario (and that it can be copied), the density against its jam density and the warm-up. Raises ``ValueError``.
     Returns ``config`` with the scenario's defaults (density, episode length) where it gives
     none, and the warm-up [s]: ``warmup``, else the scenario's, else ``DEFAULT_WARMUP``."""
     if policy is not None:
         check_policy(policy)
     scenario = load_scenario(config.scenario)
+    check_copies(scenario, config.copies)
     config = scenario.configure(config)
     warmup = scenario.default_warmup(warmup, DEFAULT_WARMUP, config.episode_length)
     check_warmup(warmup, config.episode_length)
@@ -93,7 +95,8 @@ def run_episode(
     trace: str | Path | None = None,
     progress: bool = False,
 ) -> dict[str, Any]:
-    """Run one episode of ``config`` under ``policy`` and return its record (``schema`` layout).
+    """Run one episode of ``config`` (one copy) under ``policy`` and return its record
+    (``schema`` layout); ``run_copies`` runs a batch of copies.
 
     Inference is one batched call per step for all agents; AvgIT is its wall time per decision.
 
@@ -110,9 +113,30 @@ def run_episode(
         progress: show a per-step progress bar.
 
     Raises:
-        ValueError: bad policy, scenario, density, warm-up or checkpoint (before SUMO starts).
+        ValueError: bad policy, scenario, density, warm-up or checkpoint (before SUMO starts),
+            or ``config.copies`` > 1.
         SumoError: SUMO failed to start.
     """
+    if config.copies != 1:
+        raise ValueError(f"run_episode runs one copy, and copies={config.copies}: use run_copies")
+    return run_copies(config, policy, warmup, checkpoint=checkpoint, gif=gif, trace=trace,
+                      progress=progress)[0]  # fmt: skip
+
+
+def run_copies(
+    config: EnvConfig,
+    policy: str = "idm",
+    warmup: float | None = None,
+    *,
+    checkpoint: str | Path | None = None,
+    gif: str | Path | None = None,
+    trace: str | Path | None = None,
+    progress: bool = False,
+) -> list[dict[str, Any]]:
+    """``run_episode`` of the ``config.copies`` copies of a batch in one simulation: one record
+    per copy, each with its ``copy`` index and the batch's seed (a copy is reproducible
+    within its batch, not as a solo episode). The policy's inference time, safety-module
+    shares and parameter statistics are the batch's."""
     policy = check_policy(policy)
     config = with_inputs(config, policy, checkpoint)  # the opt-in keys it was trained with
     # before this episode's simulation: the reference runs its own (one per process)
@@ -124,21 +148,34 @@ def run_episode(
                           render_mode="rgb_array" if gif else None, trace=trace is not None)  # fmt: skip
     config, meta = env.config, record_meta(env.config)  # the scenario's defaults filled in
     frames = _Gif(gif)
+    n = config.copies
     try:
         agent = batch_policy(policy, config, checkpoint, env.scenario.family)
         if fixed_u is not None:
             agent.driver.fixed_u = fixed_u
         infer_s, decisions = _drive(env, agent, frames, progress)
-        metrics: dict[str, Any] = dict.fromkeys(METRICS)
-        metrics.update(env.episode_metrics())
-        diagnostics = env.flow_diagnostics()
-        ring_length = env.ring_length  # drawn at reset when config.ring_length is a range
+        metrics = [{**dict.fromkeys(METRICS), **env.episode_metrics(c)} for c in range(n)]
+        diagnostics = [env.flow_diagnostics(None if n == 1 else c) for c in range(n)]
+        ring_lengths = env.ring_lengths  # drawn at reset when config.ring_length is a range
         if trace is not None:
             _save_trace(Path(trace), env.trajectories(), f"{policy}, {describe(config)}")
     finally:
         env.close()
     frames.save(fps=1.0 / config.step_length)
-    metrics["avg_it"] = 1000.0 * infer_s / decisions if decisions else None
+    shared_metrics, shared = _policy_figures(agent, infer_s, decisions)
+    wall = round(time.perf_counter() - t0, 3)
+    return [
+        _record(config, policy, meta, warmup, c, ring_lengths[c], wall,
+                {**metrics[c], **shared_metrics}, {**diagnostics[c], **shared}, agent)
+        for c in range(n)
+    ]  # fmt: skip
+
+
+def _policy_figures(agent: Any, infer_s: float, decisions: int) -> tuple[dict, dict]:
+    """(metrics, diagnostics) of the policy over the whole batch: inference time per
+    decision, the safety module's shares, the network's parameter statistics."""
+    metrics: dict[str, Any] = {"avg_it": 1000.0 * infer_s / decisions if decisions else None}
+    diagnostics: dict[str, Any] = {}
     if getattr(agent, "safety", None) is not None:
         metrics["sm_share"] = agent.safety.share
         diagnostics.update(agent.safety.shares)
@@ -148,14 +185,21 @@ def run_episode(
             u = getattr(agent.driver, name)
             diagnostics[name] = None if u is None else u.ravel().tolist()
         diagnostics["u_decisions"] = agent.driver.u_decisions
+    return metrics, diagnostics
+
+
+def _record(config: EnvConfig, policy: str, meta: dict, warmup: float, copy: int,
+            ring_length: float | None, wall: float, metrics: dict, diagnostics: dict,
+            agent: Any) -> dict[str, Any]:  # fmt: skip
+    """One copy's record."""
     record = {
-        "cell": cell_of(config, policy),
+        "cell": {**cell_of(config, policy), "copy": copy},
         "status": "ok",
         "error": None,
         **meta,
         "warmup": warmup,
         "ring_length": ring_length,
-        "wall_time": round(time.perf_counter() - t0, 3),
+        "wall_time": wall,
         "metrics": json_safe(metrics),
         "diagnostics": json_safe(diagnostics),
     }
@@ -202,8 +246,10 @@ def reference_u(checkpoint: str | Path | None,
 
 def cell_of(config: EnvConfig, policy: str) -> dict[str, Any]:
     """The record's ``cell``: the policy and the config's cell keys."""
-    cell = {k: getattr(config, k) for k in CELL_KEYS if k not in ("policy", "detection_range")}
-    return {"policy": policy, **cell, "detection_range": config.sensors.range_factor}
+    cell = {
+        k: getattr(config, k) for k in CELL_KEYS if k not in ("policy", "detection_range", "copy")
+    }
+    return {"policy": policy, **cell, "detection_range": config.sensors.range_factor, "copy": 0}
 
 
 def batch_policy(name: str, config: EnvConfig, checkpoint: str | Path | None, family: str) -> Any:

@@ -45,6 +45,7 @@ from mixed_traffic.schema import (
     STUDY_POLICIES,
     TRACE_DIR,
 )
+from mixed_traffic.world.copies import check_copies
 from mixed_traffic.world.registry import load_scenario
 from mixed_traffic.world.scenario import Scenario
 
@@ -90,6 +91,10 @@ class SweepConfig:
     acc-lc:T=1.0,speed_factor=1.0, idm, random, ..."""
     seeds: tuple[int, ...] = (0, 1, 2)
     """Root seeds; each cell runs once per seed."""
+    copies: int = 1
+    """Copies of the scenario in each cell's simulation (batched worlds: ring, straight,
+    highway, wave-highway, merge and bottleneck); each copy is an episode of its own, with its
+    own record."""
     episode_length: float | None = None
     """Simulated time per episode [s] (default: the scenario's, 150 s unless its spec gives
     one)."""
@@ -154,6 +159,10 @@ class SweepConfig:
             bad("seeds", "seeds must be >= 0")
         if self.workers < 1:
             bad("workers", "must be >= 1")
+        try:
+            check_copies(scenario, EnvConfig(copies=self.copies).copies)
+        except ValueError as e:
+            bad("copies", str(e))
         if self.update_reference and (self.pdf is not None or not self.report):
             bad("update_reference", "writes the reference report: drop --pdf and --no-report")
         self._episode_defaults(scenario)
@@ -254,6 +263,8 @@ class Cell:
     weather: str
     seed: int
     detection_range: float = 1.0
+    copy: int = 0
+    """A cell runs its copies (``SweepConfig.copies``) in one simulation: copy 0 names it."""
 
     def key(self) -> tuple:
         return tuple(getattr(self, k) for k in CELL_KEYS)
@@ -294,6 +305,7 @@ def cell_config(cell: Cell, sweep: SweepConfig) -> EnvConfig:
         seed=cell.seed,
         episode_length=sweep.episode_length,
         ring_length=_ring(sweep.ring_length),
+        copies=sweep.copies,
     )
     return with_axis(base, "detection_range", cell.detection_range)
 
@@ -303,19 +315,20 @@ def _ring(length: float) -> tuple[float, ...]:
     return (length,) if length else ()
 
 
-def episode_record(cell: Cell, sweep: SweepConfig) -> dict:
-    """One episode of ``cell``: its record, or a failed record carrying the error."""
+def episode_records(cell: Cell, sweep: SweepConfig) -> list[dict]:
+    """The episode of ``cell``: one record per copy, or failed records carrying the error."""
     try:
-        from mixed_traffic.experiments.runner import run_episode
+        from mixed_traffic.experiments.runner import run_copies
 
         config = cell_config(cell, sweep)
-        record = run_episode(config, cell.policy, sweep.warmup,
+        records = run_copies(config, cell.policy, sweep.warmup,
                              checkpoint=sweep.cell_checkpoint(cell.policy),
                              trace=trace_path(cell, sweep))  # fmt: skip
     except Exception as e:  # any failure becomes a failed record; the sweep carries on
         return _failed(cell, sweep, f"{type(e).__name__}: {e}\n{traceback.format_exc(limit=3)}")
-    record["cell"] = asdict(cell)
-    return record
+    for c, record in enumerate(records):
+        record["cell"] = asdict(replace(cell, copy=c))
+    return records
 
 
 def trace_path(cell: Cell, sweep: SweepConfig) -> Path | None:
@@ -353,15 +366,16 @@ def fd_sweep(sweep: SweepConfig) -> SweepConfig:
     )  # fmt: skip
 
 
-def _failed(cell: Cell, sweep: SweepConfig, error: str) -> dict:
-    record = {**record_meta(cell_config(cell, sweep)), "status": "failed", "metrics": {}}
-    record.update(error=error, cell=asdict(cell))
-    return record
+def _failed(cell: Cell, sweep: SweepConfig, error: str) -> list[dict]:
+    """A failed record for each copy of ``cell``, carrying ``error``."""
+    meta = record_meta(cell_config(cell, sweep))
+    return [{**meta, "status": "failed", "metrics": {}, "error": error,
+             "cell": asdict(replace(cell, copy=c))} for c in range(sweep.copies)]  # fmt: skip
 
 
 def _run_cell(cell: Cell, sweep: SweepConfig, queue: mp.Queue) -> None:
-    """Worker process: one episode's record onto the queue."""
-    queue.put(episode_record(cell, sweep))
+    """Worker process: one episode's records onto the queue."""
+    queue.put(episode_records(cell, sweep))
 
 
 def run_sweep(sweep: SweepConfig, progress: bool = True, label: str = "") -> Path:
@@ -455,24 +469,29 @@ def _collect(
 ) -> None:
     """Write records that arrived; turn dead workers without a record into failed records."""
     try:
-        record = queue.get(timeout=0.5)
+        records = queue.get(timeout=0.5)
     except Exception:
-        record = None
-    if record is not None:
-        write_record_atomic(records_path, record)
-        key = _cell_key(record)[:-2]  # the cell, without the checkpoint
+        records = None
+    if records is not None:
+        _write(records_path, records)
+        key = _cell_key(records[0])[:-3]  # the cell, without its copy and the checkpoint
         for pid, (proc, cell, _) in list(running.items()):
-            if cell.key() == key:
+            if cell.key()[:-1] == key:
                 proc.join(timeout=10)
                 del running[pid]
-        _advance(bar, record)
+        _advance(bar, records)
         return
     for pid, (proc, cell, _) in list(running.items()):
         if not proc.is_alive() and proc.exitcode not in (None, 0) and queue.empty():
             failed = _failed(cell, sweep, f"worker process died with exit code {proc.exitcode}")
-            write_record_atomic(records_path, failed)
+            _write(records_path, failed)
             del running[pid]
             _advance(bar, failed)
+
+
+def _write(records_path: Path, records: list[dict]) -> None:
+    for record in records:
+        write_record_atomic(records_path, record)
 
 
 def _run_ray(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm) -> None:
@@ -483,27 +502,27 @@ def _run_ray(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm
     if owns:
         local_cpus = None if sweep.address else sweep.workers
         ray.init(address=sweep.address or None, num_cpus=local_cpus, log_to_driver=False)
-    task = ray.remote(num_cpus=1, max_retries=0)(episode_record)
+    task = ray.remote(num_cpus=1, max_retries=0)(episode_records)
     try:
         futures = {task.remote(c, sweep): c for c in todo}
         while futures:
             ready, _ = ray.wait(list(futures), num_returns=1)
             cell = futures.pop(ready[0])
             try:
-                record = ray.get(ready[0])
+                records = ray.get(ready[0])
             except Exception as e:  # the worker process died (e.g. a SUMO segfault)
-                record = _failed(cell, sweep, f"Ray task failed: {type(e).__name__}: {e}")
-            write_record_atomic(records_path, record)
-            _advance(bar, record)
+                records = _failed(cell, sweep, f"Ray task failed: {type(e).__name__}: {e}")
+            _write(records_path, records)
+            _advance(bar, records)
     finally:
         if owns:
             ray.shutdown()
 
 
-def _advance(bar: tqdm, record: dict) -> None:
-    cell = record["cell"]
+def _advance(bar: tqdm, records: list[dict]) -> None:
+    cell, status = records[0]["cell"], records[0]["status"]
     bar.update(1)
-    bar.set_postfix_str(f"{cell['policy']} p={cell['penetration']} {record['status']}")
+    bar.set_postfix_str(f"{cell['policy']} p={cell['penetration']} {status}")
 
 
 def _cell_key(record: dict) -> tuple:
@@ -513,9 +532,10 @@ def _cell_key(record: dict) -> tuple:
             record.get("checkpoint_sha", ""))  # fmt: skip
 
 
-def _planned_key(cell: Cell, sweep: SweepConfig) -> tuple:
-    """``_cell_key`` of the record ``cell`` will write."""
-    return (*cell.key(), *sweep.checkpoint_key(cell.policy))
+def _planned_keys(cell: Cell, sweep: SweepConfig) -> list[tuple]:
+    """``_cell_key`` of each record ``cell`` will write (one per copy)."""
+    source = sweep.checkpoint_key(cell.policy)
+    return [(*replace(cell, copy=c).key(), *source) for c in range(sweep.copies)]
 
 
 def failed_cells(sweep: SweepConfig) -> list[Cell]:
@@ -527,7 +547,7 @@ def _missing(sweep: SweepConfig, records: list[dict]) -> list[Cell]:
     """The sweep's cells that ``records`` hold no successful record of this code for."""
     ours = current_code_key()
     done = {_cell_key(r) for r in records if r.get("status") == "ok" and r.get("code") == ours}
-    return [c for c in cells(sweep) if _planned_key(c, sweep) not in done]
+    return [c for c in cells(sweep) if not done.issuperset(_planned_keys(c, sweep))]
 
 
 # --------------------------------------------------------------------------- CLI

@@ -94,5 +94,5 @@ def test_a_killed_ray_worker_is_a_failed_cell_that_the_next_run_retries(tmp_path
     """The same with ``--backend ray``: kill -9 of the Ray worker running a cell (a cell takes
     several seconds)."""
     _kill_one_cell_and_rerun(tmp_path / "res", ["--episode-length", "15", "--backend", "ray"],
-                             lambda _: _ray_task_pids(b"ray::episode_record"), patience=120,
+                             lambda _: _ray_task_pids(b"ray::episode_records"), patience=120,
                              pause=0.5, error="Ray task failed")  # fmt: skip
