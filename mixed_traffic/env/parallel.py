@@ -199,6 +199,11 @@ class MixedTrafficEnv(ParallelEnv):
         return self._table.agents
 
     @property
+    def agent_copy(self) -> np.ndarray:
+        """(P,) int32 the copy of the scenario each possible agent drives in."""
+        return self._agent_copy
+
+    @property
     def ring_length(self) -> float | None:
         """This episode's ring centre-line length [m] (copy 0's; ``ring_lengths``: each copy's);
         None off a ring."""
