@@ -15,7 +15,8 @@ load from other processes on a small machine). Target: the
 snapshot adds ≤ 30 % to a raw step. Sections are functions in ``SECTIONS`` so others can add
 theirs.
 
-Section ``env`` is in ``bench_env``, ``soak`` (memory over a 600 s episode) in ``bench_soak``;
+Section ``env`` is in ``bench_env``, ``soak`` (memory over a 600 s episode) in ``bench_soak``,
+``throughput`` (learner samples per core on batched worlds) in ``bench_throughput``;
 ``inference`` times AUTO's batched forward pass, ``learner`` the RBP-DQN update
 (``agents.bench_learner``).
 """
@@ -40,6 +41,8 @@ from mixed_traffic.experiments.bench_env import PENETRATIONS, section_env
 from mixed_traffic.experiments.bench_scale import AV_LADDER, section_scale
 from mixed_traffic.experiments.bench_soak import section_soak
 from mixed_traffic.experiments.bench_study import section_study
+from mixed_traffic.experiments.bench_throughput import add_arguments as throughput_arguments
+from mixed_traffic.experiments.bench_throughput import section_throughput
 from mixed_traffic.paths import scratch_dir
 from mixed_traffic.world.backend import SumoBackend
 from mixed_traffic.world.boundary import PeriodicBoundary
@@ -188,8 +191,9 @@ SECTIONS: dict[str, Callable[[argparse.Namespace], object]] = {
     "learner": section_learner,
     "study": section_study,
     "scale": section_scale,
+    "throughput": section_throughput,
 }
-JSON_SECTIONS = ("env", "study", "scale")
+JSON_SECTIONS = ("env", "study", "scale", "throughput")
 """Sections whose results ``--json`` prints, one JSON object a line."""
 
 
@@ -306,6 +310,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--city-episode", type=float, default=300.0,
         help="scale section: simulated seconds of the city episode (default: 300)",
     )  # fmt: skip
+    throughput_arguments(p)
     p.add_argument(
         "--json", action="store_true",
         help=f"sections {', '.join(JSON_SECTIONS)} only: one JSON object per result on stdout, "
@@ -323,7 +328,8 @@ _POSITIVE = ("densities", "env_density", "env_episode", "soak_length", "soak_den
              "learner_block_seconds", "scale_density", "city_density", "city_episode",
              "city_penetration")  # fmt: skip
 _COUNTS = ("env_steps", "learner_batch", "learner_threads", "learner_blocks", "study_workers",
-           "scale_avs", "scale_lanes", "scale_steps")  # fmt: skip
+           "scale_avs", "scale_lanes", "scale_steps", "throughput_copies", "throughput_decisions",
+           "throughput_steps", "throughput_rollouts")  # fmt: skip
 
 
 def check_args(args: argparse.Namespace) -> str | None:
@@ -345,6 +351,13 @@ def check_args(args: argparse.Namespace) -> str | None:
         return f"--city-penetration={args.city_penetration} must be in (0, 1]"
     if any(not 0 < p <= 1 for p in args.penetrations):
         return f"--penetrations={args.penetrations}: each must be in (0, 1]"
+    from mixed_traffic.benchmark.tasks import get_task
+
+    for task in (*args.throughput_tasks, *args.throughput_ppo):
+        try:
+            get_task(task)
+        except ValueError as e:
+            return f"--throughput-tasks: {e}"
     return None
 
 
