@@ -8,6 +8,7 @@ import pytest
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env.action import FOLLOW
 from mixed_traffic.env.parallel import MixedTrafficEnv
+from mixed_traffic.paths import cache_dir
 from mixed_traffic.world.copies import GAP, copy_of_id, make_batch, vehicle_copy
 from mixed_traffic.world.registry import load_scenario
 
@@ -104,7 +105,10 @@ def test_each_copy_has_its_own_record() -> None:
 @pytest.mark.parametrize(("kw", "needle"), [
     ({"copies": 0}, "EnvConfig.copies=0 is out of range"),
     ({"copies": 2, "scenario": "urban"}, "copies=2: 'urban' is the urban family"),
+    ({"copies": 1024, "density": 500.0}, r"copies=1024: \d+ vehicles need about .* GiB, more "),
 ])  # fmt: skip
 def test_bad_copies_are_named_before_any_work(kw: dict, needle: str) -> None:
+    nets = set(cache_dir("nets").glob("copies*"))
     with pytest.raises(ValueError, match=needle):
         MixedTrafficEnv(**kw)
+    assert set(cache_dir("nets").glob("copies*")) == nets, "no network was joined"

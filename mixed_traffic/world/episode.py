@@ -10,7 +10,7 @@ lengths, so that no reset waits for netconvert once a machine has built them.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +23,7 @@ from mixed_traffic.world.copies import (
     batch_boundary,
     batch_demand,
     check_copies,
+    check_memory,
     make_batch,
 )
 from mixed_traffic.world.demand import Demand, av_count, reference_speed, write_demand
@@ -68,10 +69,13 @@ class Worlds:
         check_copies(bundled, config.copies)
         self.bundled, self.config = bundled, config
         longest, length = episode_ring(bundled, config.ring_length, None)
+        if config.copies > 1:  # before netconvert joins them
+            everyone = replace(config, penetration=1.0, fixed_fleet=False)
+            check_memory(config.copies, av_count(longest, everyone))
         self.sizing = make_batch((longest,) * config.copies)
         """The batch at the longest ring: it sizes the agents."""
         self.longest_length = length
-        self.per_copy = av_count(self.sizing.views[0], config)
+        self.per_copy = av_count(longest, config)
         """AVs a copy can have [count]: copy i's are ``av_{i·per_copy}`` on."""
 
     @property
