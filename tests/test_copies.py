@@ -105,7 +105,7 @@ def test_each_copy_has_its_own_record() -> None:
 @pytest.mark.parametrize(("kw", "needle"), [
     ({"copies": 0}, "EnvConfig.copies=0 is out of range"),
     ({"copies": 2, "scenario": "urban"}, "copies=2: 'urban' is the urban family"),
-    ({"copies": 1024, "density": 500.0}, r"copies=1024: \d+ vehicles need about .* GiB, more "),
+    ({"copies": 1024, "density": 400.0}, r"copies=1024: \d+ vehicles need about .* GiB, more "),
 ])  # fmt: skip
 def test_bad_copies_are_named_before_any_work(kw: dict, needle: str) -> None:
     nets = set(cache_dir("nets").glob("copies*"))
