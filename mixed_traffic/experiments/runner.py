@@ -30,7 +30,7 @@ from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.paths import cache_dir
 from mixed_traffic.provenance import atomic_write, file_digest, json_safe, record_meta
 from mixed_traffic.schema import CELL_KEYS, METRICS
-from mixed_traffic.world.copies import check_copies
+from mixed_traffic.world.episode import check_batch
 from mixed_traffic.world.registry import load_scenario
 
 DEFAULT_WARMUP = 30.0
@@ -55,8 +55,8 @@ def validate(
     if policy is not None:
         check_policy(policy)
     scenario = load_scenario(config.scenario)
-    check_copies(scenario, config.copies)
     config = scenario.configure(config)
+    check_batch(scenario, config)
     warmup = scenario.default_warmup(warmup, DEFAULT_WARMUP, config.episode_length)
     check_warmup(warmup, config.episode_length)
     return config, warmup

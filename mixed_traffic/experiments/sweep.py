@@ -45,7 +45,7 @@ from mixed_traffic.schema import (
     STUDY_POLICIES,
     TRACE_DIR,
 )
-from mixed_traffic.world.copies import check_copies
+from mixed_traffic.world.episode import check_batch
 from mixed_traffic.world.registry import load_scenario
 from mixed_traffic.world.scenario import Scenario
 
@@ -159,10 +159,6 @@ class SweepConfig:
             bad("seeds", "seeds must be >= 0")
         if self.workers < 1:
             bad("workers", "must be >= 1")
-        try:
-            check_copies(scenario, EnvConfig(copies=self.copies).copies)
-        except ValueError as e:
-            bad("copies", str(e))
         if self.update_reference and (self.pdf is not None or not self.report):
             bad("update_reference", "writes the reference report: drop --pdf and --no-report")
         self._episode_defaults(scenario)
@@ -182,7 +178,10 @@ class SweepConfig:
                              ring_length=_ring(self.ring_length))  # fmt: skip
         except ValueError as e:
             bad("ring_length", str(e))
-        scenario.configure(base)
+        try:
+            check_batch(scenario, scenario.configure(replace(base, copies=self.copies)))
+        except ValueError as e:
+            bad("copies", str(e))
         try:
             for v in self.axis_values():  # each value must make a valid config
                 scenario.configure(with_axis(base, self.axis, v))

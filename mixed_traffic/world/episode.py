@@ -57,6 +57,17 @@ class Episode:
         return self.batch.views[0]
 
 
+def check_batch(bundled: Scenario, config: EnvConfig) -> None:
+    """ValueError unless ``config.copies`` copies of ``bundled`` can run: a family whose
+    copies stay apart, and memory for their vehicles (``config`` with the scenario's defaults
+    filled in). Before any network is joined."""
+    check_copies(bundled, config.copies)
+    if config.copies > 1:
+        longest, _ = episode_ring(bundled, config.ring_length, None)
+        everyone = replace(config, penetration=1.0, fixed_fleet=False)
+        check_memory(config.copies, av_count(longest, everyone))
+
+
 class Worlds:
     """The copies an env runs, sized once; an ``Episode`` per reset.
 
@@ -66,12 +77,9 @@ class Worlds:
     """
 
     def __init__(self, bundled: Scenario, config: EnvConfig) -> None:
-        check_copies(bundled, config.copies)
+        check_batch(bundled, config)
         self.bundled, self.config = bundled, config
         longest, length = episode_ring(bundled, config.ring_length, None)
-        if config.copies > 1:  # before netconvert joins them
-            everyone = replace(config, penetration=1.0, fixed_fleet=False)
-            check_memory(config.copies, av_count(longest, everyone))
         self.sizing = make_batch((longest,) * config.copies)
         """The batch at the longest ring: it sizes the agents."""
         self.longest_length = length

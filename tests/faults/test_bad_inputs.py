@@ -108,6 +108,10 @@ EVALUATE = [
     cli("evaluate", "--policy auto --checkpoint {d}/garbage.pt", "garbage.pt: corrupt or unreadable",
         "bad-checkpoint", keep=True),
     cli("evaluate", "--checkpoint {ckpt}", "--checkpoint is used by a learned policy", "unused-checkpoint"),
+    cli("evaluate", "--copies 0", "EnvConfig.copies=0 is out of range", "zero-copies"),
+    cli("evaluate", "--scenario urban --copies 2", "copies=2: 'urban' is the urban family", "urban-copies"),
+    cli("evaluate", "--copies 1024 --density 400", "more than the", "copies-beyond-memory"),
+    cli("sweep", "--copies 0", "--copies=0: EnvConfig.copies=0 is out of range", "sweep-zero-copies"),
     cli("evaluate", "--policy transfuser --checkpoint {d}/garbage.pt", "garbage.pt: corrupt or unreadable",
         "bad-study-checkpoint"),
     cli("evaluate", "--gif {d}/blocker/e.gif", "cannot write GIF to", "unwritable-gif"),
@@ -300,7 +304,7 @@ def no_work(monkeypatch: pytest.MonkeyPatch) -> None:
 
     monkeypatch.setattr(sweep, "run_sweep", started)
     monkeypatch.setattr(compare, "run", started)
-    monkeypatch.setattr(evaluate, "run_episode", started)
+    monkeypatch.setattr(evaluate, "run_copies", started)
     monkeypatch.setattr(fleet.FleetSearch, "run", started)
     monkeypatch.setattr(Trainer, "run", started)
     monkeypatch.setattr(study, "train_missing", started)
