@@ -63,10 +63,10 @@ def test_no_vehicle_leaves_its_copy_and_agents_carry_theirs(scenario: str) -> No
         seen.update(want)
 
     try:
-        _, infos = env.reset(seed=4)
-        assert {a: i["copy"] for a, i in infos.items()} == {
-            a: int(a[3:]) // per_copy for a in infos
-        }
+        assert env.agent_copy.tolist() == [int(a[3:]) // per_copy for a in env.possible_agents]
+        env.reset(seed=4)
+        infos = env.step(dict.fromkeys(env.agents, {"decision": 1, "params": np.zeros((3, 2))}))[4]
+        assert infos and all(i["copy"] == int(a[3:]) // per_copy for a, i in infos.items())
         _run(env, 4, check)
     finally:
         env.close()

@@ -107,7 +107,7 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     from mixed_traffic.experiments.runner import run_episode
 
     small = dict(steps=128, leg=64, n_steps=64, batch_size=32, n_epochs=2, episode_length=15.0,
-                 val_seeds=1, out=tmp_path / "run")  # fmt: skip
+                 val_seeds=1, out=tmp_path / "run", copies=2)  # fmt: skip
     train(PpoConfig(**small), progress=False)
     curve = tmp_path / "run" / "curves.csv"  # a kill after leg 2's checkpoint, before its row
     curve.write_text("".join(curve.read_text().splitlines(keepends=True)[:2]))
@@ -116,6 +116,7 @@ def test_ppo_trains_in_legs_resumes_and_drives_through_the_runner(tmp_path) -> N
     assert [r["timesteps"] for r in rows] == [64, 128, 192] and meta["timesteps"] == 192
     assert rows[1]["episodes"] == 0 and rows[0]["episodes"] > 0  # leg 2's returns were lost
     assert rows[-1]["train_seconds"] > rows[0]["train_seconds"] > 0
+    assert rows[0]["decisions_per_s"] > 0
     assert all(np.isfinite(r["val_std_ratio"]) and r["val_std_ratio"] > 0 for r in rows)
     best = json.loads((tmp_path / "run" / "best.json").read_text())  # the best leg is kept
     ranked = min(rows, key=selection.rank)

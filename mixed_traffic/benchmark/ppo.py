@@ -3,8 +3,9 @@
     python -m mixed_traffic.benchmark.ppo --task ring-v2 --seed 0 --steps 400000
     python -m mixed_traffic.evaluate --policy ppo --checkpoint results/ppo/ring-v2-s0/best.zip
 
-One policy is shared by every AV (parameter sharing through SuperSuit's PettingZoo-to-vector-env
-conversion: each AV is one row of SB3's batch). The AVs act through the longitudinal interface
+One policy is shared by every AV: the training env is ``copies`` copies of the task in one
+simulation as SB3's ``VecEnv`` (:mod:`mixed_traffic.benchmark.batch_vec`), each AV of each
+copy one row of SB3's batch. The AVs act through the longitudinal interface
 (:mod:`mixed_traffic.benchmark.interface`: 8 features, one acceleration held for 0.5 s) and
 are rewarded with the task's reward. After every leg of ``leg`` decisions the weights and
 the optimiser go to ``out/model.zip`` (atomically; no rollout buffer is kept, PPO has no replay),
@@ -34,16 +35,14 @@ import numpy as np
 from agents.longitudinal import LongitudinalConfig
 from agents.ppo_policy import meta_path, read_meta
 from mixed_traffic.benchmark import get_task, selection, task_config
-from mixed_traffic.benchmark.interface import LongitudinalWrapper
-from mixed_traffic.env.parallel import MixedTrafficEnv
 from mixed_traffic.experiments.cli import add_config_args, config_from_args
 from mixed_traffic.paths import RESULTS
 from mixed_traffic.provenance import atomic_write, git_revision, sumo_version
 
 #: The reward scaler's running statistics, beside ``model.zip``.
 NORM_FILE = "reward_norm.pkl"
-CURVE_FIELDS = ("leg", "timesteps", "env_steps", "train_seconds", "episodes", "mean_return",
-                *selection.FIELDS)  # fmt: skip
+CURVE_FIELDS = ("leg", "timesteps", "env_steps", "train_seconds", "decisions_per_s", "episodes",
+                "mean_return", *selection.FIELDS)  # fmt: skip
 
 
 @dataclass(frozen=True)
@@ -59,7 +58,11 @@ class PpoConfig:
     leg: int = 20_480
     """Decisions per leg: a checkpoint and a curve row after each."""
     n_steps: int = 2048
-    """Decisions per rollout before each PPO update."""
+    """Decisions per rollout before each PPO update, over all rows (each row, one AV of the
+    batch, takes n_steps / rows of them)."""
+    copies: int = 16
+    """Copies of the task in the training simulation (batched worlds: one row per AV of each
+    copy; 16 measured fastest per core on ring-v2, docs/marl.md)."""
     batch_size: int = 256
     """Minibatch size of the updates."""
     n_epochs: int = 10
@@ -134,38 +137,16 @@ def interface_config(cfg: PpoConfig) -> LongitudinalConfig:
 
 
 def training_env(cfg: PpoConfig) -> Any:
-    """SB3 VecEnv of the task's training config: one row per AV, episodes reset by SuperSuit.
-    A ring keeps its one AV (an AV that collides ends the episode); elsewhere the fleet is
-    fixed (``fixed_fleet``: AVs re-enter upstream) so the batch keeps its width."""
-    import supersuit as ss
+    """SB3 VecEnv of the task's training config on ``cfg.copies`` batched worlds
+    (:mod:`mixed_traffic.benchmark.batch_vec`): one row per AV. A ring keeps its one AV per
+    copy; elsewhere the fleet is fixed (AVs re-enter upstream) so the batch keeps its width."""
     from stable_baselines3.common.vec_env import VecMonitor
 
-    from agents.rules.tuned import cap_factor
+    from mixed_traffic.benchmark.batch_vec import vec_env
 
-    ring = _config(cfg).scenario == "ring"
-    env = MixedTrafficEnv(config=_config(cfg, fixed_fleet=not ring), metrics=False)  # rewards only
-    wrapped = LongitudinalWrapper(env, interface_config(cfg))
-    wrapped.interface.cap_factor = cap_factor(env.scenario.family)  # as in evaluation
-    venv = ss.pettingzoo_env_to_vec_env_v1(wrapped)
-    venv = ss.concat_vec_envs_v1(venv, 1, num_cpus=0, base_class="stable_baselines3")
-    venv.seed = lambda seed=None: [None]  # the env seeds its episodes from config.seed
-    return _normalised(cfg, VecMonitor(_bool_dones(venv)))
-
-
-def _bool_dones(venv: Any) -> Any:
-    """``venv`` with boolean ``dones``: SuperSuit's are uint8, which SB3's ``VecNormalize``
-    would take as indices."""
-    from stable_baselines3.common.vec_env import VecEnvWrapper
-
-    class BoolDones(VecEnvWrapper):
-        def reset(self) -> Any:
-            return self.venv.reset()
-
-        def step_wait(self) -> Any:
-            obs, rewards, dones, infos = self.venv.step_wait()
-            return obs, rewards, np.asarray(dones, bool), infos
-
-    return BoolDones(venv)
+    extra = {"episode_length": cfg.episode_length} if cfg.episode_length else {}
+    venv = vec_env(cfg.task, copies=cfg.copies, seed=cfg.seed, **extra)
+    return _normalised(cfg, VecMonitor(venv))
 
 
 def _normalised(cfg: PpoConfig, venv: Any) -> Any:
@@ -197,7 +178,8 @@ def _model(cfg: PpoConfig, venv: Any) -> Any:
     arch = list(cfg.hidden)
     interface = interface_config(cfg)
     held = max(1, round(cfg.explore_hold / (interface.hold * interface.dt)))  # decisions
-    return PPO("MlpPolicy", venv, n_steps=cfg.n_steps, batch_size=cfg.batch_size,
+    n_steps = max(1, cfg.n_steps // venv.num_envs)  # per row
+    return PPO("MlpPolicy", venv, n_steps=n_steps, batch_size=cfg.batch_size,
                n_epochs=cfg.n_epochs, learning_rate=cfg.learning_rate, gamma=cfg.gamma,
                gae_lambda=cfg.gae_lambda, seed=cfg.seed, device="cpu", verbose=0,
                use_sde=cfg.explore_hold > 0, sde_sample_freq=held,
@@ -285,14 +267,16 @@ def train(cfg: PpoConfig, progress: bool = True) -> dict[str, Any]:
         returns: list[float] = []
         start = time.monotonic()
         leg = min(cfg.leg, cfg.steps - model.num_timesteps)
+        before = model.num_timesteps
         model.learn(leg, callback=_returns_callback(returns), reset_num_timesteps=False)
+        rate = (model.num_timesteps - before) / (time.monotonic() - start)
         seconds += time.monotonic() - start
         meta = {"task": cfg.task, "seed": cfg.seed, "timesteps": int(model.num_timesteps),
                 "train_seconds": round(seconds, 1), "interface": asdict(interface),
                 "config": {k: (str(v) if isinstance(v, Path) else v)
                            for k, v in asdict(cfg).items()},
                 "revision": git_revision(), "sumo": sumo_version(),
-                "library": _library()}  # fmt: skip
+                "library": _library(), "decisions_per_s": round(rate, 1)}  # fmt: skip
         _save(cfg, model, meta)
         _record(cfg, curves, meta, returns, human, progress)
     venv.close()
@@ -327,6 +311,7 @@ def _record(
     steps = int(meta["timesteps"])
     row = {"leg": len(curves) + 1, "timesteps": steps,
            "env_steps": steps * interface_config(cfg).hold, "train_seconds": meta["train_seconds"],
+           "decisions_per_s": meta.get("decisions_per_s", float("nan")),
            "episodes": len(returns), "mean_return": float(np.mean(returns)) if returns else float("nan"),
            **_validate(cfg, human)}  # fmt: skip
     _append_curve(cfg, row)
@@ -349,11 +334,9 @@ def _init_seconds(cfg: PpoConfig) -> float:
 
 def _library() -> dict[str, str]:
     import stable_baselines3
-    import supersuit
     import torch
 
-    return {"stable_baselines3": stable_baselines3.__version__,
-            "supersuit": supersuit.__version__, "torch": torch.__version__}  # fmt: skip
+    return {"stable_baselines3": stable_baselines3.__version__, "torch": torch.__version__}
 
 
 def main(argv: list[str] | None = None) -> int:

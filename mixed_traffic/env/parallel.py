@@ -263,7 +263,8 @@ class MixedTrafficEnv(ParallelEnv):
         obs = self._start_from(snap)
         if not self.agents and self.possible_agents and not self.sumo_drives_avs:
             obs = self._wait_for_an_agent(int(seed), bool((options or {}).get("allow_no_agents")))
-        return obs, {a: {"copy": int(self._agent_copy[self._table.slot[a]])} for a in self.agents}
+        # reset's infos stay empty: TorchRL takes their keys for the info spec of every step
+        return obs, {a: {} for a in self.agents}
 
     def _wait_for_an_agent(self, seed: int, allow_none: bool) -> dict[str, dict]:
         """Advance the simulation (nobody acts) until the first AV enters the network, for at
