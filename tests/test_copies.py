@@ -65,7 +65,8 @@ def test_no_vehicle_leaves_its_copy_and_agents_carry_theirs(scenario: str) -> No
     try:
         assert env.agent_copy.tolist() == [int(a[3:]) // per_copy for a in env.possible_agents]
         env.reset(seed=4)
-        infos = env.step(dict.fromkeys(env.agents, {"decision": 1, "params": np.zeros((3, 2))}))[4]
+        act = {a: {"decision": 1, "params": np.zeros((3, 2))} for a in env.agents}
+        infos = env.step(act)[4]
         assert infos and all(i["copy"] == int(a[3:]) // per_copy for a, i in infos.items())
         _run(env, 4, check)
     finally:
