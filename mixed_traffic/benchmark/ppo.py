@@ -60,9 +60,9 @@ class PpoConfig:
     n_steps: int = 2048
     """Decisions per rollout before each PPO update, over all rows (each row, one AV of the
     batch, takes n_steps / rows of them)."""
-    copies: int = 16
+    copies: int = 32
     """Copies of the task in the training simulation (batched worlds: one row per AV of each
-    copy; 16 measured fastest per core on ring-v2, docs/marl.md)."""
+    copy; 32 the fastest per core measured on ring-v2, docs/marl.md)."""
     batch_size: int = 256
     """Minibatch size of the updates."""
     n_epochs: int = 10
