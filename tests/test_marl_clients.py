@@ -63,11 +63,30 @@ def test_rllib_trains_one_ppo_iteration_on_the_recipe() -> None:
     assert np.isfinite(result["learners"]["shared"]["total_loss"])
 
 
+def _docs_block(needle: str) -> str:
+    """The python block of docs/marl.md that contains ``needle``."""
+    text = (Path(__file__).parents[1] / "docs" / "marl.md").read_text()
+    return next(b.split("```")[0] for b in text.split("```python\n")[1:] if needle in b)
+
+
+def test_the_batched_recipe_in_docs_runs() -> None:
+    """The native vector env's block of docs/marl.md, executed as written, then trained."""
+    pytest.importorskip("stable_baselines3")
+    space: dict = {}
+    exec(compile(_docs_block("vec_env("), "docs/marl.md", "exec"), space)
+    model, venv = space["model"], space["venv"]
+    try:
+        assert venv.num_envs == 32 and model.n_steps * venv.num_envs == 2048
+        model.learn(64)
+        assert model.num_timesteps >= 64
+    finally:
+        venv.close()
+
+
 def test_the_ppo_recipe_in_docs_runs() -> None:
     """The SB3 + SuperSuit recipe of docs/marl.md, executed as written."""
     pytest.importorskip("stable_baselines3")
-    text = (Path(__file__).parents[1] / "docs" / "marl.md").read_text()
-    code = text.split("```python\n")[1].split("```")[0]
+    code = _docs_block("supersuit")
     space: dict = {}
     exec(compile(code, "docs/marl.md", "exec"), space)
     model = space["model"]
