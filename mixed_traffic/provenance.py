@@ -18,6 +18,7 @@ import json
 import math
 import os
 import subprocess
+import sys
 import tempfile
 import warnings
 from collections.abc import Callable, Iterator
@@ -283,3 +284,24 @@ def read_records(path: str | Path) -> list[dict[str, Any]]:
             stacklevel=2,
         )
     return records
+
+
+def records_of_this_code(path: Path) -> list[dict]:
+    """The records in ``path`` written by this code. Those of other code (another ``code``
+    hash, or none) would count as done and mix into the report, so they move to
+    ``records.code-<theirs>.jsonl`` (written before ``path`` is rewritten: nothing is lost)."""
+    records, ours = read_records(path), current_code_key()
+    keep = [r for r in records if r.get("code") == ours]
+    if len(keep) == len(records):
+        return records
+    others = [r for r in records if r.get("code") != ours]
+    tag = "-".join(sorted({str(r.get("code") or "unknown") for r in others}))[:40]
+    aside, n = path.with_name(f"records.code-{tag}.jsonl"), 1
+    while aside.exists():
+        n += 1
+        aside = path.with_name(f"records.code-{tag}.{n}.jsonl")
+    rewrite_records(aside, others)
+    rewrite_records(path, keep)
+    print(f"{path}: {len(others)} record(s) of other code ({tag}) moved to {aside.name}; "
+          f"{len(keep)} kept", file=sys.stderr)  # fmt: skip
+    return keep

@@ -1,4 +1,4 @@
-"""The study and scale sections of ``python -m mixed_traffic.bench`` (issue 45): what they run
+"""The study, scale and throughput sections of ``python -m mixed_traffic.bench`` (issue 45): what they run
 and the JSON rows they print. Timings are never asserted."""
 
 from __future__ import annotations
@@ -47,3 +47,17 @@ def test_the_long_road_is_split_into_short_edges() -> None:
     lengths = [e.getLength() for e in edges]
     assert len(edges) >= 3 and max(lengths) <= 500.0 + 1e-6
     assert abs(sum(lengths) - 1200.0) < 1.0 and {e.getLaneNumber() for e in edges} == {2}
+
+
+def test_the_throughput_section_prints_a_row_per_task_copies_and_mode(capsys) -> None:
+    argv = ["--section", "throughput", "--json", "--throughput-tasks", "ring-v2",
+            "--throughput-copies", "2", "--throughput-decisions", "20", "--throughput-steps", "5",
+            "--throughput-ppo", "--throughput-rbpdqn", "20"]  # fmt: skip
+    assert bench.main(argv) == 0
+    lines = capsys.readouterr().out.strip().splitlines()
+    rows = [json.loads(x) for x in lines if x.startswith("{")]
+    assert [(r["copies"], r["mode"]) for r in rows] == [(1, "env"), (1, "rbpdqn"), (2, "env"),
+                                                       (2, "rbpdqn")]  # fmt: skip
+    assert all(r["task"] == "ring-v2" and r["decisions_per_s_per_core"] > 0 for r in rows)
+    assert [r["ratio_to_single"] for r in rows[:2]] == [1.0, 1.0]
+    assert rows[2]["sumo_ratio"] > 0 and rows[3]["sumo_ratio"] is None

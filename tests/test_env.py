@@ -268,9 +268,9 @@ def test_a_refused_placement_never_appears_mid_road(monkeypatch) -> None:
     # would appear wherever a gap opens later; reset drops it instead
     import dataclasses
 
-    import mixed_traffic.env.parallel as env_module
+    import mixed_traffic.world.copies as demand_module
 
-    make_demand, refused = env_module.make_demand, []
+    make_demand, refused = demand_module.make_demand, []
 
     def clashing(scenario, config, rng):
         demand = make_demand(scenario, config, rng)
@@ -281,7 +281,7 @@ def test_a_refused_placement_never_appears_mid_road(monkeypatch) -> None:
         )
         return dataclasses.replace(demand, vehicles=(first, second, *demand.vehicles[2:]))
 
-    monkeypatch.setattr(env_module, "make_demand", clashing)
+    monkeypatch.setattr(demand_module, "make_demand", clashing)
     e = parallel_env(**SHORT)
     try:
         e.reset(seed=0)

@@ -28,7 +28,7 @@ def _episode(scenario: str, penetration: float, steps: int, **kw: Any) -> dict[s
             break
         obs, _, _, _, info = env.step(bench_actions(env, obs, env.action_space(None), rng))
         infos.append(info)
-    flow = env._flow  # per-vehicle figures: a last-bit slip in one vehicle's sums shows
+    flow = env._rec.flow  # per-vehicle figures: a last-bit slip in one vehicle's sums shows
     seen = list(flow._ids)
     out = {
         "travel_times": flow.vehicle_travel_times(),

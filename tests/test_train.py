@@ -32,7 +32,7 @@ TINY = dict(
     scenarios=("straight-3lane",), densities=(120.0,), penetrations=(0.5,),
     episode_length=2.0, demo_steps=400, demo_policy=DEMO, learning_starts=400,
     update_ratio=0.02, local_buffer=256, log_every=1000, progress=False, sync_every=5,
-    replay_capacity=20_000,
+    replay_capacity=20_000, copies=1,
 )  # fmt: skip
 
 
@@ -284,6 +284,35 @@ def test_wave_episodes_take_their_share_with_the_fleet_reward(tmp_path: Path) ->
         assert worker.env.sim_time >= warmup > 10.0  # (this seed's draw: 29 s)
         worker.collect(50)
         assert worker._steps["wave"] > 0 and worker._steps["other"] > 0
+    finally:
+        worker.close()
+
+
+def test_a_worker_collects_from_batched_worlds(tmp_path: Path) -> None:
+    """With ``copies`` a worker's episode runs that many copies of its scenario in one
+    simulation, and its transitions and episode stats come from all of them; a scenario that
+    cannot be copied (urban) runs one."""
+    tr = Trainer(_cfg(tmp_path / "straight", workers=1, env_steps=1, demo_steps=0, copies=3,
+                      episode_length=4.0))  # fmt: skip
+    worker = RolloutWorker(tr.worker_specs()[0])
+    worker.set_weights(tr.weights())
+    try:
+        worker.collect(60)
+        assert worker.env_cfg.copies == 3
+        assert set(worker.env.agent_copy.tolist()) == {0, 1, 2}
+        while worker.env is not None:  # to the episode's end
+            worker._step()
+        (ep,) = worker._episodes
+        assert ep["copies"] == 3 and ep["av_trips"] >= 3
+    finally:
+        worker.close()
+    tr = Trainer(_cfg(tmp_path / "urban", workers=1, env_steps=1, demo_steps=0, copies=3,
+                      scenarios=("urban",), densities=(0.0,)))  # fmt: skip
+    worker = RolloutWorker(tr.worker_specs()[0])
+    worker.set_weights(tr.weights())
+    try:
+        worker.collect(5)
+        assert worker.env_cfg.copies == 1
     finally:
         worker.close()
 

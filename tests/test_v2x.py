@@ -282,7 +282,7 @@ def test_ring_terms_are_the_whole_ring_and_sumos_followers() -> None:
         lanes = e._backend._api.lane
         speeds = np.array([api.getSpeed(v) for v in api.getIDList()])
         limit = lanes.getMaxSpeed(api.getLaneID(e.agents[0]))
-        star, h = e._desired, e.config.human
+        star, h = e._desired[e.hdmap.lane_row[api.getLaneID(e.agents[0])]], e.config.human
         gap = e.ring_length / len(speeds) - e.config.vehicle.length
         idm = 1 - (star / limit) ** h.delta - ((h.min_gap + star * h.headway) / gap) ** 2
         assert 0 < star < limit and abs(idm) < 1e-3

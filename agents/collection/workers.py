@@ -42,6 +42,7 @@ from agents.policies import make_policy, stack_obs, to_actions
 from agents.rules.tuned import cap_factor, teacher_rule
 from mixed_traffic.config import EnvConfig
 from mixed_traffic.env import parallel_env
+from mixed_traffic.world.copies import copyable
 from mixed_traffic.world.registry import load_scenario
 
 TERMINAL_REASONS = ("collision", "off_road", "route_deviation", "red_light", "speed_limit")
@@ -162,24 +163,30 @@ def episode_stats(
 
     Keys: ``return_per_av`` (summed reward / AVs that acted), ``reward_sum``, ``actions``,
     ``av_trips``, ``terminals`` (sum of the terminal_* counts), ``collisions`` (AVs terminated
-    by a collision), ``demo`` (some step was driven by the demonstrator) and the env cell.
+    by a collision), each over all the batch's copies; ``demo`` (some step was driven by the
+    demonstrator) and the env cell.
     """
-    m = env.episode_metrics()
-    trips = float(m.get("av_trips") or 0.0)
-    terminals = float(sum(m.get(f"terminal_{r}") or 0.0 for r in TERMINAL_REASONS))
+    copies = [env.episode_metrics(c) for c in range(cfg.copies)]
+
+    def total(key: str) -> float:  # over the batch's copies
+        return float(sum(m.get(key) or 0.0 for m in copies))
+
+    trips = total("av_trips")
+    terminals = sum(total(f"terminal_{r}") for r in TERMINAL_REASONS)
     return {
         "return_per_av": reward_sum / max(acted, 1),
         "reward_sum": reward_sum,
         "actions": actions,
         "av_trips": trips,
         "terminals": terminals,
-        "collisions": float(m.get("terminal_collision") or 0.0),
+        "collisions": total("terminal_collision"),
         "demo": demo,
         "scenario": cfg.scenario,
         "density": cfg.density,
         "penetration": cfg.penetration,
         "weather": cfg.weather,
         "seed": cfg.seed,
+        "copies": cfg.copies,
     }
 
 
@@ -283,6 +290,7 @@ class RolloutWorker:
             weather=str(self.rng.choice(s.weathers)),
             seed=int(self.rng.integers(2**31 - 1)),
             second_instance="error",  # never a silent slow TraCI fallback in a worker
+            copies=cfg.copies if copyable(load_scenario(cfg.scenario)) else 1,
         )
         self.demo_episode = bool(self.rng.random() < s.demo_share)
         self.any_demo = False

@@ -13,7 +13,7 @@ from typing import Any, NoReturn
 from agents.nets.lca import LCAConfig
 from agents.rules.obs_batch import extra_width
 from agents.rules.tuned import TEACHERS
-from mixed_traffic.config import WEATHERS, EnvConfig
+from mixed_traffic.config import MAX_COPIES, WEATHERS, EnvConfig
 from mixed_traffic.env.api import observation_space
 
 BACKENDS = ("process", "ray")
@@ -75,6 +75,10 @@ class TrainConfig:
     """Train the residual form (``LearnerConfig.residual``): the actor learns a bounded
     correction to ACC-LC, starting from zero; False = the paper's form (the actor outputs the
     parameters)."""
+    copies: int = 8
+    """Copies of each episode's scenario in one simulation (batched worlds: a step's fixed
+    costs buy N times the transitions); scenarios that cannot be copied (urban, user
+    networks) run one. 1 = one world per episode."""
     decision_interval: float = 0.5
     """Time between the policy's decisions [s], rounded to whole simulation steps; the command
     is held in between (``agents.driver``; 0.1 = the paper's one decision per step)."""
@@ -242,6 +246,8 @@ class TrainConfig:
         """Workers, backend, address and ablation."""
         if self.workers < 1:
             self._bad("workers", "need at least 1 worker")
+        if not isinstance(self.copies, int) or not 1 <= self.copies <= MAX_COPIES:
+            self._bad("copies", f"must be an integer in 1-{MAX_COPIES}")
         if self.backend not in BACKENDS:
             self._bad("backend", f"choose from {BACKENDS}")
         if self.address and self.backend != "ray":
@@ -383,9 +389,9 @@ def lca_config(cfg: TrainConfig, env_base: EnvConfig) -> LCAConfig:
 
 
 def env_base_config(cfg: TrainConfig, env_base: EnvConfig | None = None) -> EnvConfig:
-    """Fixed env fields for every episode: episode length and w_impact (0 for NoIMP and
+    """Fixed env fields for every episode: episode length, copies and w_impact (0 for NoIMP and
     DRL-MF, which ignores its impact on the traffic behind)."""
-    base = replace(env_base or EnvConfig(), episode_length=cfg.episode_length)
+    base = replace(env_base or EnvConfig(), episode_length=cfg.episode_length, copies=cfg.copies)
     base = replace(
         base,
         v2x=base.v2x or cfg.v2x,

@@ -64,6 +64,32 @@ def warn_coarse_step(step_length: float) -> None:
         )
 
 
+def check_config_args(config: Any, kwargs: dict[str, Any]) -> None:
+    """The env takes ``config=EnvConfig(...)`` or keyword fields, not both."""
+    if config is not None and kwargs:
+        raise ValueError(
+            f"pass either config=EnvConfig(...) or keyword fields, not both: {sorted(kwargs)}"
+        )
+
+
+def check_render_mode(mode: str | None, modes: list[str]) -> None:
+    """A known render mode, and for ``human`` a display and sumo-gui."""
+    if mode not in (None, *modes):
+        raise ValueError(f"render_mode={mode!r} is not one of {modes}")
+    if mode == "human":
+        check_gui()
+
+
+def no_agent_message(seed: int, cfg: Any, waited: bool) -> str:
+    """Why reset(seed) found no agent: none entered within ``reset_wait`` (``waited``) or
+    during the whole episode."""
+    within = (f"within reset_wait={cfg.reset_wait} s" if waited
+              else f"during the {cfg.episode_length} s episode")  # fmt: skip
+    return (f"reset(seed={seed}): no AV entered the network {within}; raise the penetration, the "
+            "density or reset_wait, or pass options={'allow_no_agents': True} to run the episode "
+            "all human")  # fmt: skip
+
+
 def check_gui() -> None:
     """Name a missing display before sumo-gui is started (``render_mode='human'``)."""
     if not os.environ.get("DISPLAY"):

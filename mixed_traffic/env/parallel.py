@@ -78,18 +78,16 @@ from mixed_traffic.env.action import (
     to_physical,
 )
 from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
-from mixed_traffic.env.av_metrics import AVMetrics
 from mixed_traffic.env.control import BicycleController
-from mixed_traffic.env.flow_metrics import FlowRecorder
 from mixed_traffic.env.obs_batch import StepBatches
+from mixed_traffic.env.recorders import Recorders
 from mixed_traffic.env.reward import agent_rewards
 from mixed_traffic.env.step_output import BatchStep, add_entered, api_dicts, batch_step
 from mixed_traffic.env.step_truth import av_step, step_memory
 from mixed_traffic.env.sumo_sync import fan_choices, follow_sumo_routes, give_way_gates
 from mixed_traffic.env.termination import agent_events
-from mixed_traffic.env.truth import SpeedView, gather
+from mixed_traffic.env.truth import SpeedView, StepViews, gather
 from mixed_traffic.paths import scratch_dir
-from mixed_traffic.schema import METRICS
 from mixed_traffic.sensing.extras import ExtraKeys
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.observation import ObservationBuilder, observation_space
@@ -129,17 +127,9 @@ class MixedTrafficEnv(ParallelEnv):
         metrics: bool = True,
         **kwargs: Any,
     ) -> None:
-        if config is not None and kwargs:
-            raise ValueError(
-                f"pass either config=EnvConfig(...) or keyword fields, not both: {sorted(kwargs)}"
-            )
+        checks.check_config_args(config, kwargs)
         cfg = config if config is not None else EnvConfig(**kwargs)
-        if render_mode not in (None, *self.metadata["render_modes"]):
-            raise ValueError(
-                f"render_mode={render_mode!r} is not one of {self.metadata['render_modes']}"
-            )
-        if render_mode == "human":
-            checks.check_gui()
+        checks.check_render_mode(render_mode, self.metadata["render_modes"])
         self.render_mode = render_mode
         self.sumo_drives_avs = sumo_drives_avs
         self.trace = trace
@@ -173,8 +163,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._snap: TrafficSnapshot | None = None
         self._boundary: PeriodicBoundary | FleetPool | Boundaries | None = None
         self._noise_rng: np.random.Generator | None = None
-        self._flow: FlowRecorder | None = None
-        self._av: AVMetrics | None = None
+        self._rec = Recorders(metrics)
         self._tls: dict[str, str] = {}
         self._tls_prev: dict[str, str] = {}
         self._memory = StepMemory()
@@ -250,11 +239,8 @@ class MixedTrafficEnv(ParallelEnv):
         self._builder.reset()
         self._extras.reset(np.random.default_rng(v2x_seed))
         every = max(1, round(TRACE_INTERVAL / cfg.step_length)) if self.trace else 0
-        self._flow = FlowRecorder(self.hdmap, [v.measurement for v in episode.batch.views],
-                                  cfg.step_length, self.warmup, every, cfg.av_window,
-                                  self._vehicle_copy)  # fmt: skip
-        self._av = AVMetrics(cfg.step_length, cfg.reward.rear_speed_drop, cfg.copies,
-                             self._vehicle_copy)  # fmt: skip
+        self._rec.start(self.hdmap, [v.measurement for v in episode.batch.views], cfg,
+                        self.warmup, every, self._vehicle_copy)  # fmt: skip
         self._table.reset(list(self.possible_agents) if cfg.fixed_fleet else [])
         self._batches.reset()
         self._memory = StepMemory()
@@ -278,13 +264,7 @@ class MixedTrafficEnv(ParallelEnv):
         while not self.agents and self.sim_time < limit - 1e-9:
             obs, *_ = self._step_once(*no_actions())
         if not self.agents and not allow_none:
-            within = (f"within reset_wait={cfg.reset_wait} s" if limit < end - 1e-9
-                      else f"during the {cfg.episode_length} s episode")  # fmt: skip
-            raise NoAgentError(
-                f"reset(seed={seed}): no AV entered the network {within}; raise the penetration, "
-                f"the density or reset_wait, or pass options={{'allow_no_agents': True}} to run "
-                f"the episode all human"
-            )
+            raise NoAgentError(checks.no_agent_message(seed, cfg, limit < end - 1e-9))
         return obs
 
     def _start_from(self, snap: TrafficSnapshot) -> dict[str, dict]:
@@ -292,7 +272,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._admit(snap)
         rows = self._table.live_rows(snap)
         truth, sensed = self._sense(snap, rows)
-        self._remember(snap, rows, truth)
+        self._remember(snap, rows, StepViews.of(snap, truth, rows.r))
         obs = self._observe(snap, rows, sensed)
         self._snap = snap
         return {a: obs.get(a, self._empty_obs) for a in self.agents}
@@ -325,10 +305,11 @@ class MixedTrafficEnv(ParallelEnv):
         snap = self._advance()  # SUMO step + density boundary
         rows = self._table.live_rows(snap)
         truth, sensed = self._sense(snap, rows)  # perception
+        views = StepViews.of(snap, truth, rows.r)  # front and rear vehicles, once
         events = self._events(snap, rows, cmd)  # termination
-        rewards, terms, changed = self._rewards(snap, rows, truth, events, dicts)  # reward
-        self._record(snap, rows, truth, rewards, changed)  # metrics
-        self._remember(snap, rows, truth)
+        rewards, terms, changed = self._rewards(snap, rows, views, events, dicts)  # reward
+        self._record(snap, rows, views, rewards, changed)  # metrics
+        self._remember(snap, rows, views)
         obs = self._observe(snap, rows, sensed, dicts)  # observation
         self._step_truth = (rows, truth)  # reused if agents enter in _finish
         return self._finish(snap, obs, rewards, terms, events, dicts)
@@ -381,7 +362,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._batches.clear()
         self._boundary.step(snap, self._backend)
         if self.metrics:
-            self._flow.update(snap)
+            self._rec.flow.update(snap)
         ids = self._perception.tls_ids
         self._tls = dict(zip(ids, self._backend.tls_states(ids)))
         return snap
@@ -428,25 +409,25 @@ class MixedTrafficEnv(ParallelEnv):
         """(R,) edge rows of a route given by edge ids."""
         return np.array([self.hdmap.edge_row.get(e, -1) for e in edges], np.int64)
 
-    def _rewards(self, snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame,
+    def _rewards(self, snap: TrafficSnapshot, rows: Rows, views: StepViews,
                  events: dict[str, str], dicts: bool = True):  # fmt: skip
         """Reward, named terms and completed lane changes (bool per agent number) of every
         agent that acted."""
         return agent_rewards(self.config, self.hdmap, self._memory, self._table, snap, rows,
-                             truth, events, self.scenario.ring, self._desired, dicts)  # fmt: skip
+                             views, events, self.scenario.ring, self._desired, dicts)  # fmt: skip
 
-    def _record(self, snap, rows: Rows, truth: PerceptionFrame, rewards: dict[str, float],
+    def _record(self, snap, rows: Rows, views: StepViews, rewards: dict[str, float],
                 changed: np.ndarray) -> None:  # fmt: skip
         """Per-AV metrics of this step (flow metrics are recorded in ``_advance``)."""
         if not self.metrics:
             return
-        sample = av_step(snap, rows, truth, self._table, self._memory, rewards, changed,
+        sample = av_step(snap, rows, views, self._table, self._memory, rewards, changed,
                          self._agent_copy[rows.slots])  # fmt: skip
-        self._av.step(sample, snap.time, SpeedView(snap))
+        self._rec.av.step(sample, snap.time, SpeedView(snap))
 
-    def _remember(self, snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame) -> None:
+    def _remember(self, snap: TrafficSnapshot, rows: Rows, views: StepViews) -> None:
         """Ground truth of this step that the next step's events and rewards compare against."""
-        self._memory = step_memory(snap, rows, truth, self._table)
+        self._memory = step_memory(snap, rows, views, self._table)
         self._tls_prev = dict(self._tls)
 
     def _observe(self, snap, rows: Rows, sensed: PerceptionFrame,
@@ -513,7 +494,7 @@ class MixedTrafficEnv(ParallelEnv):
     def _retire(self, done: list[str], events: dict[str, str]) -> None:
         """End the trips of ``done`` agents; SUMO already removed arrived and collided ones."""
         for a in done:
-            self._av.end_trip(a, events[a])
+            self._rec.av.end_trip(a, events[a])
             if events[a] not in ("arrived", "collision"):
                 self._backend.remove(a)
         removed = [a for a in done if events[a] not in ("arrived", "collision")]
@@ -545,7 +526,8 @@ class MixedTrafficEnv(ParallelEnv):
         n_step = len(step_rows.ids)
         at = table.by_slot(step_rows.slots, np.arange(n_step))
         at[rows.slots] = n_step + np.arange(len(rows.ids))  # entering: their new route wins
-        self._remember(snap, all_rows, gather(step_truth, truth, at[all_rows.slots]))
+        joined = gather(step_truth, truth, at[all_rows.slots])
+        self._remember(snap, all_rows, StepViews.of(snap, joined, all_rows.r))
 
     def observation_batch(self, agents: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         """``{key: (A, ...)}`` the observations of ``agents`` (default: the live agents) as the
@@ -559,33 +541,18 @@ class MixedTrafficEnv(ParallelEnv):
     def episode_metrics(self, copy: int = 0) -> dict[str, float | None]:
         """Every DESIGN §9 metric of the episode so far (keys of ``schema.METRICS``), of copy
         ``copy`` (``EnvConfig.copies``: each copy is its own episode)."""
-        out: dict[str, Any] = dict.fromkeys(METRICS)
-        out.update(self._recorder("episode_metrics").summary(copy))
-        out.update(self._av.summary(copy))
-        out["avg_di_c"] = self._flow.mean_delay_index(sorted(self._av.rear_vehicles(copy)))
-        return out
+        return self._rec.episode_metrics(copy)
 
     def flow_diagnostics(self, copy: int | None = None) -> dict[str, float | int | None]:
         """Flow figures of the episode beyond the metric catalogue (delay indices, free-flow
         time, vehicles seen, steps; with a fleet pool, its trips and waits), of one ``copy``
         or, None, of every vehicle."""
-        out = self._recorder("flow_diagnostics").diagnostics(copy)
-        if isinstance(self._boundary, FleetPool):
-            out.update(self._boundary.summary())
-        return out
+        return self._rec.flow_diagnostics(copy, self._boundary)
 
     def trajectories(self) -> dict[str, np.ndarray]:
         """With ``trace=True``: every vehicle's time ``t`` [s], position ``s`` [m] along the
         measurement segment and speed ``v`` [m/s] every ``TRACE_INTERVAL`` after warm-up."""
-        return self._recorder("trajectories").field.traces()
-
-    def _recorder(self, what: str) -> FlowRecorder:
-        """The episode's flow recorder; ``RuntimeError`` naming ``what`` before the first reset."""
-        if not self.metrics:
-            raise RuntimeError(f"{what}(): this env was made with metrics=False and records none")
-        if self._flow is None:
-            raise RuntimeError(f"{what}() before reset(): call reset() to start an episode first")
-        return self._flow
+        return self._rec.trajectories()
 
     def render(self) -> np.ndarray | None:
         if self.render_mode != "rgb_array" or self._snap is None:

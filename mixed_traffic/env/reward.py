@@ -41,8 +41,7 @@ from mixed_traffic.config import EnvConfig, RewardConfig
 from mixed_traffic.env import step_kernel
 from mixed_traffic.env.agent_table import AgentTable, Rows, StepMemory
 from mixed_traffic.env.traffic_terms import traffic_terms
-from mixed_traffic.env.truth import FrontView, speeds_of
-from mixed_traffic.sensing.frame import PerceptionFrame
+from mixed_traffic.env.truth import FrontView, StepViews, speeds_of
 from mixed_traffic.world.hdmap import HDMap
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
@@ -258,11 +257,11 @@ def total_reward(terms: Mapping[str, np.ndarray], cfg: RewardConfig) -> np.ndarr
 # ---------------------------------------------------------------------- per step
 def agent_rewards(
     cfg: EnvConfig, hd: HDMap, memory: StepMemory, table: AgentTable, snap: TrafficSnapshot,
-    rows: Rows, truth: PerceptionFrame, events: dict[str, str], ring: bool = False,
+    rows: Rows, views: StepViews, events: dict[str, str], ring: bool = False,
     desired: np.ndarray | None = None, dicts: bool = True,
 ):  # fmt: skip
     """Reward, named terms and completed lane changes (bool per agent number) of every
-    agent that acted; ``ring``: the network is a ring (for r5, r6 and r8); ``desired``: (L,)
+    agent that acted (``views``: the step's ground truth of ``rows``); ``ring``: the network is a ring (for r5, r6 and r8); ``desired``: (L,)
     r8's reference speed on each lane [m/s] (0 or None = the lane limits); ``dicts`` False: the named terms only of
     agents that left the network (the others' stay arrays, unbuilt)."""
     prev = memory
@@ -280,9 +279,9 @@ def agent_rewards(
     if not len(p):
         return rewards, terms_out, table.by_slot(p, np.zeros(0, bool), False)
     ids = [prev.ids[i] for i in p.tolist()]
-    # truth was sensed in the order of rows
+    # views are in the order of rows
     k = table.by_slot(rows.slots, np.arange(len(rows.r)))[prev.slots[p]]
-    terms, changed = _terms(cfg, hd, memory, snap, truth, k, now[p], p, ids, failed)
+    terms, changed = _terms(cfg, hd, memory, snap, views.front.take(k), now[p], p, ids, failed)
     slots = prev.slots[p]
     terms.update(traffic_terms(cfg.reward, hd, snap, now[p], table.route_table[slots],
                                table.route_len[slots], ring, desired))  # fmt: skip
@@ -297,12 +296,11 @@ def agent_rewards(
 
 
 def _terms(cfg: EnvConfig, hd: HDMap, memory: StepMemory, snap: TrafficSnapshot,
-           truth: PerceptionFrame, k: np.ndarray, r: np.ndarray, p: np.ndarray, ids: list[str],
+           front: FrontView, r: np.ndarray, p: np.ndarray, ids: list[str],
            failed: set[str]):  # fmt: skip
-    """Named reward terms (and completed lane changes) of the agents still present: truth
-    rows ``k``, snapshot rows ``r``, memory rows ``p``."""
+    """Named reward terms (and completed lane changes) of the agents still present: their
+    front view ``front``, snapshot rows ``r``, memory rows ``p``."""
     prev = memory
-    front = FrontView(snap, truth, k, r)
     rear_now = speeds_of(snap, [prev.rear_ids[i] for i in p.tolist()])
     lane = snap.lane[r]
     changed = lane_change_completed(prev.lane[p], lane, prev.edge[p], snap.edge[r])

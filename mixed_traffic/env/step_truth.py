@@ -9,21 +9,19 @@ import numpy as np
 
 from mixed_traffic.env.agent_table import FOLLOW, AgentTable, Rows, StepMemory
 from mixed_traffic.env.av_metrics import AVStep
-from mixed_traffic.env.truth import FrontView, rear_conventional, take_or_nan
-from mixed_traffic.sensing.frame import PerceptionFrame
+from mixed_traffic.env.truth import StepViews, take_or_nan
 from mixed_traffic.sensing.geometry import ttc
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
 
-def av_step(snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame, table: AgentTable,
+def av_step(snap: TrafficSnapshot, rows: Rows, views: StepViews, table: AgentTable,
             prev: StepMemory, rewards: dict[str, float], changed: np.ndarray,
             copy: np.ndarray | None = None) -> AVStep:  # fmt: skip
     """The AV metrics' sample of the live agents ``rows`` after a step (``prev``: the memory
-    of the step before; ``changed`` (N,) completed lane changes by agent number; ``copy``
-    (A,) the agents' copies)."""
+    of the step before; ``views`` the step's ground truth of ``rows``; ``changed`` (N,)
+    completed lane changes by agent number; ``copy`` (A,) the agents' copies)."""
     ids, r, n = rows.ids, rows.r, len(rows.ids)
-    front = FrontView(snap, truth, np.arange(len(r)), r)
-    rear_ids, rear_speed = rear_conventional(snap, truth)
+    front, rear_ids, rear_speed = views.front, views.rear_ids, views.rear_speed
     pi = table.by_slot(prev.slots, np.arange(len(prev.ids)))[rows.slots]  # -1: new agent
     prev_accel = np.where(pi >= 0, take_or_nan(prev.accel, pi), snap.accel[r])
     # the same conventional vehicle C behind the agent as at the previous step
@@ -41,15 +39,13 @@ def av_step(snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame, table: Ag
     )  # fmt: skip
 
 
-def step_memory(snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame,
+def step_memory(snap: TrafficSnapshot, rows: Rows, views: StepViews,
                 table: AgentTable) -> StepMemory:  # fmt: skip
     """Ground truth of this step that the next step's events and rewards compare against."""
     r = rows.r
-    rear_ids, rear_speed = rear_conventional(snap, truth)
     return StepMemory(
         ids=rows.ids, slots=rows.slots, accel=snap.accel[r].copy(),
         lane=snap.lane[r].astype(np.int64), edge=snap.edge[r].astype(np.int64),
         next_edge=table.next_edge(rows.slots, snap.route_index[r]),
-        front_gap=FrontView(snap, truth, np.arange(len(r)), r).gap, rear_ids=rear_ids,
-        rear_speed=rear_speed,
+        front_gap=views.front.gap, rear_ids=views.rear_ids, rear_speed=views.rear_speed,
     )  # fmt: skip

@@ -1,10 +1,11 @@
 """Ground-truth views the reward and metric stages read: the front vehicle of each agent, the
-conventional vehicle C behind it, speeds by vehicle id (all from one snapshot and one
-``PerceptionFrame`` of ground truth)."""
+conventional vehicle C behind it (both found once per step, :class:`StepViews`), speeds by
+vehicle id (all from one snapshot and one ``PerceptionFrame`` of ground truth)."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
+from dataclasses import dataclass
 from itertools import repeat
 
 import numpy as np
@@ -39,6 +40,31 @@ class FrontView:
         self.length = np.where(self.exists, feats[:, 3], 0.0)
         self.closing = np.where(self.exists, -feats[:, 1], snap.speed[r])
         self.gap = bumper_gap(self.distance, snap.length[r], self.length)
+
+    def take(self, k: np.ndarray) -> FrontView:
+        """The view of the agents at rows ``k`` of this one."""
+        out = object.__new__(FrontView)
+        for name in ("exists", "distance", "length", "closing", "gap"):
+            setattr(out, name, getattr(self, name)[k])
+        return out
+
+
+@dataclass(frozen=True)
+class StepViews:
+    """The ground truth a step's reward, metric and memory stages read, found once for the
+    agents of a ``PerceptionFrame`` (its rows, in order)."""
+
+    front: FrontView
+    """The front vehicle in each agent's lane."""
+    rear_ids: list[str]
+    """C, the conventional vehicle behind each agent ('' if none or an AV)."""
+    rear_speed: np.ndarray
+    """(A,) C's speed [m/s], nan without C."""
+
+    @classmethod
+    def of(cls, snap: TrafficSnapshot, truth: PerceptionFrame, r: np.ndarray) -> StepViews:
+        """The views of the agents at truth rows 0..A-1 and snapshot rows ``r`` (A,)."""
+        return cls(FrontView(snap, truth, np.arange(len(r)), r), *rear_conventional(snap, truth))
 
 
 def _kernel_dtypes(snap: TrafficSnapshot, truth: PerceptionFrame, k: np.ndarray,

@@ -12,8 +12,12 @@ policy run in it):
 * ``sumo_ratio``: the env's time per step and copy over SUMO's own step on the same joined
   network and demand with SUMO driving every vehicle (``sumo_drives_avs``), per copy.
 
-``ratio_to_single`` divides by the copies = 1 row of the same task and mode. RBP-DQN's
-collectors do not run batched worlds yet: no ``rbpdqn`` rows.
+* ``rbpdqn`` (``ring-v2`` rows): RBP-DQN's rollout worker collecting transitions as the
+  shipped ``auto-ring`` run did (its settings: wave rings with one AV and a random warm-up
+  that records nothing, decisions every 0.5 s), N copies per episode; collection only, no
+  learner updates.
+
+``ratio_to_single`` divides by the copies = 1 row of the same task and mode.
 """
 
 from __future__ import annotations
@@ -35,20 +39,20 @@ class ThroughputResult:
     task: str
     copies: int
     mode: str
-    """env (a fixed policy) | ppo (training updates included)."""
+    """env (a fixed policy) | ppo (training updates included) | rbpdqn (collection)."""
     decisions_per_s_per_core: float
     ratio_to_single: float
     """This row's decisions/s over copies = 1's, same task and mode."""
     sumo_ratio: float
     """Env step time per copy over SUMO-alone step time per copy, same N (env mode; NaN for
-    ppo)."""
+    the others, null in the JSON)."""
 
     def record(self) -> dict[str, object]:
         return {"section": "throughput", "task": self.task, "copies": self.copies,
                 "mode": self.mode,
                 "decisions_per_s_per_core": round(self.decisions_per_s_per_core, 1),
                 "ratio_to_single": round(self.ratio_to_single, 3),
-                "sumo_ratio": round(self.sumo_ratio, 3)}  # fmt: skip
+                "sumo_ratio": None if np.isnan(self.sumo_ratio) else round(self.sumo_ratio, 3)}  # fmt: skip
 
 
 def env_rate(task: str, copies: int, decisions: int) -> tuple[float, float]:
@@ -110,6 +114,34 @@ def ppo_rate(task: str, copies: int, rollouts: int) -> float:
         venv.close()
 
 
+def rbpdqn_rate(copies: int, decisions: int) -> float:
+    """Transitions per second that RBP-DQN's rollout worker collects with ``auto-ring``'s
+    training settings and ``copies`` copies (its untrained network driving, after one chunk
+    to warm up)."""
+    import json
+    import tempfile
+
+    from agents.collection.workers import RolloutWorker
+    from agents.training.config import TrainConfig
+    from agents.training.trainer import Trainer
+    from mixed_traffic.paths import REPO_ROOT
+
+    meta = json.loads((REPO_ROOT / "agents/checkpoints/auto_ring.json").read_text())
+    with tempfile.TemporaryDirectory() as out:
+        cfg = TrainConfig.from_dict({**meta["train_config"], "out": out, "workers": 1,
+                                     "copies": copies, "demo_steps": 0, "seed": 0})  # fmt: skip
+        trainer = Trainer(cfg)
+        worker = RolloutWorker(trainer.worker_specs()[0])
+        worker.set_weights(trainer.weights())
+        try:
+            worker.collect(copies * 8)
+            t0 = time.perf_counter()
+            got = len(worker.collect(decisions)["decision"])
+            return got / (time.perf_counter() - t0)
+        finally:
+            worker.close()
+
+
 def section_throughput(args: argparse.Namespace) -> list[ThroughputResult]:
     """Every (task, copies, mode) row, and a table."""
     out: list[ThroughputResult] = []
@@ -121,11 +153,13 @@ def section_throughput(args: argparse.Namespace) -> list[ThroughputResult]:
             rows = [("env", rate, env_s / sumo_s)]
             if task in args.throughput_ppo:
                 rows.append(("ppo", ppo_rate(task, n, args.throughput_rollouts), float("nan")))
+            if task == "ring-v2" and args.throughput_rbpdqn:
+                rows.append(("rbpdqn", rbpdqn_rate(n, args.throughput_rbpdqn), float("nan")))
             for mode, r, sumo_ratio in rows:
                 single.setdefault(mode, r)
                 out.append(ThroughputResult(task, n, mode, r, r / single[mode], sumo_ratio))
                 print(
-                    f"{task:16s} copies {n:3d} {mode:4s} {r:8.1f} decisions/s  "
+                    f"{task:16s} copies {n:3d} {mode:6s} {r:8.1f} decisions/s  "
                     f"x{r / single[mode]:5.2f}  env/SUMO per copy {sumo_ratio:5.2f}",
                     flush=True,
                 )
@@ -145,5 +179,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="throughput section: timed SUMO-alone steps (default: 300)")  # fmt: skip
     p.add_argument("--throughput-ppo", nargs="*", default=["ring-v2"],
                    help="throughput section: tasks that also time PPO training (default: ring-v2)")  # fmt: skip
+    p.add_argument("--throughput-rbpdqn", type=int, default=2000,
+                   help="throughput section: timed RBP-DQN transitions on ring-v2 rows "
+                   "(default: 2000; 0 = none)")  # fmt: skip
     p.add_argument("--throughput-rollouts", type=int, default=2,
                    help="throughput section: timed PPO rollouts and updates (default: 2)")  # fmt: skip

@@ -33,7 +33,7 @@ from mixed_traffic.provenance import (
     file_digest,
     read_records,
     record_meta,
-    rewrite_records,
+    records_of_this_code,
     write_record_atomic,
 )
 from mixed_traffic.schema import (
@@ -382,7 +382,7 @@ def run_sweep(sweep: SweepConfig, progress: bool = True, label: str = "") -> Pat
     returns the records file."""
     records_path = sweep.results / "records.jsonl"
     with exclusive_folder(sweep.results):  # a second run into the folder stops here
-        todo = _missing(sweep, _records_of_this_code(records_path))  # failed ones: again
+        todo = _missing(sweep, records_of_this_code(records_path))  # failed ones: again
         _run(todo, sweep, records_path, progress, label or f"{sweep.axis} sweep")
     if sweep.traffic:
         run_sweep(fd_sweep(sweep), progress, FD_LABEL)
@@ -412,30 +412,9 @@ def _run(todo: list[Cell], sweep: SweepConfig, records_path: Path, progress: boo
     bar.close()
 
 
-def _records_of_this_code(path: Path) -> list[dict]:
-    """The records in ``path`` written by this code. Those of other code (another ``code``
-    hash, or none) would count as done and mix into the report, so they move to
-    ``records.code-<theirs>.jsonl`` (written before ``path`` is rewritten: nothing is lost)."""
-    records, ours = read_records(path), current_code_key()
-    keep = [r for r in records if r.get("code") == ours]
-    if len(keep) == len(records):
-        return records
-    others = [r for r in records if r.get("code") != ours]
-    tag = "-".join(sorted({str(r.get("code") or "unknown") for r in others}))[:40]
-    aside, n = path.with_name(f"records.code-{tag}.jsonl"), 1
-    while aside.exists():
-        n += 1
-        aside = path.with_name(f"records.code-{tag}.{n}.jsonl")
-    rewrite_records(aside, others)
-    rewrite_records(path, keep)
-    print(f"{path}: {len(others)} record(s) of other code ({tag}) moved to {aside.name}; "
-          f"{len(keep)} kept", file=sys.stderr)  # fmt: skip
-    return keep
-
-
 def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar: tqdm) -> None:
     """At most ``workers`` cells at a time, each in its own process."""
-    ctx = _cell_context(learned=any(c.policy in LEARNED for c in todo))
+    ctx = cell_context(learned=any(c.policy in LEARNED for c in todo))
     queue: mp.Queue = ctx.Queue()
     running: dict[int, tuple[mp.Process, Cell, float]] = {}
     pending = list(todo)
@@ -448,7 +427,7 @@ def _run_processes(todo: list[Cell], sweep: SweepConfig, records_path: Path, bar
         _collect(queue, running, records_path, bar, sweep)
 
 
-def _cell_context(learned: bool) -> mp.context.BaseContext:
+def cell_context(learned: bool) -> mp.context.BaseContext:
     """Fork cells from a server that has imported the runner and loaded the compiled kernels
     (and torch with the learned policies) once: a fresh interpreter per cell paid 1-4 s of
     imports, and each cell about 0.5 s for the kernels' first call. The server itself

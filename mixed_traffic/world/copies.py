@@ -66,11 +66,16 @@ def vehicle_copy(vid: str, per_copy: int) -> int:
     return int(vid[1:dot]) if vid.startswith("c") and vid[1:dot].isdigit() else 0
 
 
+def copyable(scenario: Scenario) -> bool:
+    """Whether ``scenario`` can run several copies in one network (``FAMILIES``)."""
+    return scenario.source is not None and scenario.family in FAMILIES
+
+
 def check_copies(scenario: Scenario, copies: int) -> None:
     """ValueError naming the scenario unless it can run ``copies`` copies in one network."""
     if copies == 1:
         return
-    if scenario.source is None or scenario.family not in FAMILIES:
+    if not copyable(scenario):
         kind = "a user's network" if scenario.source is None else f"the {scenario.family} family"
         raise ValueError(f"copies={copies}: {scenario.name!r} is {kind}, whose vehicles SUMO "
                          f"may route anywhere; batched worlds support {', '.join(FAMILIES)}")  # fmt: skip
