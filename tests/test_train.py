@@ -380,6 +380,7 @@ def test_ray_backend_smoke_with_crash(tmp_path: Path) -> None:
         (["--env-steps", "10", "--decision-interval", "0"], "decision_interval"),
         (["--env-steps", "10", "--horizon", "0.4"], "horizon"),
         (["--env-steps", "10", "--n-step", "0"], "TrainConfig.n_step=0"),
+        (["--env-steps", "10", "--copies", "0"], "TrainConfig.copies=0"),
         (["--env-steps", "10", "--set-speed", "--no-residual"], "TrainConfig.set_speed=True"),
         (
             ["--env-steps", "10", "--twin", "--baseline", "p-ddpg"],
