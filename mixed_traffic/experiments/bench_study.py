@@ -92,11 +92,14 @@ def limit_episode(config: EnvConfig) -> None:
     env = MixedTrafficEnv(config=config, sumo_drives_avs=True, metrics=False)
     try:
         env.reset(seed=config.seed, options={"allow_no_agents": True})
-        backend, t = env._backend, env.sim_time
+        backend, t, safe = env._backend, env.sim_time, set()
         while t < config.episode_length - 1e-9:
             snap = env._advance()  # SUMO's step, the snapshot and the boundary
             av = np.flatnonzero(snap.is_av)
             ids = [snap.ids[i] for i in av.tolist()]
+            # an AV that entered has the env's speed mode, without SUMO's safety: release it
+            backend.release_control([v for v in ids if v not in safe])
+            safe.update(ids)
             backend.set_speeds(ids, snap.speed[av] + 1.0)
             backend.change_sublane(ids, np.zeros(len(ids)))
             t = snap.time
