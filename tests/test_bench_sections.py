@@ -24,6 +24,17 @@ def test_the_study_floor_runs_every_study_cell_with_sumo_driving(tmp_path) -> No
     assert any(c.penetration == 1.0 for c in floor)  # AVs present, driven by SUMO
 
 
+def test_the_study_limit_commands_every_av_and_keeps_them_safe() -> None:
+    """The limit's cell writes a command for every AV at every step (at least 10 AVs here),
+    and SUMO's safety keeps them from colliding."""
+    from mixed_traffic.config import EnvConfig
+    from mixed_traffic.experiments.bench_study import limit_episode
+
+    config = EnvConfig(scenario="straight", density=120.0, penetration=0.5, episode_length=20.0)
+    commands, collisions = limit_episode(config)
+    assert commands > 20 / 0.1 * 10 and collisions == 0
+
+
 def test_the_scale_section_prints_its_row(capsys) -> None:
     argv = ["--section", "scale", "--json", "--scale-avs", "20", "40", "--scale-steps", "3",
             "--city-grid", "3", "--city-episode", "1"]  # fmt: skip

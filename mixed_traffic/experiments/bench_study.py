@@ -85,14 +85,15 @@ def floor_cells(sweep) -> list:
     return [replace(c, policy="idm") for c in todo]
 
 
-def limit_episode(config: EnvConfig) -> None:
-    """One cell of the limit (module docstring): no env stage, every AV commanded each step."""
+def limit_episode(config: EnvConfig) -> tuple[int, int]:
+    """One cell of the limit (module docstring): no env stage, every AV commanded each step;
+    (AV commands written, collisions)."""
     from mixed_traffic.env.parallel import MixedTrafficEnv
 
     env = MixedTrafficEnv(config=config, sumo_drives_avs=True, metrics=False)
     try:
         env.reset(seed=config.seed, options={"allow_no_agents": True})
-        backend, t, safe = env._backend, env.sim_time, set()
+        backend, t, safe, commands, collisions = env._backend, env.sim_time, set(), 0, 0
         while t < config.episode_length - 1e-9:
             snap = env._advance()  # SUMO's step, the snapshot and the boundary
             av = np.flatnonzero(snap.is_av)
@@ -102,9 +103,14 @@ def limit_episode(config: EnvConfig) -> None:
             safe.update(ids)
             backend.set_speeds(ids, snap.speed[av] + 1.0)
             backend.change_sublane(ids, np.zeros(len(ids)))
-            t = snap.time
+            t, commands, collisions = (
+                snap.time,
+                commands + len(ids),
+                collisions + len(snap.collisions),
+            )
     finally:
         env.close()
+    return commands, collisions
 
 
 def run_limit(configs: list[EnvConfig], workers: int, progress: bool = True) -> None:
