@@ -86,7 +86,7 @@ from mixed_traffic.env.step_output import BatchStep, add_entered, api_dicts, bat
 from mixed_traffic.env.step_truth import av_step, step_memory
 from mixed_traffic.env.sumo_sync import fan_choices, follow_sumo_routes, give_way_gates
 from mixed_traffic.env.termination import agent_events
-from mixed_traffic.env.truth import SpeedView, StepViews, gather
+from mixed_traffic.env.truth import SpeedView, StepViews
 from mixed_traffic.paths import scratch_dir
 from mixed_traffic.sensing.extras import ExtraKeys
 from mixed_traffic.sensing.frame import PerceptionFrame
@@ -167,7 +167,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._tls: dict[str, str] = {}
         self._tls_prev: dict[str, str] = {}
         self._memory = StepMemory()
-        self._step_truth: tuple[Rows, PerceptionFrame] | None = None
+        self._step_views: tuple[Rows, StepViews] | None = None
         self._batches = StepBatches()  # observation arrays (observation_batch, last ones)
         self._phase = "new"  # new -> running -> ended (time limit) | closed
         self._replaced: set[str] = set()  # agents whose decision the mask forbade this step
@@ -311,7 +311,7 @@ class MixedTrafficEnv(ParallelEnv):
         self._record(snap, rows, views, rewards, changed)  # metrics
         self._remember(snap, rows, views)
         obs = self._observe(snap, rows, sensed, dicts)  # observation
-        self._step_truth = (rows, truth)  # reused if agents enter in _finish
+        self._step_views = (rows, views)  # joined if agents enter in _finish
         return self._finish(snap, obs, rewards, terms, events, dicts)
 
     def _idles(self) -> bool:
@@ -515,19 +515,20 @@ class MixedTrafficEnv(ParallelEnv):
     def _remember_new(self, snap: TrafficSnapshot, rows: Rows, truth: PerceptionFrame) -> None:
         """Add entering agents (``rows``, their ground truth ``truth``) to the memory.
 
-        Ground truth is per agent (same snapshot, same route), so the other agents' rows come
-        from this step's perception instead of sensing everyone again; the noise generator
-        still advances as that second full ``sense`` did, so later noise is unchanged.
+        Ground truth is per agent (same snapshot, same route), so the other agents' views come
+        from this step's instead of sensing and searching for everyone again; the noise
+        generator still advances as that second full ``sense`` did, so later noise is
+        unchanged.
         """
         table = self._table
         all_rows = table.live_rows(snap)
         self._perception.skip_noise(len(all_rows), self._noise_rng)
-        step_rows, step_truth = self._step_truth
+        step_rows, step_views = self._step_views
         n_step = len(step_rows.ids)
         at = table.by_slot(step_rows.slots, np.arange(n_step))
         at[rows.slots] = n_step + np.arange(len(rows.ids))  # entering: their new route wins
-        joined = gather(step_truth, truth, at[all_rows.slots])
-        self._remember(snap, all_rows, StepViews.of(snap, joined, all_rows.r))
+        entering = StepViews.of(snap, truth, rows.r)
+        self._remember(snap, all_rows, step_views.joined(entering, at[all_rows.slots]))
 
     def observation_batch(self, agents: Sequence[str] | None = None) -> dict[str, np.ndarray]:
         """``{key: (A, ...)}`` the observations of ``agents`` (default: the live agents) as the

@@ -261,9 +261,10 @@ def agent_rewards(
     desired: np.ndarray | None = None, dicts: bool = True,
 ):  # fmt: skip
     """Reward, named terms and completed lane changes (bool per agent number) of every
-    agent that acted (``views``: the step's ground truth of ``rows``); ``ring``: the network is a ring (for r5, r6 and r8); ``desired``: (L,)
-    r8's reference speed on each lane [m/s] (0 or None = the lane limits); ``dicts`` False: the named terms only of
-    agents that left the network (the others' stay arrays, unbuilt)."""
+    agent that acted (``views``: the step's ground truth of ``rows``); ``ring``: the network is
+    a ring (for r5, r6 and r8); ``desired``: (L,) r8's reference speed on each lane [m/s] (0 or
+    None = the lane limits); ``dicts`` False: the named terms only of agents that left the
+    network (the others' stay arrays, unbuilt)."""
     prev = memory
     rewards: dict[str, float] = {}
     terms_out: dict[str, dict[str, float]] = {}

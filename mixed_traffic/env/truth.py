@@ -15,7 +15,6 @@ from mixed_traffic.env import control_kernel
 from mixed_traffic.sensing.frame import PerceptionFrame
 from mixed_traffic.sensing.geometry import bumper_gap
 from mixed_traffic.sensing.lane_graph import CURRENT
-from mixed_traffic.sensing.neighbours import Neighbours
 from mixed_traffic.world.snapshot import TrafficSnapshot
 
 
@@ -41,11 +40,14 @@ class FrontView:
         self.closing = np.where(self.exists, -feats[:, 1], snap.speed[r])
         self.gap = bumper_gap(self.distance, snap.length[r], self.length)
 
-    def take(self, k: np.ndarray) -> FrontView:
-        """The view of the agents at rows ``k`` of this one."""
+    def take(self, k: np.ndarray, then: FrontView | None = None) -> FrontView:
+        """The view of the agents at rows ``k`` of this one (with ``then``: of this one's rows
+        and then's, stacked)."""
         out = object.__new__(FrontView)
         for name in ("exists", "distance", "length", "closing", "gap"):
-            setattr(out, name, getattr(self, name)[k])
+            mine = getattr(self, name)
+            rows = mine if then is None else np.concatenate([mine, getattr(then, name)])
+            setattr(out, name, rows[k])
         return out
 
 
@@ -66,6 +68,16 @@ class StepViews:
         """The views of the agents at truth rows 0..A-1 and snapshot rows ``r`` (A,)."""
         return cls(FrontView(snap, truth, np.arange(len(r)), r), *rear_conventional(snap, truth))
 
+    def joined(self, then: StepViews, idx: np.ndarray) -> StepViews:
+        """Rows ``idx`` of this step's views and ``then``'s stacked (this one's agents first):
+        each agent's views are its own, so those of agents that entered later in the step
+        join without a new search."""
+        if (idx < 0).any():
+            raise RuntimeError("an agent's ground truth is missing")  # would be a bug in _finish
+        rear = [*self.rear_ids, *then.rear_ids]
+        return StepViews(self.front.take(idx, then.front), [rear[i] for i in idx.tolist()],
+                         np.concatenate([self.rear_speed, then.rear_speed])[idx])  # fmt: skip
+
 
 def _kernel_dtypes(snap: TrafficSnapshot, truth: PerceptionFrame, k: np.ndarray,
                    r: np.ndarray) -> bool:  # fmt: skip
@@ -75,22 +87,6 @@ def _kernel_dtypes(snap: TrafficSnapshot, truth: PerceptionFrame, k: np.ndarray,
     pairs = ((nb.vehicle, i), (nb.distance, f), (truth.vehicles, f), (snap.speed, f),
              (snap.length, f), (k, i), (r, i))  # fmt: skip
     return all(x.dtype == t and x.flags.c_contiguous for x, t in pairs)
-
-
-def gather(a: PerceptionFrame, b: PerceptionFrame, idx: np.ndarray) -> PerceptionFrame:
-    """Rows ``idx`` of the frames ``a`` and ``b`` stacked (a's agents first)."""
-    if (idx < 0).any():
-        raise RuntimeError("an agent's ground truth is missing")  # would be a bug in _finish
-
-    def cat(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-        return np.concatenate([x, y])[idx]
-
-    na, nb = a.neighbours, b.neighbours
-    return PerceptionFrame(
-        Neighbours(cat(na.lane, nb.lane), cat(na.vehicle, nb.vehicle), cat(na.distance, nb.distance)),
-        cat(a.vehicles, b.vehicles), cat(a.ego, b.ego), cat(a.light_state, b.light_state),
-        cat(a.light_dist, b.light_dist), cat(a.give_way, b.give_way),
-    )  # fmt: skip
 
 
 def rear_conventional(

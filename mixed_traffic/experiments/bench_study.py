@@ -103,11 +103,9 @@ def limit_episode(config: EnvConfig) -> tuple[int, int]:
             safe.update(ids)
             backend.set_speeds(ids, snap.speed[av] + 1.0)
             backend.change_sublane(ids, np.zeros(len(ids)))
-            t, commands, collisions = (
-                snap.time,
-                commands + len(ids),
-                collisions + len(snap.collisions),
-            )
+            commands += len(ids)
+            collisions += len(snap.collisions)
+            t = snap.time
     finally:
         env.close()
     return commands, collisions
